@@ -1,0 +1,356 @@
+"""Read and validate case files (TOML, data only: nothing in a case file is executed).
+
+Every mistake is reported as :class:`~natcoord.errors.CaseError` naming the file, the field
+and the reason. Quantities are SI numbers, or strings with a unit such as ``"45 deg"`` or
+``"300 mm"``; a unit of the wrong dimension is an error.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CaseError
+from .mechanism import (
+    BODY_KINDS,
+    CHANNEL_KINDS,
+    GROUND,
+    JOINT_TYPES,
+    Body,
+    Case,
+    Channel,
+    EngineSpec,
+    Force,
+    Joint,
+    Pose,
+)
+
+# unit -> (factor to SI, dimension)
+UNITS = {
+    "m": (1.0, "length"), "mm": (1e-3, "length"), "cm": (1e-2, "length"),
+    "kg": (1.0, "mass"), "g": (1e-3, "mass"),
+    "s": (1.0, "time"), "ms": (1e-3, "time"),
+    "rad": (1.0, "angle"), "deg": (math.pi / 180, "angle"),
+    "rad/s": (1.0, "angular velocity"), "deg/s": (math.pi / 180, "angular velocity"),
+    "m/s": (1.0, "velocity"), "mm/s": (1e-3, "velocity"),
+    "m/s^2": (1.0, "acceleration"),
+    "N": (1.0, "force"), "N m": (1.0, "torque"), "Nm": (1.0, "torque"),
+    "kg m^2": (1.0, "inertia"), "J": (1.0, "energy"),
+}
+KNOWN_ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
+TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
+            "bodies", "joints", "forces", "initial", "channels", "engines", "tags"}
+
+
+class _Reader:
+    """Typed access to a parsed TOML table that reports errors with their field path."""
+
+    def __init__(self, file: str):
+        self.file = file
+
+    def fail(self, field: str, reason: str):
+        raise CaseError(self.file, field, reason)
+
+    def get(self, table: dict, key: str, path: str, *, required=True, default=None):
+        if key not in table:
+            if required:
+                self.fail(_join(path, key), "missing required field")
+            return default
+        return table[key]
+
+    def table(self, table, key, path, *, required=True) -> dict:
+        v = self.get(table, key, path, required=required, default={})
+        if not isinstance(v, dict):
+            self.fail(_join(path, key), f"must be a table, got {type(v).__name__}")
+        return v
+
+    def string(self, table, key, path, *, required=True, default=None, choices=None) -> str:
+        v = self.get(table, key, path, required=required, default=default)
+        if v is None:
+            return v
+        if not isinstance(v, str) or not v:
+            self.fail(_join(path, key), f"must be a non-empty string, got {v!r}")
+        if choices and v not in choices:
+            self.fail(_join(path, key), f"unknown value {v!r}; expected one of {', '.join(choices)}")
+        return v
+
+    def quantity(self, value, field: str, dimension: str, *, positive=False) -> float:
+        if isinstance(value, bool):
+            self.fail(field, f"must be a number ({dimension}), got {value!r}")
+        if isinstance(value, (int, float)):
+            x = float(value)
+        elif isinstance(value, str):
+            parts = value.strip().split(maxsplit=1)
+            try:
+                number = float(parts[0])
+            except (ValueError, IndexError):
+                self.fail(field, f"cannot read {value!r} as a number with a unit")
+            unit = parts[1].strip() if len(parts) > 1 else ""
+            if unit not in UNITS:
+                self.fail(field, f"unknown unit {unit!r} in {value!r}")
+            factor, dim = UNITS[unit]
+            if dim != dimension:
+                self.fail(field, f"expected a {dimension}, got {value!r} (a {dim})")
+            x = number * factor
+        else:
+            self.fail(field, f"must be a number ({dimension}), got {type(value).__name__}")
+        if not math.isfinite(x):
+            self.fail(field, f"must be finite, got {value!r}")
+        if positive and x <= 0:
+            self.fail(field, f"must be positive, got {value!r}")
+        return x
+
+    def number(self, table, key, path, dimension, *, required=True, default=None,
+               positive=False) -> float:
+        v = self.get(table, key, path, required=required, default=default)
+        if v is None:
+            return v
+        return self.quantity(v, _join(path, key), dimension, positive=positive)
+
+    def vector(self, value, field: str, dim: int, dimension: str) -> np.ndarray:
+        if not isinstance(value, list) or len(value) != dim:
+            self.fail(field, f"must be a list of {dim} numbers ({dimension}), got {value!r}")
+        return np.array([self.quantity(v, f"{field}[{i}]", dimension) for i, v in enumerate(value)])
+
+
+def _join(path: str, key) -> str:
+    return f"{path}.{key}" if path else str(key)
+
+
+def load_case(path: str | Path) -> Case:
+    """Parse and validate one case file.
+
+    Raises
+    ------
+    CaseError
+        With file, field and reason, for every malformed or inconsistent input.
+    """
+    path = Path(path)
+    r = _Reader(str(path))
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        r.fail("", "no such case file")
+    except UnicodeDecodeError as e:
+        r.fail("", f"not UTF-8 text ({e.reason})")
+    except tomllib.TOMLDecodeError as e:
+        r.fail("", f"not valid TOML: {e}")
+    unknown = sorted(set(data) - TOP_KEYS)
+    if unknown:
+        r.fail(unknown[0], f"unknown field; expected some of {', '.join(sorted(TOP_KEYS))}")
+
+    name = r.string(data, "name", "")
+    if name != path.stem:
+        r.fail("name", f"{name!r} must equal the file name {path.stem!r}")
+    dim = r.get(data, "dimension", "")
+    if dim != 2:
+        r.fail("dimension", f"must be 2 (3-D cases come with the 3-D joints), got {dim!r}")
+    gravity = r.vector(r.get(data, "gravity", ""), "gravity", dim, "acceleration")
+    duration = r.number(data, "duration", "", "time", positive=True)
+    output_dt = r.number(data, "output_dt", "", "time", positive=True)
+    if output_dt > duration or abs(duration / output_dt - round(duration / output_dt)) > 1e-9:
+        r.fail("output_dt", f"must divide duration {duration} s, got {output_dt} s")
+
+    ground = {}
+    gtable = r.table(data, "ground", "", required=False)
+    for pname, value in r.table(gtable, "points", "ground", required=False).items():
+        ground[pname] = r.vector(value, f"ground.points.{pname}", dim, "length")
+
+    bodies = tuple(_body(r, b, i, dim) for i, b in enumerate(_array(r, data, "bodies")))
+    names = [b.name for b in bodies]
+    for i, n in enumerate(names):
+        if n == GROUND:
+            r.fail(f"bodies[{i}].name", f"{GROUND!r} is reserved for the fixed frame")
+        if names.index(n) != i:
+            r.fail(f"bodies[{i}].name", f"duplicate body name {n!r}")
+    points_of = {b.name: b.points for b in bodies} | {GROUND: ground}
+
+    joints = tuple(_joint(r, j, i, dim, points_of) for i, j in enumerate(_array(r, data, "joints")))
+    jnames = [j.name for j in joints]
+    for i, n in enumerate(jnames):
+        if jnames.index(n) != i:
+            r.fail(f"joints[{i}].name", f"duplicate joint name {n!r}")
+
+    forces = []
+    for i, f in enumerate(_array(r, data, "forces", required=False)):
+        p = f"forces[{i}]"
+        ftype = r.string(f, "type", p, choices=("torque",))
+        body = r.string(f, "body", p)
+        if body not in names:
+            r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(names)}")
+        forces.append(Force(ftype, body, r.number(f, "value", p, "torque")))
+
+    channels = _channels(r, r.table(data, "channels", ""), names, points_of, joints)
+    init = r.table(data, "initial", "")
+    guess = {}
+    for bname, pose in r.table(init, "pose", "initial").items():
+        p = f"initial.pose.{bname}"
+        if bname not in names:
+            r.fail(p, f"unknown body {bname!r}; bodies are {', '.join(names)}")
+        if not isinstance(pose, dict):
+            r.fail(p, "must be a table {origin = [x, y], angle = ...}")
+        guess[bname] = Pose(r.vector(r.get(pose, "origin", p), f"{p}.origin", dim, "length"),
+                            r.number(pose, "angle", p, "angle", required=False, default=0.0))
+    missing = [n for n in names if n not in guess]
+    if missing:
+        r.fail("initial.pose", f"no initial pose for body {missing[0]!r}")
+    fix = _channel_values(r, init, "fix", channels, ("angle", "position"))
+    velocity = _channel_values(r, init, "velocity", channels, ("angle", "position"))
+
+    engines = {}
+    for ename, spec in r.table(data, "engines", "", required=False).items():
+        p = f"engines.{ename}"
+        if ename not in KNOWN_ENGINES:
+            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(KNOWN_ENGINES)}")
+        tol = {}
+        for key, value in r.table(spec, "tolerance", p, required=False).items():
+            if key not in CHANNEL_KINDS and key not in {c.name for c in channels}:
+                r.fail(f"{p}.tolerance.{key}", "neither a channel name nor a channel kind")
+            tol[key] = r.quantity(value, f"{p}.tolerance.{key}", _kind_dim(key, channels),
+                                  positive=True)
+        engines[ename] = EngineSpec(
+            settings=r.table(spec, "settings", p, required=False),
+            tolerance=tol,
+            reason=r.string(spec, "reason", p, required=bool(tol), default=""),
+            unsupported=r.string(spec, "unsupported", p, required=False, default=""),
+        )
+    tags = tuple(r.get(data, "tags", "", required=False, default=[]))
+    case = Case(name=name, description=r.string(data, "description", ""), file=str(path),
+                dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
+                ground=ground, bodies=bodies, joints=joints, forces=tuple(forces),
+                guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
+                tags=tags)
+    return case
+
+
+def _kind_dim(key: str, channels) -> str:
+    kind = key if key in CHANNEL_KINDS else next(c.kind for c in channels if c.name == key)
+    return {"angle": "angle", "position": "length", "velocity": "velocity",
+            "reaction": "force", "energy": "energy"}[kind]
+
+
+def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
+    v = r.get(data, key, "", required=required, default=[])
+    if not isinstance(v, list) or not all(isinstance(x, dict) for x in v):
+        r.fail(key, f"must be an array of tables ([[{key}]]), got {type(v).__name__}")
+    if required and not v:
+        r.fail(key, "must not be empty")
+    return v
+
+
+def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
+    p = f"bodies[{i}]"
+    name = r.string(b, "name", p)
+    p = f"bodies[{i}] ({name})"
+    kind = r.string(b, "kind", p, choices=BODY_KINDS)
+    mass = r.number(b, "mass", p, "mass", positive=True)
+    pts = r.table(b, "points", p)
+    points = {k: r.vector(v, f"{p}.points.{k}", dim, "length") for k, v in pts.items()}
+    need = 1 if kind == "particle" else 2
+    if len(points) < need:
+        r.fail(f"{p}.points", f"a {kind} needs at least {need} named point(s)")
+    if kind == "particle":
+        if len(points) != 1:
+            r.fail(f"{p}.points", "a particle has exactly one point")
+        com, inertia = next(iter(points.values())), 0.0
+    else:
+        a, c = list(points.values())[:2]
+        length = float(np.linalg.norm(c - a))
+        if length < 1e-9:
+            r.fail(f"{p}.points", "the first two points coincide; they define the body's axis")
+        if kind == "uniform_rod":
+            com, inertia = (a + c) / 2, mass * length**2 / 12
+        else:
+            com = r.vector(r.get(b, "com", p), f"{p}.com", dim, "length")
+            inertia = r.number(b, "inertia", p, "inertia")
+            if inertia < 0:
+                r.fail(f"{p}.inertia", f"must be >= 0, got {inertia}")
+    return Body(name, kind, mass, points, com, inertia)
+
+
+def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
+    p = f"joints[{i}]"
+    name = r.string(j, "name", p)
+    p = f"joints[{i}] ({name})"
+    jtype = r.string(j, "type", p, choices=JOINT_TYPES)
+    bodies = r.get(j, "bodies", p)
+    if not (isinstance(bodies, list) and len(bodies) == 2 and all(isinstance(x, str) for x in bodies)):
+        r.fail(f"{p}.bodies", f"must be two body names, got {bodies!r}")
+    if bodies[0] == bodies[1]:
+        r.fail(f"{p}.bodies", f"a joint needs two different bodies, got {bodies!r}")
+    for b in bodies:
+        if b not in points_of:
+            r.fail(f"{p}.bodies", f"unknown body {b!r}; bodies are {', '.join(points_of)}")
+    pts = r.get(j, "points", p)
+    if not (isinstance(pts, list) and len(pts) == 2 and all(isinstance(x, str) for x in pts)):
+        r.fail(f"{p}.points", f"must be two point names (one on each body), got {pts!r}")
+    for b, pt in zip(bodies, pts):
+        if pt not in points_of[b]:
+            r.fail(f"{p}.points", f"body {b!r} has no point {pt!r}; it has "
+                   f"{', '.join(points_of[b]) or 'none'}")
+    axis = None
+    if jtype == "prismatic":
+        axis = r.vector(r.get(j, "axis", p), f"{p}.axis", dim, "length")
+        norm = np.linalg.norm(axis)
+        if norm < 1e-12:
+            r.fail(f"{p}.axis", "must not be zero")
+        axis = axis / norm
+    return Joint(name, jtype, (bodies[0], bodies[1]), (pts[0], pts[1]), axis)
+
+
+def _channels(r, table: dict, bodies, points_of, joints) -> tuple[Channel, ...]:
+    out = []
+    jnames = [j.name for j in joints]
+    for name, c in table.items():
+        p = f"channels.{name}"
+        if not isinstance(c, dict):
+            r.fail(p, "must be a table {kind = ..., ...}")
+        kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
+        body = point = joint = axis = None
+        if kind in ("angle", "position", "velocity"):
+            body = r.string(c, "body", p)
+            if body not in bodies:
+                r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
+        if kind in ("position", "velocity"):
+            point = r.string(c, "point", p)
+            if point not in points_of[body]:
+                r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
+            axis = r.string(c, "axis", p, choices=("x", "y"))
+        if kind == "reaction":
+            joint = r.string(c, "joint", p)
+            if joint not in jnames:
+                r.fail(f"{p}.joint", f"unknown joint {joint!r}; joints are {', '.join(jnames)}")
+            axis = r.string(c, "axis", p, choices=("x", "y", "normal"))
+            jt = joints[jnames.index(joint)]
+            if axis == "normal" and jt.type != "prismatic":
+                r.fail(f"{p}.axis", f"'normal' needs a prismatic joint; {joint!r} is {jt.type}")
+        out.append(Channel(name, kind, body, point, joint, axis))
+    if not out:
+        r.fail("channels", "must define at least one channel")
+    return tuple(out)
+
+
+def _channel_values(r, init: dict, key: str, channels, kinds) -> dict[str, float]:
+    by_name = {c.name: c for c in channels}
+    out = {}
+    for name, value in r.table(init, key, "initial").items():
+        p = f"initial.{key}.{name}"
+        if name not in by_name:
+            r.fail(p, f"unknown channel {name!r}; channels are {', '.join(by_name)}")
+        ch = by_name[name]
+        if ch.kind not in kinds:
+            r.fail(p, f"channel {name!r} is a {ch.kind}; only {' or '.join(kinds)} channels "
+                   "can set the initial state")
+        dim = {"angle": "angle", "position": "length"}[ch.kind]
+        if key == "velocity":
+            dim = {"angle": "angular velocity", "position": "velocity"}[ch.kind]
+        out[name] = r.quantity(value, p, dim)
+    return out
+
+
+def load_cases(directory: str | Path = "cases") -> dict[str, Case]:
+    """Load every ``*.toml`` in ``directory``, keyed by case name (sorted)."""
+    return {p.stem: load_case(p) for p in sorted(Path(directory).glob("*.toml"))}

@@ -1,0 +1,31 @@
+"""Errors a user can act on: each names where the problem is and what it is."""
+
+from __future__ import annotations
+
+
+class NatcoordError(Exception):
+    """Base class of every error natcoord raises on purpose."""
+
+
+class CaseError(NatcoordError):
+    """A case file is malformed: names the file, the field and the reason.
+
+    The command line prints ``str(error)`` and exits with status 2.
+    """
+
+    def __init__(self, file: str, field: str, reason: str):
+        self.file, self.field, self.reason = str(file), field, reason
+        super().__init__(f"{self.file}: {field}: {reason}" if field else f"{self.file}: {reason}")
+
+
+class AssemblyError(NatcoordError):
+    """The constraints cannot be met from the given initial guess."""
+
+
+class ExistenceError(NatcoordError):
+    """ker M ∩ ker Phi_q ≠ {0}: a motion allowed by the constraints carries no kinetic energy
+    (García de Jalón & Gutiérrez-López, Eq. (37)), so accelerations are not determined."""
+
+
+class Unsupported(NatcoordError):
+    """An engine cannot model part of a case; the message says which part and why."""

@@ -1,0 +1,205 @@
+"""Engine-neutral description of a mechanism and its scenario.
+
+Every engine adapter and natcoord's own model are built from these frozen objects; none of
+them is mutated after :func:`natcoord.casefile.load_case` returns. All quantities are SI
+(m, kg, s, N, rad).
+
+Conventions
+-----------
+* A body frame is attached to each body; named points are given in that frame.
+* 2-D: a pose is ``(x, y, angle)``; the angle of a body is the angle of its frame's x axis
+  from world +x, counter-clockwise positive.
+* A joint joins ``bodies[0]`` and ``bodies[1]`` at ``points[0]`` (on the first) and
+  ``points[1]`` (on the second). Its reaction is the force the joint applies to the second
+  body, in world axes (DESIGN.md, Sec. 2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+GROUND = "ground"
+
+BODY_KINDS = ("uniform_rod", "particle", "rigid")
+JOINT_TYPES = ("revolute", "prismatic")
+FORCE_TYPES = ("torque",)
+CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy")
+
+
+@dataclass(frozen=True)
+class Body:
+    """A rigid body or a particle.
+
+    Attributes
+    ----------
+    name : str
+    kind : {"uniform_rod", "particle", "rigid"}
+    mass : float, kg
+    points : dict[str, ndarray (d,)]
+        Named points in the body frame, m. Insertion order matters: the first two points
+        are the body's basic points in natural coordinates (one for a particle).
+    com : ndarray (d,)
+        Centre of mass in the body frame, m.
+    inertia : float
+        2-D: moment of inertia about the centre of mass, kg m^2.
+    """
+
+    name: str
+    kind: str
+    mass: float
+    points: dict[str, np.ndarray]
+    com: np.ndarray
+    inertia: float
+
+
+@dataclass(frozen=True)
+class Joint:
+    """A joint between two bodies (``ground`` allowed as either).
+
+    Attributes
+    ----------
+    name : str
+    type : {"revolute", "prismatic"}
+    bodies : tuple[str, str]
+    points : tuple[str, str]
+        The joint point on each body.
+    axis : ndarray (d,) or None
+        Prismatic: sliding direction in the first body's frame (unit vector).
+    """
+
+    name: str
+    type: str
+    bodies: tuple[str, str]
+    points: tuple[str, str]
+    axis: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Force:
+    """An applied load. ``torque``: constant moment ``value`` (N m) on ``body``."""
+
+    type: str
+    body: str
+    value: float
+
+
+@dataclass(frozen=True)
+class Channel:
+    """A named output: what to measure and in which component.
+
+    kind ``angle`` (body), ``position``/``velocity`` (body, point, axis x|y|z),
+    ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational, J).
+    """
+
+    name: str
+    kind: str
+    body: str | None = None
+    point: str | None = None
+    joint: str | None = None
+    axis: str | None = None
+
+    @property
+    def unit(self) -> str:
+        return {"angle": "rad", "position": "m", "velocity": "m/s", "reaction": "N",
+                "energy": "J"}[self.kind]
+
+
+@dataclass(frozen=True)
+class EngineSpec:
+    """Per-engine settings and tolerances of a case, with the reason they are what they are.
+
+    ``tolerance`` maps a channel name or a channel kind to a maximum absolute error (SI).
+    """
+
+    settings: dict = field(default_factory=dict)
+    tolerance: dict[str, float] = field(default_factory=dict)
+    reason: str = ""
+    unsupported: str = ""
+
+    def tolerance_for(self, channel: Channel) -> float | None:
+        return self.tolerance.get(channel.name, self.tolerance.get(channel.kind))
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Approximate initial pose of a body frame: origin (m) and angle (rad)."""
+
+    origin: np.ndarray
+    angle: float = 0.0
+
+
+@dataclass(frozen=True)
+class Case:
+    """A mechanism plus its scenario, as read from one case file."""
+
+    name: str
+    description: str
+    file: str
+    dimension: int
+    gravity: np.ndarray
+    duration: float
+    output_dt: float
+    ground: dict[str, np.ndarray]
+    bodies: tuple[Body, ...]
+    joints: tuple[Joint, ...]
+    forces: tuple[Force, ...]
+    guess: dict[str, Pose]
+    fix: dict[str, float]
+    velocity: dict[str, float]
+    channels: tuple[Channel, ...]
+    engines: dict[str, EngineSpec]
+    tags: tuple[str, ...] = ()
+
+    @property
+    def times(self) -> np.ndarray:
+        """Output sample times, s: (T,)."""
+        n = int(round(self.duration / self.output_dt))
+        return np.linspace(0.0, n * self.output_dt, n + 1)
+
+    def body(self, name: str) -> Body:
+        return next(b for b in self.bodies if b.name == name)
+
+    def joint(self, name: str) -> Joint:
+        return next(j for j in self.joints if j.name == name)
+
+    def channel(self, name: str) -> Channel:
+        return next(c for c in self.channels if c.name == name)
+
+    def engine(self, name: str) -> EngineSpec:
+        return self.engines.get(name, EngineSpec())
+
+
+def spanning_tree(case: Case) -> tuple[list[Joint], list[Joint]]:
+    """Split the joints into a tree rooted at the ground and the loop-closing rest.
+
+    Breadth-first from ``ground`` in file order, so every adapter cuts the same loops.
+    Tree joints are returned parent-first and oriented so that ``bodies[0]`` is the parent;
+    an oriented joint keeps its name, and its reaction sign is handled by
+    :func:`tree_orientation`.
+    """
+    reached = {GROUND}
+    tree: list[Joint] = []
+    remaining = list(case.joints)
+    progress = True
+    while progress:
+        progress = False
+        for j in list(remaining):
+            a, b = j.bodies
+            if (a in reached) != (b in reached):
+                tree.append(j)
+                reached.add(b if a in reached else a)
+                remaining.remove(j)
+                progress = True
+                break
+    return tree, remaining
+
+
+def tree_orientation(joint: Joint, parent: str) -> int:
+    """+1 when ``joint.bodies[0]`` is the tree parent, -1 when the joint points child-first.
+
+    Multiply a force computed as "parent on child" by this sign to get the case convention
+    "joint on its second body".
+    """
+    return 1 if joint.bodies[0] == parent else -1

@@ -1,0 +1,137 @@
+"""What an engine run returns: neutral motion, named channels, status and costs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+import pandas as pd
+
+from .mechanism import Case
+
+
+class Status(StrEnum):
+    """Outcome of one case x engine run."""
+
+    OK = "ok"
+    FAILED = "failed"  # the engine ran and crashed, hung, diverged or returned NaN
+    UNSUPPORTED = "unsupported"  # the engine cannot model the case; reason says what
+    SKIPPED = "skipped"  # not run here (engine package missing, or not asked for)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Raw engine output at the case's sample times, in natcoord's neutral convention.
+
+    Attributes
+    ----------
+    t : (T,) sample times, s
+    origin : body -> (T, d) world position of the body frame origin, m
+    angle : body -> (T,) angle of the body frame x axis from world +x, rad (2-D)
+    velocity : body -> (T, d) world velocity of the body frame origin, m/s
+    omega : body -> (T,) angular velocity, rad/s (2-D)
+    joint_force : joint -> (T, d) force the joint applies to its *second* body, world
+        axes, N. A joint an engine cannot report is absent; its channels become NaN.
+    """
+
+    t: np.ndarray
+    origin: dict[str, np.ndarray]
+    angle: dict[str, np.ndarray]
+    velocity: dict[str, np.ndarray]
+    omega: dict[str, np.ndarray]
+    joint_force: dict[str, np.ndarray] = field(default_factory=dict)
+
+
+def _rot(angle: np.ndarray) -> np.ndarray:
+    """(T,) angles -> (T, 2, 2) rotation matrices."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def point_position(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World position (T, 2) of a body-frame point (2,)."""
+    return motion.origin[body] + _rot(motion.angle[body]) @ point
+
+
+def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World velocity (T, 2) of a body-frame point (2,): v_O + omega x (R p)."""
+    rp = _rot(motion.angle[body]) @ point
+    w = motion.omega[body][:, None]
+    return motion.velocity[body] + w * np.stack([-rp[:, 1], rp[:, 0]], -1)
+
+
+def energy(case: Case, motion: Motion) -> np.ndarray:
+    """Kinetic plus gravitational potential energy (T,), J (zero potential at the origin)."""
+    e = np.zeros_like(motion.t)
+    for b in case.bodies:
+        vg = point_velocity(case, motion, b.name, b.com)
+        rg = point_position(case, motion, b.name, b.com)
+        e += 0.5 * b.mass * np.sum(vg**2, axis=1) + 0.5 * b.inertia * motion.omega[b.name] ** 2
+        e -= b.mass * rg @ case.gravity
+    return e
+
+
+def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
+    """The case's output channels from a neutral motion: column ``t`` then one per channel."""
+    cols: dict[str, np.ndarray] = {"t": motion.t}
+    axis_index = {"x": 0, "y": 1}
+    for ch in case.channels:
+        if ch.kind == "angle":
+            v = np.unwrap(motion.angle[ch.body])
+        elif ch.kind == "position":
+            p = case.body(ch.body).points[ch.point]
+            v = point_position(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "velocity":
+            p = case.body(ch.body).points[ch.point]
+            v = point_velocity(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "energy":
+            v = energy(case, motion)
+        else:  # reaction
+            f = motion.joint_force.get(ch.joint)
+            if f is None:
+                v = np.full_like(motion.t, np.nan)
+            elif ch.axis == "normal":
+                j = case.joint(ch.joint)
+                n = normal_direction(case, motion, j.name)
+                v = np.sum(f * n, axis=1)
+            else:
+                v = f[:, axis_index[ch.axis]]
+        cols[ch.name] = np.asarray(v, dtype=float)
+    return pd.DataFrame(cols)
+
+
+def normal_direction(case: Case, motion: Motion, joint: str) -> np.ndarray:
+    """(T, 2) unit normal of a prismatic joint: its axis turned +90 deg, in world axes."""
+    j = case.joint(joint)
+    a = j.bodies[0]
+    angle = motion.angle[a] if a in motion.angle else np.zeros_like(motion.t)
+    u = _rot(angle) @ j.axis
+    return np.stack([-u[:, 1], u[:, 0]], -1)
+
+
+@dataclass
+class Result:
+    """One case x engine run.
+
+    ``table`` has column ``t`` (s) then the case's channels (SI, angles unwrapped).
+    ``counters`` holds cost counters (steps, rhs evaluations, factorizations, Newton
+    iterations) and constraint drift; ``notes`` lists modelling substitutions to report.
+    """
+
+    case: str
+    engine: str
+    engine_version: str = ""
+    status: Status = Status.OK
+    reason: str = ""
+    table: pd.DataFrame | None = None
+    build_time_s: float = float("nan")
+    wall_time_s: float = float("nan")
+    n_steps: int = 0
+    settings: dict = field(default_factory=dict)
+    counters: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def us_per_step(self) -> float:
+        return 1e6 * self.wall_time_s / self.n_steps if self.n_steps else float("nan")
