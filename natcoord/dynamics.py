@@ -49,7 +49,8 @@ class Solution:
     wall_time_s: float = 0.0
 
 
-def accelerations(model: Model, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def accelerations(model: Model, q: np.ndarray, qd: np.ndarray,
+                  t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Index-1 solve at one state: (qdd (n,), lambda (m,)).
 
     The augmented matrix is singular with redundant constraints; lstsq then returns the
@@ -59,7 +60,7 @@ def accelerations(model: Model, q: np.ndarray, qd: np.ndarray) -> tuple[np.ndarr
     Jq = model.constraints.jacobian(q)
     A = np.zeros((n + m, n + m))
     A[:n, :n], A[:n, n:], A[n:, :n] = model.M, Jq.T, Jq
-    b = np.concatenate([model.forces(q), -model.constraints.quad_velocity(qd)])
+    b = np.concatenate([model.forces(t, q, qd), -model.constraints.quad_velocity(qd)])
     try:
         x = np.linalg.solve(A, b)
     except np.linalg.LinAlgError:
@@ -92,10 +93,10 @@ def integrate(model: Model, state: State, times: np.ndarray, *, method: str = "D
     n = model.n
     cnt = Counters()
 
-    def rhs(_t, y):
+    def rhs(t, y):
         cnt.rhs += 1
         cnt.factorizations += 1
-        qdd, _ = accelerations(model, y[:n], y[n:])
+        qdd, _ = accelerations(model, y[:n], y[n:], t)
         return np.concatenate([y[n:], qdd])
 
     T = len(times)
@@ -118,7 +119,7 @@ def integrate(model: Model, state: State, times: np.ndarray, *, method: str = "D
             drift = np.max(np.abs(model.constraints.phi(sol.y[:n, -1])), initial=0.0)
             cnt.max_phi = max(cnt.max_phi, float(drift))
             q, qd = project(model, sol.y[:n, -1], sol.y[n:, -1], counters=cnt)
-        qdd, lam = accelerations(model, q, qd)
+        qdd, lam = accelerations(model, q, qd, t)
         Q[k], QD[k], QDD[k], LAM[k] = q, qd, qdd, lam
     wall = time.perf_counter() - t0
     cnt.max_phi_dot = float(max(np.max(np.abs(model.constraints.jacobian(Q[k]) @ QD[k]),

@@ -84,8 +84,8 @@ class Model:
     def m(self) -> int:
         return self.constraints.m
 
-    def forces(self, q: np.ndarray) -> np.ndarray:
-        """Generalized applied forces Q(q): (n,)."""
+    def forces(self, t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+        """Generalized applied forces Q(t, q, qd): (n,), N (or N m for unit-vector rows)."""
         return self.Q0 + self.T @ q
 
     # ---- body frames from coordinates -------------------------------------------------
