@@ -17,11 +17,13 @@ from .errors import CaseError
 from .mechanism import (
     BODY_KINDS,
     CHANNEL_KINDS,
+    DRIVER_TYPES,
     GROUND,
     JOINT_TYPES,
     Body,
     Case,
     Channel,
+    Driver,
     EngineSpec,
     Force,
     Joint,
@@ -37,12 +39,14 @@ UNITS = {
     "rad/s": (1.0, "angular velocity"), "deg/s": (math.pi / 180, "angular velocity"),
     "m/s": (1.0, "velocity"), "mm/s": (1e-3, "velocity"),
     "m/s^2": (1.0, "acceleration"),
+    "rad/s^2": (1.0, "angular acceleration"), "deg/s^2": (math.pi / 180, "angular acceleration"),
     "N": (1.0, "force"), "N m": (1.0, "torque"), "Nm": (1.0, "torque"),
     "kg m^2": (1.0, "inertia"), "J": (1.0, "energy"),
 }
 KNOWN_ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
-            "bodies", "joints", "forces", "initial", "channels", "engines", "tags"}
+            "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
+            "drivers"}
 
 
 class _Reader:
@@ -68,9 +72,9 @@ class _Reader:
         return v
 
     def string(self, table, key, path, *, required=True, default=None, choices=None) -> str:
-        v = self.get(table, key, path, required=required, default=default)
-        if v is None:
-            return v
+        if key not in table and not required:
+            return default
+        v = self.get(table, key, path)
         if not isinstance(v, str) or not v:
             self.fail(_join(path, key), f"must be a non-empty string, got {v!r}")
         if choices and v not in choices:
@@ -183,7 +187,13 @@ def load_case(path: str | Path) -> Case:
             r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(names)}")
         forces.append(Force(ftype, body, r.number(f, "value", p, "torque")))
 
-    channels = _channels(r, r.table(data, "channels", ""), names, points_of, joints)
+    drivers = tuple(_driver(r, d, i, names, points_of)
+                    for i, d in enumerate(_array(r, data, "drivers", required=False)))
+    dnames = [d.name for d in drivers]
+    for i, n in enumerate(dnames):
+        if dnames.index(n) != i:
+            r.fail(f"drivers[{i}].name", f"duplicate driver name {n!r}")
+    channels = _channels(r, r.table(data, "channels", ""), names, points_of, joints, dnames)
     init = r.table(data, "initial", "")
     guess = {}
     for bname, pose in r.table(init, "pose", "initial").items():
@@ -222,14 +232,15 @@ def load_case(path: str | Path) -> Case:
                 dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
                 ground=ground, bodies=bodies, joints=joints, forces=tuple(forces),
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
-                tags=tags)
+                tags=tags, drivers=drivers)
     return case
 
 
 def _kind_dim(key: str, channels) -> str:
     kind = key if key in CHANNEL_KINDS else next(c.kind for c in channels if c.name == key)
     return {"angle": "angle", "position": "length", "velocity": "velocity",
-            "reaction": "force", "energy": "energy"}[kind]
+            "reaction": "force", "energy": "energy", "acceleration": "acceleration",
+            "driver": "torque"}[kind]
 
 
 def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
@@ -301,7 +312,35 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
     return Joint(name, jtype, (bodies[0], bodies[1]), (pts[0], pts[1]), axis)
 
 
-def _channels(r, table: dict, bodies, points_of, joints) -> tuple[Channel, ...]:
+def _driver(r: _Reader, d: dict, i: int, bodies, points_of) -> Driver:
+    p = f"drivers[{i}]"
+    name = r.string(d, "name", p)
+    p = f"drivers[{i}] ({name})"
+    unknown = sorted(set(d) - {"name", "type", "body", "angle0", "rate", "accel", "point",
+                               "axis", "value0"})
+    if unknown:
+        r.fail(f"{p}.{unknown[0]}", "unknown field")
+    dtype = r.string(d, "type", p, choices=DRIVER_TYPES)
+    body = r.string(d, "body", p)
+    if body not in bodies:
+        r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
+    if dtype == "angle":
+        dims = ("angle", "angular velocity", "angular acceleration")
+        v0 = r.number(d, "angle0", p, dims[0])
+        point = axis = None
+    else:
+        dims = ("length", "velocity", "acceleration")
+        v0 = r.number(d, "value0", p, dims[0])
+        point = r.string(d, "point", p)
+        if point not in points_of[body]:
+            r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
+        axis = r.string(d, "axis", p, choices=("x", "y"))
+    rate = r.number(d, "rate", p, dims[1], required=False, default=0.0)
+    accel = r.number(d, "accel", p, dims[2], required=False, default=0.0)
+    return Driver(name, dtype, body, v0, rate, accel, point, axis)
+
+
+def _channels(r, table: dict, bodies, points_of, joints, drivers=()) -> tuple[Channel, ...]:
     out = []
     jnames = [j.name for j in joints]
     for name, c in table.items():
@@ -309,12 +348,12 @@ def _channels(r, table: dict, bodies, points_of, joints) -> tuple[Channel, ...]:
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
-        body = point = joint = axis = None
-        if kind in ("angle", "position", "velocity"):
+        body = point = joint = axis = driver = None
+        if kind in ("angle", "position", "velocity", "acceleration"):
             body = r.string(c, "body", p)
             if body not in bodies:
                 r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
-        if kind in ("position", "velocity"):
+        if kind in ("position", "velocity", "acceleration"):
             point = r.string(c, "point", p)
             if point not in points_of[body]:
                 r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
@@ -327,7 +366,12 @@ def _channels(r, table: dict, bodies, points_of, joints) -> tuple[Channel, ...]:
             jt = joints[jnames.index(joint)]
             if axis == "normal" and jt.type != "prismatic":
                 r.fail(f"{p}.axis", f"'normal' needs a prismatic joint; {joint!r} is {jt.type}")
-        out.append(Channel(name, kind, body, point, joint, axis))
+        if kind == "driver":
+            driver = r.string(c, "driver", p)
+            if driver not in drivers:
+                r.fail(f"{p}.driver", f"unknown driver {driver!r}; drivers are "
+                       f"{', '.join(drivers) or 'none'}")
+        out.append(Channel(name, kind, body, point, joint, axis, driver))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)

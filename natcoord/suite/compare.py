@@ -1,0 +1,60 @@
+"""Compare an engine's channels with the case's reference, channel by channel."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from ..mechanism import Case
+
+
+def channel_errors(case: Case, engine: str, table: pd.DataFrame,
+                   reference: pd.DataFrame | None) -> tuple[dict, str, str]:
+    """Per-channel errors and the verdict of one engine run.
+
+    Returns ``(channels, verdict, reason)``; ``channels[name]`` holds kind, unit,
+    ``max_abs`` (max |engine - reference| over the reference's samples), ``max_rel``
+    (``max_abs`` over the reference channel's range), ``tolerance`` and ``pass`` (None when
+    not gated: no tolerance, channel undetermined, or not reported by the engine).
+    Verdict: ``pass``, ``fail``, ``no-reference`` or ``not-gated``.
+    """
+    spec = case.engine(engine)
+    out: dict[str, dict] = {}
+    if reference is None:
+        return out, "no-reference", "no reference stored; run `natcoord reference update`"
+    if len(reference) != len(table) or not np.allclose(reference["t"], table["t"],
+                                                       atol=1e-9):
+        return out, "no-reference", ("reference sample times differ from this run's; "
+                                     "the reference is stale: run `natcoord reference update`")
+    gated = failed = 0
+    for ch in case.channels:
+        ref = reference[ch.name].to_numpy() if ch.name in reference else None
+        val = table[ch.name].to_numpy()
+        tol = spec.tolerance_for(ch)
+        determined = ch.name not in case_undetermined(case)
+        entry = {"kind": ch.kind, "unit": ch.unit, "max_abs": None, "max_rel": None,
+                 "tolerance": tol, "pass": None, "determined": determined, "note": ""}
+        if ref is None:
+            entry["note"] = "channel missing from the reference"
+        elif np.all(np.isnan(val)):
+            entry["note"] = "not reported by this engine"
+        else:
+            err = np.abs(val - ref)
+            max_abs = float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
+            span = float(np.ptp(ref)) or float(np.max(np.abs(ref))) or 1.0
+            entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
+            if tol is not None and determined:
+                entry["pass"] = bool(max_abs <= tol)
+                gated += 1
+                failed += not entry["pass"]
+        out[ch.name] = entry
+    if failed:
+        return out, "fail", f"{failed} of {gated} gated channels over tolerance"
+    if not gated:
+        return out, "not-gated", "no tolerance written for this engine in the case file"
+    return out, "pass", ""
+
+
+def case_undetermined(case: Case) -> set[str]:
+    """Channels whose values are undetermined (redundant reactions): shown, never gated."""
+    return set(getattr(case, "undetermined", ()) or ())

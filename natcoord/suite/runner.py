@@ -1,0 +1,113 @@
+"""Run cases in engines, each run in its own process with a time limit, and summarise.
+
+A crash, hang or NaN in one engine becomes status ``failed`` with a reason; the rest of the
+suite completes. ``summary.json`` is written last and atomically, and removed when a run
+starts, so a gate never trusts a summary from an interrupted run.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import pandas as pd
+
+from .. import __version__
+from ..mechanism import Case
+from .compare import channel_errors
+from .io import read_json, write_json
+from .references import load_reference
+
+DEFAULT_TIMEOUT_S = 600.0
+
+
+def machine_info() -> dict:
+    return {"python": platform.python_version(), "platform": platform.platform(),
+            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+            "blas_threads": 1}
+
+
+def run_subprocess(case: Case, engine: str, out: Path, timeout_s: float,
+                   settings: dict | None = None) -> dict:
+    """Run one case x engine in a child process; return its record (status failed on a
+    crash, a non-zero exit or the time limit)."""
+    folder = out / "results" / case.name
+    for suffix in (".csv", ".json"):
+        (folder / f"{engine}{suffix}").unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "natcoord.suite.worker", case.file, engine, str(out),
+           "--settings", json.dumps(settings or {})]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+           "MKL_NUM_THREADS": "1"}
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=env, start_new_session=True)
+    try:
+        _, err = proc.communicate(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
+    except KeyboardInterrupt:
+        os.killpg(proc.pid, signal.SIGKILL)
+        raise
+    record_file = folder / f"{engine}.json"
+    if proc.returncode != 0 or not record_file.exists():
+        if proc.returncode and proc.returncode < 0:
+            why = f"engine process killed by signal {signal.Signals(-proc.returncode).name}"
+        else:
+            why = f"engine process exited with status {proc.returncode}"
+        tail = "\n".join((err or "").strip().splitlines()[-3:])
+        return _failed(case, engine, f"{why}{': ' + tail if tail else ''}")
+    record = read_json(record_file)
+    record["process_time_s"] = time.perf_counter() - t0
+    return record
+
+
+def _failed(case: Case, engine: str, reason: str) -> dict:
+    return {"case": case.name, "engine": engine, "engine_version": "", "status": "failed",
+            "reason": reason, "wall_time_s": None, "build_time_s": None, "n_steps": 0,
+            "us_per_step": None, "sim_time_s": case.duration, "settings": {},
+            "counters": {}, "notes": []}
+
+
+def compare_record(case: Case, record: dict, out: Path, references: Path) -> dict:
+    """Add the comparison with the reference to a run record."""
+    record = {**record, "description": case.description,
+              "tolerance_reason": case.engine(record["engine"]).reason}
+    csv = out / "results" / case.name / f"{record['engine']}.csv"
+    if record["status"] != "ok" or not csv.exists():
+        return {**record, "channels": {}, "verdict": "n/a"}
+    channels, verdict, why = channel_errors(case, record["engine"], pd.read_csv(csv),
+                                            load_reference(case.name, references))
+    return {**record, "channels": channels, "verdict": verdict, "verdict_reason": why}
+
+
+def run_suite(cases: Sequence[Case], engines: Sequence[str], out: Path, *,
+              references: Path = Path("references"), timeout_s: float = DEFAULT_TIMEOUT_S,
+              progress: Callable[[str, dict], None] | None = None) -> dict:
+    """Run every case in every engine and write ``out/summary.json``; returns the summary."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.json").unlink(missing_ok=True)
+    records = []
+    for case in cases:
+        for engine in engines:
+            record = compare_record(case, run_subprocess(case, engine, out, timeout_s), out,
+                                    references)
+            records.append(record)
+            if progress:
+                progress(f"{case.name}/{engine}", record)
+    summary = {"generated": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
+               "natcoord_version": __version__, "machine": machine_info(),
+               "cases": [c.name for c in cases], "engines": list(engines),
+               "records": records}
+    write_json(out / "summary.json", summary)
+    return summary

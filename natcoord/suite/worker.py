@@ -1,0 +1,103 @@
+"""Run one case in one engine, in its own process, and write its result files.
+
+    python -m natcoord.suite.worker CASE_FILE ENGINE OUT_DIR [--settings JSON]
+
+Writes ``OUT_DIR/results/<case>/<engine>.csv`` (when the run produced data) and
+``OUT_DIR/results/<case>/<engine>.json`` (the run record), both atomically. The parent
+process owns time limits and crashes: whatever this process does not write is reported by
+the parent as ``failed``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import traceback
+from pathlib import Path
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")  # single-threaded BLAS: timings comparable across engines
+
+import numpy as np  # noqa: E402
+
+from ..casefile import load_case  # noqa: E402
+from ..engines import adapter  # noqa: E402
+from ..engines.base import initial_body_states  # noqa: E402
+from ..errors import Unsupported  # noqa: E402
+from ..result import Result, Status, evaluate_channels  # noqa: E402
+from .io import write_csv, write_json  # noqa: E402
+
+
+def record_of(result: Result, sim_time_s: float) -> dict:
+    """The JSON record of a run (comparison fields are added by the runner)."""
+    return {
+        "case": result.case, "engine": result.engine, "engine_version": result.engine_version,
+        "status": str(result.status), "reason": result.reason,
+        "wall_time_s": result.wall_time_s, "build_time_s": result.build_time_s,
+        "n_steps": result.n_steps, "us_per_step": result.us_per_step,
+        "sim_time_s": sim_time_s, "settings": result.settings, "counters": result.counters,
+        "notes": result.notes,
+    }
+
+
+def run_one(case_file: str, engine: str, settings_override: dict | None = None) -> Result:
+    """Run a case in an engine in this process and return its Result (never raises for
+    engine trouble: that becomes the status)."""
+    case = load_case(case_file)
+    spec = case.engine(engine)
+    res = Result(case.name, engine)
+    mod = adapter(engine)
+    if spec.unsupported:
+        res.status, res.reason = Status.UNSUPPORTED, spec.unsupported
+        return res
+    try:
+        res.engine_version = mod.version()
+    except ImportError as e:
+        res.status = Status.SKIPPED
+        res.reason = f"package {mod.PACKAGE!r} is not installed ({e}); pip install {mod.PACKAGE}"
+        return res
+    settings = {**spec.settings, **(settings_override or {})}
+    try:
+        run = mod.run(case, initial_body_states(case), settings)
+    except Unsupported as e:
+        res.status, res.reason = Status.UNSUPPORTED, str(e)
+        return res
+    except Exception as e:  # an engine's failure must not take the suite down
+        res.status = Status.FAILED
+        res.reason = f"{type(e).__name__}: {e}"
+        res.notes.append(traceback.format_exc(limit=4))
+        return res
+    res.table = evaluate_channels(case, run.motion)
+    res.build_time_s, res.wall_time_s, res.n_steps = (run.build_time_s, run.wall_time_s,
+                                                       run.n_steps)
+    res.settings, res.counters, res.notes = run.settings, run.counters, run.notes
+    motion_cols = [c.name for c in case.channels if c.kind != "reaction"]
+    bad = [c for c in motion_cols if not np.all(np.isfinite(res.table[c]))]
+    if bad:
+        res.status = Status.FAILED
+        first = int(np.argmax(~np.isfinite(res.table[bad[0]].to_numpy())))
+        res.reason = (f"non-finite values in {', '.join(bad)} from t = "
+                      f"{res.table['t'].iloc[first]:.4g} s (the engine diverged)")
+    return res
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="natcoord.suite.worker")
+    p.add_argument("case_file")
+    p.add_argument("engine")
+    p.add_argument("out_dir")
+    p.add_argument("--settings", default="{}", help="JSON object overriding engine settings")
+    a = p.parse_args(argv)
+    res = run_one(a.case_file, a.engine, json.loads(a.settings))
+    case = load_case(a.case_file)
+    folder = Path(a.out_dir) / "results" / res.case
+    if res.table is not None:
+        write_csv(folder / f"{res.engine}.csv", res.table)
+    write_json(folder / f"{res.engine}.json", record_of(res, case.duration))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,34 @@
+"""Shared fixtures: the repository's folders and a helper to write case variants."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = ROOT / "cases"
+REFERENCES = ROOT / "references"
+DATA = Path(__file__).resolve().parent / "data"
+
+
+@pytest.fixture
+def case_variant(tmp_path):
+    """Write a copy of a case file with text substitutions into tmp_path; returns its path.
+
+    ``case_variant("slider_crank", [(pattern, replacement), ...])`` applies ``re.sub`` once
+    per pair and fails the test if a pattern does not match, so a variant never silently
+    equals its original.
+    """
+
+    def make(name: str, subs=(), *, stem: str | None = None) -> Path:
+        text = (CASES / f"{name}.toml").read_text()
+        for pattern, repl in subs:
+            text, n = re.subn(pattern, repl, text, count=1, flags=re.M)
+            assert n == 1, f"pattern {pattern!r} not found in {name}.toml"
+        path = tmp_path / f"{stem or name}.toml"
+        path.write_text(text)
+        return path
+
+    return make

@@ -1,0 +1,104 @@
+"""Case files: the shipped ones load; every kind of mistake is named by file, field, reason."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from natcoord import CaseError, load_case
+from natcoord.casefile import load_cases
+
+from .conftest import CASES
+
+
+def test_shipped_cases_load():
+    cases = load_cases(CASES)
+    assert {"slider_crank", "four_bar"} <= set(cases)
+    sc = cases["slider_crank"]
+    assert sc.fix["theta"] == pytest.approx(np.pi / 4)
+    assert sc.body("crank").inertia == pytest.approx(1 / 12)
+    assert sc.times[-1] == pytest.approx(2.0) and len(sc.times) == 201
+
+
+MALFORMED = [
+    # (description, substitutions, expected field, expected words in the reason)
+    ("missing field", [(r"^duration = 2.0\n", "")], "duration", "missing required field"),
+    ("wrong type", [(r"^mass = 1.0", 'mass = "heavy"')], "bodies[0] (crank).mass",
+     "cannot read"),
+    ("wrong unit", [(r"^mass = 1.0", 'mass = "1 m"')], "bodies[0] (crank).mass",
+     "expected a mass"),
+    ("unknown unit", [(r"^duration = 2.0", 'duration = "2 fortnights"')], "duration",
+     "unknown unit"),
+    ("negative mass", [(r"^mass = 1.0", "mass = -1.0")], "bodies[0] (crank).mass",
+     "must be positive"),
+    ("unknown body in joint", [(r'bodies = \["crank", "rod"\]', 'bodies = ["crank", "rood"]')],
+     "joints[1] (A).bodies", "unknown body 'rood'"),
+    ("unknown point", [(r'points = \["A", "A"\]', 'points = ["A", "Z"]')],
+     "joints[1] (A).points", "has no point 'Z'"),
+    ("unknown joint type", [(r'type = "revolute"', 'type = "hinge"')], "joints[0] (O).type",
+     "unknown value 'hinge'"),
+    ("unknown channel kind", [(r'kind = "angle", body = "crank"', 'kind = "torque"')],
+     "channels.theta.kind", "unknown value 'torque'"),
+    ("channel on unknown joint", [(r'joint = "O", axis = "x"', 'joint = "Q", axis = "x"')],
+     "channels.O_x.joint", "unknown joint 'Q'"),
+    ("duplicate body", [(r'name = "rod"', 'name = "crank"')], "bodies[1].name",
+     "duplicate body name"),
+    ("output_dt not dividing", [(r"^output_dt = 0.01", "output_dt = 0.03")], "output_dt",
+     "must divide"),
+    ("unknown top-level field", [(r"^dimension = 2", "dimension = 2\ncolour = 'red'")],
+     "colour", "unknown field"),
+    ("name mismatch", [(r'^name = "slider_crank"', 'name = "other"')], "name",
+     "must equal the file name"),
+    ("tolerance on unknown channel", [(r"^angle = 1e-9", "thetta = 1e-9")],
+     "engines.natcoord.tolerance.thetta", "neither a channel"),
+    ("unknown engine", [(r"^\[engines.natcoord\]", "[engines.bullet]")], "engines.bullet",
+     "unknown engine"),
+    ("zero prismatic axis", [(r"^axis = \[1.0, 0.0\]", "axis = [0.0, 0.0]")],
+     "joints[3] (slide).axis", "must not be zero"),
+    ("initial value on unknown channel", [(r'^fix = \{ theta = "45 deg" \}',
+                                           'fix = { phi = "45 deg" }')],
+     "initial.fix.phi", "unknown channel"),
+]
+
+
+@pytest.mark.parametrize("what, subs, field, words", MALFORMED, ids=[m[0] for m in MALFORMED])
+def test_malformed_case_is_rejected_with_file_field_reason(case_variant, what, subs, field,
+                                                           words):
+    path = case_variant("slider_crank", subs)
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    e = info.value
+    assert e.file == str(path)
+    assert e.field == field, str(e)
+    assert words in e.reason, str(e)
+
+
+def test_not_toml(tmp_path):
+    p = tmp_path / "broken.toml"
+    p.write_text("name = [unclosed\n")
+    with pytest.raises(CaseError, match="not valid TOML"):
+        load_case(p)
+
+
+def test_mechanism_that_does_not_assemble(case_variant):
+    # the connecting rod is too short to reach the slide line from the crank at 45 deg
+    path = case_variant("slider_crank", [(r"B = \[2.0, 0.0\]", "B = [0.5, 0.0]")])
+    r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", str(path), "--engines",
+                        "natcoord", "--out", str(path.parent / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr + r.stdout
+    assert f"{path}: initial:" in r.stderr and "does not assemble" in r.stderr
+
+
+def test_cli_reports_bad_case_without_traceback(case_variant):
+    path = case_variant("slider_crank", [(r"^mass = 1.0", "mass = -1.0")])
+    r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", str(path), "--engines",
+                        "natcoord", "--out", str(path.parent / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "Traceback" not in r.stderr + r.stdout
+    assert "bodies[0] (crank).mass" in r.stderr and "must be positive" in r.stderr

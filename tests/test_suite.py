@@ -1,0 +1,150 @@
+"""The runner, the comparison and the gate, end to end on natcoord runs (real solver runs,
+no stand-ins): the gate must fire on injected regressions, and a killed engine must not
+take the suite down."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from natcoord import load_case
+from natcoord.suite import gate
+from natcoord.suite.io import read_json, write_csv
+from natcoord.suite.runner import compare_record, run_suite
+
+from .conftest import CASES, REFERENCES
+
+
+def _gate(out: Path) -> gate.Verdict:
+    return gate.judge(gate.load_summary(out))
+
+
+@pytest.fixture(scope="module")
+def baseline_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    cases = [load_case(CASES / "slider_crank.toml"), load_case(CASES / "four_bar.toml")]
+    summary = run_suite(cases, ["natcoord"], out, references=REFERENCES)
+    return out, summary
+
+
+def test_clean_run_passes(baseline_run):
+    out, summary = baseline_run
+    assert [r["verdict"] for r in summary["records"]] == ["pass", "pass"]
+    assert _gate(out).code == gate.OK
+    assert (out / "results" / "slider_crank" / "natcoord.csv").exists()
+    df = pd.read_csv(out / "results" / "slider_crank" / "natcoord.csv")
+    assert list(df.columns)[:3] == ["t", "theta", "xB"]
+
+
+def test_gate_fires_on_a_one_percent_mass_change(case_variant, tmp_path):
+    """A copy of slider_crank with the slider 1% heavier must fail against the reference."""
+    path = case_variant("slider_crank", [(r'mass = 1.0\npoints = \{ B = ', 'mass = 1.01\n'
+                                          'points = { B = ')])
+    out = tmp_path / "out"
+    run_suite([load_case(path)], ["natcoord"], out, references=REFERENCES)
+    v = _gate(out)
+    assert v.code == gate.REGRESSION
+    assert any("slider_crank/natcoord: theta max error" in line for line in v.lines), v.lines
+
+
+def test_gate_fires_on_a_flipped_sign(baseline_run, tmp_path):
+    """Flip the sign of one reaction channel in a result file: exit 1, naming the channel."""
+    out, summary = baseline_run
+    case = load_case(CASES / "four_bar.toml")
+    csv = out / "results" / "four_bar" / "natcoord.csv"
+    df = pd.read_csv(csv)
+    df["D_y"] = -df["D_y"]
+    flipped = tmp_path / "results" / "four_bar" / "natcoord.csv"
+    write_csv(flipped, df)
+    record = next(r for r in summary["records"] if r["case"] == "four_bar")
+    rec = compare_record(case, record, tmp_path, REFERENCES)
+    v = gate.judge({"records": [rec]})
+    assert v.code == gate.REGRESSION
+    assert any("D_y" in line for line in v.lines)
+    assert rec["channels"]["D_x"]["pass"] is True  # only the flipped channel fails
+
+
+def test_gate_exit_codes_for_bad_input_and_nothing_run(tmp_path, baseline_run):
+    with pytest.raises(ValueError, match="no summary"):
+        gate.load_summary(tmp_path)
+    (tmp_path / "summary.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        gate.load_summary(tmp_path)
+    out, summary = baseline_run
+    dead = {"records": [{**r, "status": "failed", "channels": {}, "verdict": "n/a"}
+                        for r in summary["records"]]}
+    assert gate.judge(dead).code == gate.NOT_RUN
+
+
+def test_gate_cli_exit_codes(tmp_path, baseline_run):
+    out, _ = baseline_run
+    run = [sys.executable, "-m", "natcoord.cli", "gate", "--baseline",
+           str(tmp_path / "none.json")]
+    assert subprocess.run(run + ["--results", str(out)], capture_output=True).returncode == 0
+    r = subprocess.run(run + ["--results", str(tmp_path)], capture_output=True, text=True)
+    assert r.returncode == 2 and "no summary" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_baseline_growth_is_a_regression(baseline_run):
+    _, summary = baseline_run
+    base = gate.baseline_of(summary)
+    shrunk = {k: {n: e / 1e6 for n, e in v.items()} for k, v in base.items()}
+    # errors far below a tenth of the tolerance never count as growth (platform noise)
+    assert gate.judge(summary, baseline=shrunk).code == gate.OK
+    tight = [{**r, "channels": {n: {**c, "tolerance": c["max_abs"] * 2}
+                                for n, c in r["channels"].items()}}
+             for r in summary["records"]]
+    v = gate.judge({"records": tight}, baseline=shrunk)
+    assert v.code == gate.REGRESSION and any("over the baseline" in line for line in v.lines)
+
+
+def _kill_worker_when_started(engine: str, stop: threading.Event):
+    """Find the worker process of ``engine`` in /proc and SIGKILL it once it runs."""
+    while not stop.is_set():
+        for pid in os.listdir("/proc"):
+            if not pid.isdigit():
+                continue
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"natcoord.suite.worker" in cmd and engine.encode() in cmd \
+                    and b"four_bar" in b" ".join(cmd):
+                time.sleep(0.3)  # mid-run: after imports, while it integrates
+                os.kill(int(pid), signal.SIGKILL)
+                return
+        time.sleep(0.01)
+
+
+def test_killed_engine_is_failed_and_the_suite_completes(tmp_path):
+    cases = [load_case(CASES / "four_bar.toml"), load_case(CASES / "slider_crank.toml")]
+    stop = threading.Event()
+    killer = threading.Thread(target=_kill_worker_when_started, args=("natcoord", stop))
+    killer.start()
+    try:
+        summary = run_suite(cases, ["natcoord"], tmp_path, references=REFERENCES)
+    finally:
+        stop.set()
+        killer.join()
+    by_case = {r["case"]: r for r in summary["records"]}
+    assert by_case["four_bar"]["status"] == "failed"
+    assert "SIGKILL" in by_case["four_bar"]["reason"]
+    assert by_case["slider_crank"]["status"] == "ok"
+    assert not (tmp_path / "results" / "four_bar" / "natcoord.csv").exists()
+    assert read_json(tmp_path / "summary.json")["records"][1]["verdict"] == "pass"
+
+
+def test_time_limit_kills_a_slow_engine(tmp_path):
+    case = load_case(CASES / "four_bar.toml")
+    summary = run_suite([case], ["natcoord"], tmp_path, references=REFERENCES,
+                        timeout_s=0.5)
+    rec = summary["records"][0]
+    assert rec["status"] == "failed" and "timed out after 0.5 s" in rec["reason"]
