@@ -25,7 +25,9 @@ GROUND = "ground"
 BODY_KINDS = ("uniform_rod", "particle", "rigid")
 JOINT_TYPES = ("revolute", "prismatic")
 FORCE_TYPES = ("torque",)
-CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy")
+CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
+                 "driver")
+DRIVER_TYPES = ("angle", "coordinate")
 
 
 @dataclass(frozen=True)
@@ -89,8 +91,9 @@ class Force:
 class Channel:
     """A named output: what to measure and in which component.
 
-    kind ``angle`` (body), ``position``/``velocity`` (body, point, axis x|y|z),
-    ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational, J).
+    kind ``angle`` (body), ``position``/``velocity``/``acceleration`` (body, point, axis
+    x|y|z), ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational, J),
+    ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate).
     """
 
     name: str
@@ -99,11 +102,31 @@ class Channel:
     point: str | None = None
     joint: str | None = None
     axis: str | None = None
+    driver: str | None = None
 
     @property
     def unit(self) -> str:
         return {"angle": "rad", "position": "m", "velocity": "m/s", "reaction": "N",
-                "energy": "J"}[self.kind]
+                "energy": "J", "acceleration": "m/s^2", "driver": "N m"}[self.kind]
+
+
+@dataclass(frozen=True)
+class Driver:
+    """A prescribed motion (rheonomic constraint) ``value(t) = v0 + rate t + accel t^2 / 2``.
+
+    type ``angle``: the angle of ``body`` (rad); its effort is the driving torque on the body
+    (N m). type ``coordinate``: world coordinate ``axis`` (x|y) of ``point`` of ``body`` (m);
+    its effort is the driving force along that axis (N).
+    """
+
+    name: str
+    type: str
+    body: str
+    v0: float
+    rate: float = 0.0
+    accel: float = 0.0
+    point: str | None = None
+    axis: str | None = None
 
 
 @dataclass(frozen=True)
@@ -151,6 +174,7 @@ class Case:
     channels: tuple[Channel, ...]
     engines: dict[str, EngineSpec]
     tags: tuple[str, ...] = ()
+    drivers: tuple[Driver, ...] = ()
 
     @property
     def times(self) -> np.ndarray:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .constraints import S2, ConstraintBuilder, QuadraticConstraints
+from .drivers import build_drivers
 from .mechanism import GROUND, Case
 
 J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg rotation
@@ -69,6 +70,7 @@ class Model:
     constraints : QuadraticConstraints   m rows
     bodies : dict[str, BodyMap]
     joints : dict[str, JointMap]
+    drivers : tuple[DriverRow, ...]      rheonomic rows, appended after the m rows in lambda
     """
 
     case: Case
@@ -79,6 +81,7 @@ class Model:
     constraints: QuadraticConstraints
     bodies: dict[str, BodyMap]
     joints: dict[str, JointMap]
+    drivers: tuple = ()
 
     @property
     def m(self) -> int:
@@ -196,7 +199,7 @@ def build_model(case: Case) -> Model:
                 rows.append(cb.bilinear(Da, S2, Db, -np.sin(rel), f"{j.name}: no rotation",
                                         length_dim=0))
             joints[j.name] = JointMap(j.name, np.array(rows), U)
-    return Model(case, n, M, Q0, T, cb.build(), bodies, joints)
+    return Model(case, n, M, Q0, T, cb.build(), bodies, joints, build_drivers(case, shell))
 
 
 def _direction_map(shell: Model, body: str, u_local: np.ndarray) -> np.ndarray:

@@ -1,0 +1,163 @@
+"""Drivers (prescribed motions) as rheonomic constraints, and the full constraint system.
+
+Every driver row is linear in q with time-dependent coefficients over ``qh = [q, 1]``:
+
+    Phi_d(q, t) = a(t) @ qh,   Phi_q = a(t)[:n],   Phi_t = a'(t) @ qh,   Phi_tt = a''(t) @ qh
+
+so that the acceleration right-hand side of a driver row is
+``c = -(2 a'(t)[:n] @ qd + a''(t) @ qh)`` (the quadratic part is zero).
+
+* angle driver of a rigid body with basic points i, j, d = r_j - r_i and a world angle
+  th(t) = value(t) + angle of (p_j - p_i) in the body frame: ``cross(e(th), d) = 0`` with
+  ``e = (cos th, sin th)``. Its row never vanishes (|grad| = sqrt(2)), so it holds through
+  any crank angle. The torque it applies to the body is ``-lambda (e . d)`` (N m).
+* coordinate driver: the world x or y of a body point equals value(t); its effort is
+  ``-lambda`` (N along the axis).
+
+:class:`ConstraintSystem` appends the driver rows after the model's ``m`` constraint rows,
+so joint rows keep their indices in lambda.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .constraints import QuadraticConstraints
+
+
+@dataclass(frozen=True)
+class DriverRow:
+    """One rheonomic row. ``kind`` "angle": cols (4,) = [r_i, r_j] of the body, offset the
+    body-frame angle of p_j - p_i; "coordinate": ``C`` (n + 1,) the affine map of the
+    driven world coordinate. value(t) = v0 + rate t + accel t^2 / 2.
+    """
+
+    name: str
+    kind: str
+    v0: float
+    rate: float
+    accel: float
+    cols: np.ndarray | None = None
+    offset: float = 0.0
+    C: np.ndarray | None = None
+
+    def law(self, t: float) -> tuple[float, float, float]:
+        """(value, first, second derivative) of the prescribed motion at t."""
+        return (self.v0 + self.rate * t + 0.5 * self.accel * t * t, self.rate + self.accel * t,
+                self.accel)
+
+    def coefficients(self, n: int, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """a(t), a'(t), a''(t): (n + 1,) each."""
+        v, vd, vdd = self.law(t)
+        a, ad, add = np.zeros(n + 1), np.zeros(n + 1), np.zeros(n + 1)
+        if self.kind == "angle":
+            th = v + self.offset
+            c, s = np.cos(th), np.sin(th)
+            g = np.array([-s, c])          # cross(e, d) = g @ d
+            gd = vd * np.array([-c, -s])  # dg/dt
+            gdd = vdd * np.array([-c, -s]) + vd * vd * np.array([s, -c])
+            for vec, w in ((a, g), (ad, gd), (add, gdd)):
+                vec[self.cols[2:]] += w
+                vec[self.cols[:2]] -= w
+        else:
+            a[:] = self.C
+            a[n] -= v
+            ad[n], add[n] = -vd, -vdd
+        return a, ad, add
+
+    def effort(self, lam: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Driving torque (N m) or force (N) from its multiplier lam (T,), q (T, n), t (T,)."""
+        if self.kind == "angle":
+            th = self.v0 + self.rate * t + 0.5 * self.accel * t * t + self.offset
+            d = q[:, self.cols[2:]] - q[:, self.cols[:2]]
+            return -lam * (np.cos(th) * d[:, 0] + np.sin(th) * d[:, 1])
+        return -lam
+
+
+class ConstraintSystem:
+    """Scleronomic constraints (m rows) followed by driver rows (k rows): m_all = m + k.
+
+    Works with any model exposing ``n``, ``constraints`` and optionally ``drivers``.
+    """
+
+    def __init__(self, model):
+        self.n = model.n
+        self.con: QuadraticConstraints = model.constraints
+        self.drivers: tuple[DriverRow, ...] = tuple(getattr(model, "drivers", ()) or ())
+        self.m0 = self.con.m
+        self.k = len(self.drivers)
+        self.m = self.m0 + self.k
+        self.rheonomic = self.k > 0
+        self.labels = tuple(self.con.labels) + tuple(f"driver {d.name}" for d in self.drivers)
+
+    def _coef(self, t: float):
+        rows = [d.coefficients(self.n, t) for d in self.drivers]
+        return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
+                np.array([r[2] for r in rows]))
+
+    def phi(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Phi(q, t): (m_all,)."""
+        p = self.con.phi(q)
+        if not self.k:
+            return p
+        A, _, _ = self._coef(t)
+        return np.concatenate([p, A @ np.append(q, 1.0)])
+
+    def jacobian(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Phi_q: (m_all, n)."""
+        J = self.con.jacobian(q)
+        if not self.k:
+            return J
+        A, _, _ = self._coef(t)
+        return np.vstack([J, A[:, :-1]])
+
+    def phi_t(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """Phi_t: (m_all,), zero on scleronomic rows; velocity constraint Phi_q qd = -Phi_t."""
+        out = np.zeros(self.m)
+        if self.k:
+            _, Ad, _ = self._coef(t)
+            out[self.m0:] = Ad @ np.append(q, 1.0)
+        return out
+
+    def gamma(self, q: np.ndarray, qd: np.ndarray, t: float = 0.0) -> np.ndarray:
+        """c = -(Phi_q qd)_q qd - 2 Phi_qt qd - Phi_tt: (m_all,), with Phi_q qdd = c."""
+        c = -self.con.quad_velocity(qd)
+        if not self.k:
+            return c
+        _, Ad, Add = self._coef(t)
+        cd = -(2.0 * Ad[:, :-1] @ qd + Add @ np.append(q, 1.0))
+        return np.concatenate([c, cd])
+
+    def all(self, q: np.ndarray, qd: np.ndarray, t: float = 0.0):
+        """(Phi, Phi_q, Phi_t, c) in one pass (the driver coefficients evaluated once)."""
+        con = self.con
+        p, J, c = con.phi(q), con.jacobian(q), -con.quad_velocity(qd)
+        pt = np.zeros(self.m)
+        if self.k:
+            A, Ad, Add = self._coef(t)
+            qh = np.append(q, 1.0)
+            p = np.concatenate([p, A @ qh])
+            J = np.vstack([J, A[:, :-1]])
+            pt[self.m0:] = Ad @ qh
+            c = np.concatenate([c, -(2.0 * Ad[:, :-1] @ qd + Add @ qh)])
+        return p, J, pt, c
+
+
+def build_drivers(case, shell) -> tuple[DriverRow, ...]:
+    """Driver rows of a case; ``shell`` a model with ``bodies`` and ``point_map``."""
+    out = []
+    for d in getattr(case, "drivers", ()):
+        b = shell.bodies[d.body]
+        if d.type == "angle":
+            if b.p_j is None:
+                raise ValueError(f"driver {d.name!r}: a particle has no angle to drive")
+            dloc = b.p_j - b.p_i
+            out.append(DriverRow(d.name, "angle", d.v0, d.rate, d.accel, cols=b.cols,
+                                 offset=float(np.arctan2(dloc[1], dloc[0]))))
+        else:
+            P = shell.point_map(d.body, case.body(d.body).points[d.point])
+            out.append(DriverRow(d.name, "coordinate", d.v0, d.rate, d.accel,
+                                 C=P[{"x": 0, "y": 1}[d.axis]].copy()))
+    return tuple(out)
