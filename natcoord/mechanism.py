@@ -199,9 +199,9 @@ def spanning_tree(case: Case) -> tuple[list[Joint], list[Joint]]:
     """Split the joints into a tree rooted at the ground and the loop-closing rest.
 
     Breadth-first from ``ground`` in file order, so every adapter cuts the same loops.
-    Tree joints are returned parent-first and oriented so that ``bodies[0]`` is the parent;
-    an oriented joint keeps its name, and its reaction sign is handled by
-    :func:`tree_orientation`.
+    Tree joints are returned parent before child, unchanged: a joint may name its child
+    first, and :func:`tree_orientation` gives the sign that turns "parent on child" into the
+    case convention "joint on its second body".
     """
     reached = {GROUND}
     tree: list[Joint] = []
