@@ -182,7 +182,10 @@ def bench_cmd(cases: CaseArgs = None,
               out_dir: Annotated[Path, typer.Option("--out", help="Results folder.")] = DEFAULT_OUT,
               history: Annotated[Path, typer.Option(help="Where dated copies go.")] = Path(
                   "reports/bench"),
-              cases_dir: CasesDir = Path("cases")):
+              work_precision: Annotated[bool, typer.Option(
+                  help="Also sweep step sizes / tolerances: angle error against CPU time, "
+                       "and the time each engine needs to reach 1e-6 and 1e-9 rad.")] = False,
+              cases_dir: CasesDir = Path("cases"), references: RefDir = Path("references")):
     """Measure step cost per case x engine (best of repeats, single-threaded BLAS)."""
     from .suite import bench
 
@@ -190,6 +193,21 @@ def bench_cmd(cases: CaseArgs = None,
     total = len(selected) * len(names)
     out.print(f"benchmarking {total} case x engine pairs, best of {repeats}")
     result = bench.bench(selected, names, repeats=repeats, progress=_progress_printer(total))
+    if work_precision:
+        n = sum(len(bench.SWEEPS.get(e, [])) for e in names) * len(selected)
+        out.print(f"work-precision: {n} runs")
+        points = bench.work_precision(selected, names, references=references,
+                                      progress=_progress_printer(n))
+        result["work_precision"] = points
+        result["time_to_accuracy"] = bench.time_to_accuracy(points)
+        table = Table(title="CPU time (s) to reach an angle error")
+        for col in ("case", "engine", *(f"<= {t:g} rad" for t in bench.TARGETS)):
+            table.add_column(col)
+        for row in result["time_to_accuracy"]:
+            cells = [row[f"time_to_{t:g}"] for t in bench.TARGETS]
+            table.add_row(row["case"], row["engine"],
+                          *("not reached" if c is None else f"{c:.3g}" for c in cells))
+        out.print(table)
     path = bench.store(result, out_dir, history)
     out.print(f"benchmark: {path}")
 

@@ -14,10 +14,25 @@ import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
+
 from .. import __version__
 from ..mechanism import Case
 from .io import write_json
+from .references import load_reference
 from .runner import machine_info, run_subprocess
+
+# Work-precision sweeps: settings that trade accuracy for time, coarse to fine (data, not
+# code: a user tunes them here). MuJoCo's loop stiffness follows its step (solref_steps).
+SWEEPS: dict[str, list[dict]] = {
+    "natcoord": [{"rtol": r, "atol": r * 1e-2} for r in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10)],
+    "mujoco": [{"dt": d, "solref_steps": 10} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
+    "pinocchio": [{"dt": d} for d in (1e-2, 5e-3, 2e-3, 1e-3, 5e-4)],
+    "exudyn": [{"dt": d} for d in (5e-3, 2e-3, 1e-3, 5e-4, 2e-4)],
+    "dart": [{"dt": d} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
+}
+TARGETS = (1e-6, 1e-9)
 
 
 def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 3,
@@ -63,3 +78,54 @@ def store(result: dict, out: Path, history_dir: Path | None = None) -> Path:
         stamp = result["generated"].replace(":", "").replace("+0000", "Z")
         write_json(Path(history_dir) / f"bench-{stamp}.json", result)
     return Path(out) / "bench.json"
+
+
+def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
+                   references: Path = Path("references"), repeats: int = 1,
+                   timeout_s: float = 600.0,
+                   progress: Callable[[str, dict], None] | None = None) -> list[dict]:
+    """Error of the first angle channel against CPU time over each engine's sweep.
+
+    Returns one record per case x engine x setting, and per case x engine the time to
+    reach each error in TARGETS (the cheapest point at or below it; None if none does).
+    """
+    points = []
+    with tempfile.TemporaryDirectory(prefix="natcoord-wp-") as tmp:
+        for case in cases:
+            ref = load_reference(case.name, references)
+            angle = next((c.name for c in case.channels if c.kind == "angle"), None)
+            if ref is None or angle is None:
+                continue
+            for engine in engines:
+                for setting in SWEEPS.get(engine, []):
+                    runs = [run_subprocess(case, engine, Path(tmp), timeout_s, setting)
+                            for _ in range(repeats)]
+                    ok = [r for r in runs if r["status"] == "ok"]
+                    rec = {"case": case.name, "engine": engine, "setting": setting,
+                           "channel": angle, "status": runs[-1]["status"]}
+                    if ok:
+                        csv = Path(tmp) / "results" / case.name / f"{engine}.csv"
+                        err = np.abs(pd.read_csv(csv)[angle].to_numpy() - ref[angle].to_numpy())
+                        rec |= {"error": float(np.max(err)),
+                                "wall_time_s": min(r["wall_time_s"] for r in ok),
+                                "n_steps": ok[0]["n_steps"]}
+                    points.append(rec)
+                    if progress:
+                        label = " ".join(f"{k}={v:g}" for k, v in setting.items())
+                        progress(f"{case.name}/{engine} {label}", rec)
+    return points
+
+
+def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
+    """Per case x engine, the least wall time of a sweep point with error <= target."""
+    out = []
+    keys = sorted({(p["case"], p["engine"]) for p in points})
+    for case, engine in keys:
+        mine = [p for p in points if (p["case"], p["engine"]) == (case, engine)
+                and p.get("error") is not None]
+        row = {"case": case, "engine": engine}
+        for target in targets:
+            good = [p for p in mine if p["error"] <= target]
+            row[f"time_to_{target:g}"] = min((p["wall_time_s"] for p in good), default=None)
+        out.append(row)
+    return out
