@@ -1,11 +1,14 @@
-"""Forward dynamics: index-1 Lagrange equations (paper Eq. (6)) with projection.
+"""Forward dynamics: one entry point, :func:`integrate`, over the formulations of
+:mod:`natcoord.formulations` and the integrators of :mod:`natcoord.integrators`.
 
-    [ M      Phi_q^T ] [ qdd    ]   [ Q(q)              ]
-    [ Phi_q  0       ] [ lambda ] = [ -qd^T H_k qd      ]
+    sol = integrate(model, state, times, formulation="index1", method="dopri5",
+                    rtol=1e-10, atol=1e-12)
+    sol = integrate(model, state, times, formulation="index3", method="trapezoidal", h=1e-3)
 
-integrated by an adaptive explicit Runge-Kutta method between output samples, with q and qd
-projected back onto Phi = 0 and Phi_q qd = 0 at every sample (the drift is then bounded by
-the integrator tolerance over one sample interval, not over the whole run).
+Before integrating, the existence condition ker M ∩ ker Phi_q = {0} (Eq. (37)) is checked
+at the initial state (ExistenceError names the motion without kinetic energy). Every
+sample carries q, qd, qdd and the minimum-norm multipliers of all rows (joints first,
+drivers after them).
 """
 
 from __future__ import annotations
@@ -14,31 +17,30 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
+from .drivers import ConstraintSystem
+from .formulations import (
+    DEFAULT_OPTIONS,
+    FORMULATIONS,
+    Counters,
+    Index1,
+    check_existence,
+    multipliers,
+)
+from .integrators import time_loop
 from .kinematics import State
-from .model import Model
 
+DEFAULT_METHOD = {"index1": "dopri5", "maggi": "dopri5", "index3": "trapezoidal"}
 
-@dataclass
-class Counters:
-    """Cost counters of one integration; they do not depend on machine noise."""
-
-    steps: int = 0
-    rhs: int = 0
-    factorizations: int = 0
-    projections: int = 0
-    newton: int = 0
-    max_phi: float = 0.0
-    max_phi_dot: float = 0.0
-
-    def as_dict(self) -> dict:
-        return dict(self.__dict__)
+__all__ = ["Counters", "Solution", "integrate", "accelerations", "project", "FORMULATIONS",
+           "DEFAULT_OPTIONS"]
 
 
 @dataclass(frozen=True)
 class Solution:
-    """Samples of an integration: t (T,), q (T, n), qd (T, n), qdd (T, n), lam (T, m)."""
+    """Samples of an integration: t (T,), q (T, n), qd (T, n), qdd (T, n), lam (T, m_all)
+    with m_all = m constraint rows + driver rows; ``counters`` see
+    :class:`~natcoord.formulations.Counters`."""
 
     t: np.ndarray
     q: np.ndarray
@@ -49,79 +51,78 @@ class Solution:
     wall_time_s: float = 0.0
 
 
-def accelerations(model: Model, q: np.ndarray, qd: np.ndarray,
-                  t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
-    """Index-1 solve at one state: (qdd (n,), lambda (m,)).
+def integrate(model, state: State, times: np.ndarray, *, formulation: str = "index1",
+              method: str | None = None, h: float | None = None, rtol: float = 1e-10,
+              atol: float = 1e-12, check: bool = True, **options) -> Solution:
+    """Integrate from ``state`` at times[0] and sample at ``times`` (T,).
 
-    The augmented matrix is singular with redundant constraints; lstsq then returns the
-    minimum-norm lambda while qdd stays unique when ker M ∩ ker Phi_q = {0}.
+    Parameters
+    ----------
+    formulation : "index1" | "maggi" | "index3"
+    method : integrator name (natcoord.integrators.INTEGRATORS); default dopri5 for the
+        ODE forms, trapezoidal for index3
+    h : fixed step, s (required for rk4 and trapezoidal; makes dopri5 fixed-step)
+    rtol, atol : adaptive tolerances
+    check : test Eq. (37) at the initial state first
+    options : formulation options (``formulations.DEFAULT_OPTIONS``), e.g.
+        stabilization="baumgarte", linsolve="qr", penalty=1e7
     """
-    n, m = model.n, model.m
-    Jq = model.constraints.jacobian(q)
-    A = np.zeros((n + m, n + m))
-    A[:n, :n], A[:n, n:], A[n:, :n] = model.M, Jq.T, Jq
-    b = np.concatenate([model.forces(t, q, qd), -model.constraints.quad_velocity(qd)])
-    try:
-        x = np.linalg.solve(A, b)
-    except np.linalg.LinAlgError:
-        x = np.linalg.lstsq(A, b, rcond=None)[0]
-    return x[:n], x[n:]
-
-
-def project(model: Model, q: np.ndarray, qd: np.ndarray, tol: float = 1e-13,
-            counters: Counters | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares projection of q onto Phi = 0 (Newton) and of qd onto Phi_q qd = 0."""
-    con = model.constraints
-    q = q.copy()
-    for _ in range(10):
-        phi = con.phi(q)
-        if np.max(np.abs(phi), initial=0.0) < tol:
-            break
-        q -= np.linalg.lstsq(con.jacobian(q), phi, rcond=None)[0]
-        if counters:
-            counters.newton += 1
-    Jq = con.jacobian(q)
-    qd = qd - np.linalg.lstsq(Jq, Jq @ qd, rcond=None)[0]
-    if counters:
-        counters.projections += 1
-    return q, qd
-
-
-def integrate(model: Model, state: State, times: np.ndarray, *, method: str = "DOP853",
-              rtol: float = 1e-10, atol: float = 1e-12) -> Solution:
-    """Integrate from ``state`` at times[0] and sample at ``times`` (T,)."""
-    n = model.n
+    if formulation not in FORMULATIONS:
+        raise ValueError(f"unknown formulation {formulation!r}; expected one of "
+                         f"{', '.join(FORMULATIONS)}")
+    unknown = sorted(set(options) - set(DEFAULT_OPTIONS))
+    if unknown:
+        raise ValueError(f"unknown option {unknown[0]!r}; options are "
+                         f"{', '.join(DEFAULT_OPTIONS)}")
+    method = method or DEFAULT_METHOD[formulation]
+    times = np.asarray(times, dtype=float)
+    t0 = float(times[0])
+    if check:
+        check_existence(model, state.q, t0)
     cnt = Counters()
+    form = FORMULATIONS[formulation](model, options, cnt)
+    cs = ConstraintSystem(model)
+    n, T = model.n, len(times)
+    Q, QD, QDD, LAM = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, cs.m))
+    if formulation != "index3":  # start from a consistent state (index3 projects itself)
+        q0, qd0 = Index1(model, {**options, "linsolve": "qr"}, Counters()).project(
+            t0, np.asarray(state.q, float), np.asarray(state.qd, float))
+    else:
+        q0, qd0 = np.asarray(state.q, float), np.asarray(state.qd, float)
 
-    def rhs(t, y):
-        cnt.rhs += 1
-        cnt.factorizations += 1
-        qdd, _ = accelerations(model, y[:n], y[n:], t)
-        return np.concatenate([y[n:], qdd])
+    def record(k, t, y):
+        q, qd = form.state(t, y)
+        Q[k], QD[k] = q, qd
+        QDD[k] = form.accelerations(t, q, qd)
 
-    T = len(times)
-    Q, QD, QDD, LAM = (np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n)),
-                       np.zeros((T, model.m)))
-    q, qd = project(model, state.q, state.qd, counters=cnt)
-    t0 = time.perf_counter()
-    first_step = None
-    for k, t in enumerate(times):
-        if k > 0:
-            h = t - times[k - 1]
-            sol = solve_ivp(rhs, (times[k - 1], t), np.concatenate([q, qd]), method=method,
-                            rtol=rtol, atol=atol,
-                            first_step=None if first_step is None else min(first_step, h))
-            if not sol.success:
-                raise RuntimeError(f"integration failed at t = {times[k - 1]:.6g} s: "
-                                   f"{sol.message}")
-            cnt.steps += len(sol.t) - 1
-            first_step = float(np.diff(sol.t)[-1]) if len(sol.t) > 1 else None
-            drift = np.max(np.abs(model.constraints.phi(sol.y[:n, -1])), initial=0.0)
-            cnt.max_phi = max(cnt.max_phi, float(drift))
-            q, qd = project(model, sol.y[:n, -1], sol.y[n:, -1], counters=cnt)
-        qdd, lam = accelerations(model, q, qd, t)
-        Q[k], QD[k], QDD[k], LAM[k] = q, qd, qdd, lam
-    wall = time.perf_counter() - t0
-    cnt.max_phi_dot = float(max(np.max(np.abs(model.constraints.jacobian(Q[k]) @ QD[k]),
-                                       initial=0.0) for k in range(T)))
-    return Solution(times, Q, QD, QDD, LAM, cnt.as_dict(), wall)
+    wall0 = time.perf_counter()
+    y = form.init(t0, q0, qd0)
+    time_loop(form, y, times, method=method, h=h, rtol=rtol, atol=atol, record=record)
+    wall = time.perf_counter() - wall0
+    for k in range(T):  # outputs only: min-norm multipliers and drift
+        LAM[k] = multipliers(model, cs, times[k], Q[k], QD[k], QDD[k])
+        p, J, pt, _ = cs.all(Q[k], QD[k], times[k])
+        cnt.max_phi = max(cnt.max_phi, float(np.max(np.abs(p), initial=0.0)))
+        cnt.max_phi_dot = max(cnt.max_phi_dot, float(np.max(np.abs(J @ QD[k] + pt),
+                                                            initial=0.0)))
+    counters = cnt.as_dict() | {"formulation": formulation, "method": method}
+    return Solution(times, Q, QD, QDD, LAM, counters, wall)
+
+
+def accelerations(model, q: np.ndarray, qd: np.ndarray,
+                  t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Index-1 solve at one state: (qdd (n,), minimum-norm lambda (m_all,)).
+
+    Rank-revealing (pivoted QR), so redundant constraints and a singular M are fine as
+    long as ker M ∩ ker Phi_q = {0}.
+    """
+    qdd = Index1(model, {"linsolve": "qr"}, Counters()).accelerations(t, q, qd)
+    return qdd, multipliers(model, ConstraintSystem(model), t, q, qd, qdd)
+
+
+def project(model, q: np.ndarray, qd: np.ndarray, tol: float = 1e-13,
+            counters: Counters | None = None, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Project q onto Phi(q, t) = 0 (Newton) and qd onto Phi_q qd = -Phi_t (min-norm)."""
+    form = Index1(model, {"linsolve": "qr", "project_tol": tol}, counters or Counters())
+    form.mode = "qr"
+    return form.project(t, np.asarray(q, float), np.asarray(qd, float))

@@ -41,6 +41,12 @@ class Motion:
     velocity: dict[str, np.ndarray]
     omega: dict[str, np.ndarray]
     joint_force: dict[str, np.ndarray] = field(default_factory=dict)
+    # optional (an engine that cannot report them leaves them empty; channels become NaN):
+    # body -> (T, d) acceleration of the frame origin, m/s^2; body -> (T,) angular
+    # acceleration, rad/s^2; driver -> (T,) effort of a driver (N m for an angle driver)
+    acceleration: dict[str, np.ndarray] = field(default_factory=dict)
+    alpha: dict[str, np.ndarray] = field(default_factory=dict)
+    driver_effort: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def _rot(angle: np.ndarray) -> np.ndarray:
@@ -59,6 +65,15 @@ def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> 
     rp = _rot(motion.angle[body]) @ point
     w = motion.omega[body][:, None]
     return motion.velocity[body] + w * np.stack([-rp[:, 1], rp[:, 0]], -1)
+
+
+def point_acceleration(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World acceleration (T, 2) of a body-frame point: a_O + alpha x (R p) - omega^2 R p."""
+    if body not in motion.acceleration or body not in motion.alpha:
+        return np.full((len(motion.t), 2), np.nan)
+    rp = _rot(motion.angle[body]) @ point
+    w, a = motion.omega[body][:, None], motion.alpha[body][:, None]
+    return motion.acceleration[body] + a * np.stack([-rp[:, 1], rp[:, 0]], -1) - w * w * rp
 
 
 def energy(case: Case, motion: Motion) -> np.ndarray:
@@ -85,6 +100,11 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
         elif ch.kind == "velocity":
             p = case.body(ch.body).points[ch.point]
             v = point_velocity(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "acceleration":
+            p = case.body(ch.body).points[ch.point]
+            v = point_acceleration(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "driver":
+            v = motion.driver_effort.get(ch.driver, np.full_like(motion.t, np.nan))
         elif ch.kind == "energy":
             v = energy(case, motion)
         else:  # reaction

@@ -1,20 +1,31 @@
-"""natcoord's own solver as an engine: natural coordinates, index-1 with projection."""
+"""natcoord's own solver as an engine: natural coordinates, formulation chosen by settings.
+
+Settings (``[engines.natcoord].settings``): ``formulation`` (index1 | maggi | index3),
+``method`` (dopri5 | rk4 | trapezoidal | DOP853 | RK45 | Radau | LSODA | BDF), ``rtol``,
+``atol``, ``h`` (fixed step, s; required for rk4 and trapezoidal) and the formulation options
+of :data:`natcoord.formulations.DEFAULT_OPTIONS` (``stabilization``, ``linsolve``,
+``penalty``, ...).
+"""
 
 from __future__ import annotations
 
 import time
 
+import numpy as np
+
 from .. import __version__
 from ..dynamics import integrate
+from ..formulations import DEFAULT_OPTIONS
 from ..kinematics import initial_state
 from ..mechanism import Case
-from ..model import build_model
+from ..model import J2, build_model
 from ..result import Motion
 from .base import EngineRun, merged
 
 NAME = "natcoord"
 PACKAGE = "natcoord"
-DEFAULTS = {"formulation": "index1", "method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
+DEFAULTS = {"formulation": "index1", "method": "DOP853", "rtol": 1e-10, "atol": 1e-12,
+            "h": None}
 
 
 def version() -> str:
@@ -23,21 +34,42 @@ def version() -> str:
 
 def run(case: Case, init, settings: dict) -> EngineRun:
     s = merged(DEFAULTS, settings)
+    unknown = sorted(set(s) - set(DEFAULTS) - set(DEFAULT_OPTIONS))
+    if unknown:
+        raise ValueError(f"natcoord settings: unknown key {unknown[0]!r}; keys are "
+                         f"{', '.join([*DEFAULTS, *DEFAULT_OPTIONS])}")
     t0 = time.perf_counter()
     model = build_model(case)
     state = initial_state(model)
     build = time.perf_counter() - t0
-    sol = integrate(model, state, case.times, method=s["method"], rtol=s["rtol"],
-                    atol=s["atol"])
+    options = {k: v for k, v in s.items() if k in DEFAULT_OPTIONS}
+    method = s["method"]
+    if s["formulation"] == "index3" and method == DEFAULTS["method"]:
+        method = "trapezoidal"
+    sol = integrate(model, state, case.times, formulation=s["formulation"], method=method,
+                    rtol=s["rtol"], atol=s["atol"], h=s["h"], **options)
     return EngineRun(motion_of(model, sol), build, sol.wall_time_s, sol.counters["steps"], s,
                      sol.counters)
 
 
 def motion_of(model, sol) -> Motion:
-    """Neutral motion from a natcoord solution."""
-    origin, angle, velocity, omega = {}, {}, {}, {}
-    for name in model.bodies:
+    """Neutral motion from a natcoord solution (accelerations and driver efforts included)."""
+    origin, angle, velocity, omega, acc, alpha = {}, {}, {}, {}, {}, {}
+    for name, b in model.bodies.items():
         origin[name], angle[name], velocity[name], omega[name] = model.body_pose(
             name, sol.q, sol.qd)
+        C0 = model.point_map(name, np.zeros(2))[:, :-1]
+        if b.p_j is None:  # particle: its frame origin is its point translated
+            C0 = np.zeros((2, model.n))
+            C0[:, b.cols] = np.eye(2)
+            alpha[name] = np.zeros(len(sol.t))
+        else:  # alpha = (d x d_ddot) / |d|^2 for d = r_j - r_i (d . d_dot = 0)
+            d = sol.q[:, b.cols[2:]] - sol.q[:, b.cols[:2]]
+            ddd = sol.qdd[:, b.cols[2:]] - sol.qdd[:, b.cols[:2]]
+            alpha[name] = np.sum((d @ J2.T) * ddd, 1) / np.sum(d * d, 1)
+        acc[name] = sol.qdd @ C0.T
     forces = {name: j.force(sol.lam, sol.q) for name, j in model.joints.items()}
-    return Motion(sol.t, origin, angle, velocity, omega, forces)
+    m0 = model.constraints.m
+    efforts = {d.name: d.effort(sol.lam[:, m0 + k], sol.q, sol.t)
+               for k, d in enumerate(getattr(model, "drivers", ()))}
+    return Motion(sol.t, origin, angle, velocity, omega, forces, acc, alpha, efforts)

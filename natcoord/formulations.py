@@ -1,0 +1,482 @@
+"""Equations of motion in natural coordinates, chosen by name (``FORMULATIONS``).
+
+Every formulation works on any model with ``n``, ``M`` (n, n), ``constraints``
+(:class:`~natcoord.constraints.QuadraticConstraints`), ``forces(t, q, qd) -> (n,)`` and
+optionally ``drivers`` (rheonomic rows, :mod:`natcoord.drivers`). Equation numbers refer to
+García de Jalón & Gutiérrez-López, "Multibody dynamics with redundant constraints and
+singular mass matrix".
+
+``index1``  Lagrange equations with the acceleration constraints, Eq. (6). Solved through
+            the Schur complement ``Phi_q M^-1 Phi_q^T`` with the constant M^-1 when M is
+            regular and Phi_q has full rank, otherwise through a rank-revealing (pivoted)
+            QR of Phi_q^T, which is the null-space form of Eq. (6) and holds for redundant
+            constraints and a singular M. Drift: projection after every step or Baumgarte.
+``maggi``   Maggi / R-method, Eq. (23): independent coordinates from Gaussian elimination
+            with full pivoting of Phi_q, Eqs. (13)-(15); dependent positions by Newton;
+            re-partitioned when the dependent block degrades.
+``index3``  Augmented Lagrangian index-3 with the trapezoidal rule and mass-orthogonal
+            projections of velocities and accelerations (Bayo & Ledesma, 1996). It steps
+            itself (integrator ``trapezoidal``).
+
+A formulation is a small object with the state layout it integrates (``init``, ``state``)
+and the stages the time loop of :mod:`natcoord.integrators` calls (``rhs`` or ``step``,
+then ``post_step``). Multipliers are computed once per output sample by
+:func:`multipliers` (minimum norm), so every formulation reports the same lambda.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from .drivers import ConstraintSystem
+from .errors import ExistenceError
+
+
+@dataclass
+class Counters:
+    """Cost counters of one integration; they do not depend on machine noise.
+
+    ``max_phi``/``max_phi_dot``: max |Phi| and |Phi_q qd + Phi_t| over the output samples;
+    ``max_phi_step``/``max_phi_dot_step``: the same before each projection (what one step of
+    the integrator lets drift).
+    """
+
+    steps: int = 0
+    rejected: int = 0
+    rhs: int = 0
+    factorizations: int = 0
+    projections: int = 0
+    newton: int = 0
+    repartitions: int = 0
+    max_phi: float = 0.0
+    max_phi_dot: float = 0.0
+    max_phi_step: float = 0.0
+    max_phi_dot_step: float = 0.0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+DEFAULT_OPTIONS = {
+    "stabilization": "projection",  # index1: projection | baumgarte | none
+    "baumgarte": (10.0, 10.0),      # (alpha, beta) 1/s: c - 2 alpha Phi_dot - beta^2 Phi
+    "linsolve": "auto",             # index1: auto | schur | qr
+    "project_tol": 1e-13,
+    "newton_tol": 1e-13,
+    "repartition_growth": 1.5,      # maggi: re-partition when max|R^d| grows this much
+    "penalty": 1e6,                 # index3: alpha h^2 / 4 = penalty * max|M|
+    "rank_tol": 1e-9,
+}
+
+
+# ---- shared linear algebra ------------------------------------------------------------
+def full_pivot_partition(J: np.ndarray, tol: float = 1e-9):
+    """Gaussian elimination with full pivoting of Phi_q (m, n), Eqs. (13)-(15) and (25).
+
+    Returns (rows (r,), dep (r,), indep (n - r,), pivots (r,)): the independent constraint
+    rows, the dependent coordinates (pivot columns), the independent coordinates and the
+    absolute pivots in elimination order. The rank r is the number of pivots above
+    ``tol * max|Phi_q|``.
+    """
+    A = np.array(J, dtype=float)
+    m, n = A.shape
+    rows, cols = np.arange(m), np.arange(n)
+    scale = max(np.max(np.abs(A), initial=0.0), 1e-300)
+    pivots = []
+    for k in range(min(m, n)):
+        sub = np.abs(A[k:, k:])
+        i, j = np.unravel_index(np.argmax(sub), sub.shape)
+        if sub[i, j] <= tol * scale:
+            break
+        i, j = i + k, j + k
+        A[[k, i]], rows[[k, i]] = A[[i, k]], rows[[i, k]]
+        A[:, [k, j]], cols[[k, j]] = A[:, [j, k]], cols[[j, k]]
+        pivots.append(abs(A[k, k]))
+        A[k + 1:, k:] -= np.outer(A[k + 1:, k] / A[k, k], A[k, k:])
+    r = len(pivots)
+    return rows[:r].copy(), cols[:r].copy(), np.sort(cols[r:]), np.array(pivots)
+
+
+def null_space(J: np.ndarray, tol: float = 1e-9) -> np.ndarray:
+    """Orthonormal basis (n, f) of ker Phi_q by SVD."""
+    n = J.shape[1]
+    if J.shape[0] == 0:
+        return np.eye(n)
+    _, s, Vt = np.linalg.svd(J)
+    r = int(np.sum(s > tol * max(s[0], 1e-300))) if len(s) else 0
+    return Vt[r:].T
+
+
+def check_existence(model, q: np.ndarray, t: float = 0.0, tol: float = 1e-9) -> None:
+    """Raise ExistenceError unless ker M ∩ ker Phi_q = {0} at q (Eq. (37)).
+
+    The test is that R^T M R is positive definite for an orthonormal basis R of ker Phi_q
+    (Eq. (53)): every motion allowed by the constraints carries kinetic energy. The error
+    names the coordinates (and bodies) of the motion that carries none.
+    """
+    cs = ConstraintSystem(model)
+    R = null_space(cs.jacobian(q, t), tol)
+    if R.shape[1] == 0:
+        return
+    w, V = np.linalg.eigh(R.T @ model.M @ R)
+    mscale = max(np.max(np.abs(model.M)), 1e-300)
+    if w[0] > tol * mscale:
+        return
+    x = R @ V[:, 0]
+    x /= np.max(np.abs(x))
+    moving = np.flatnonzero(np.abs(x) > 1e-6)
+    names = _coordinate_names(model)
+    desc = ", ".join(f"{names[k]} ({x[k]:+.3g})" for k in moving)
+    bodies = sorted({names[k].split(".")[0] for k in moving if "." in names[k]})
+    raise ExistenceError(
+        "ker M ∩ ker Phi_q ≠ {0} (Eq. (37)): the constraints allow a motion with zero kinetic "
+        f"energy, so the accelerations are not determined. Moving coordinates: {desc}"
+        + (f" (bodies: {', '.join(bodies)})" if bodies else "")
+        + ". Give the massless part mass or inertia, or constrain that motion.")
+
+
+def _coordinate_names(model) -> list[str]:
+    names = [f"q[{k}]" for k in range(model.n)]
+    for bname, b in (getattr(model, "bodies", None) or {}).items():
+        cols = getattr(b, "cols", None)
+        if cols is None:
+            continue
+        labels = ["x_i", "y_i", "x_j", "y_j"] if len(cols) == 4 else \
+            [f"c{k}" for k in range(len(cols))]
+        for c, lab in zip(cols, labels, strict=False):
+            names[c] = f"{bname}.{lab}"
+    return names
+
+
+def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray:
+    """Minimum-norm lambda (m_all,) of Phi_q^T lambda = F - M qdd (Eq. (54))."""
+    J = cs.jacobian(q, t)
+    return np.linalg.lstsq(J.T, model.forces(t, q, qd) - model.M @ qdd, rcond=None)[0]
+
+
+def _is_spd(M: np.ndarray) -> bool:
+    try:
+        np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return False
+    w = np.linalg.eigvalsh(M)
+    return w[0] > 1e-10 * w[-1]
+
+
+# ---- formulations ---------------------------------------------------------------------
+class Formulation:
+    """Base: how a formulation meets the time loop.
+
+    1. ``init(t, q, qd) -> y`` maps a consistent state to what is integrated.
+    2. ODE forms give ``rhs(t, y) -> dy/dt``; stepping forms give ``step(t, y, h) -> y``.
+    3. ``post_step(t, y) -> y`` after every accepted step (projection, re-partitioning).
+    4. ``state(t, y) -> (q, qd)`` and ``accelerations(t, q, qd) -> qdd`` for the outputs.
+    """
+
+    name = ""
+    ode = True
+    methods: tuple[str, ...] = ()
+
+    def __init__(self, model, options: dict, counters: Counters):
+        self.model, self.opt, self.cnt = model, {**DEFAULT_OPTIONS, **options}, counters
+        self.cs = ConstraintSystem(model)
+        self.n = model.n
+        self.M = np.asarray(model.M, dtype=float)
+
+    def post_step(self, t, y):
+        return y
+
+    def _drift(self, t, q, qd):
+        p, J, pt, _ = self.cs.all(q, qd, t)
+        self.cnt.max_phi_step = max(self.cnt.max_phi_step, float(np.max(np.abs(p), initial=0)))
+        self.cnt.max_phi_dot_step = max(self.cnt.max_phi_dot_step,
+                                        float(np.max(np.abs(J @ qd + pt), initial=0)))
+
+
+class Index1(Formulation):
+    """Eq. (6) as an ODE in y = [q, qd] (2n)."""
+
+    name = "index1"
+    methods = ("rk4", "dopri5", "DOP853", "RK45", "Radau", "LSODA", "BDF")
+
+    def __init__(self, model, options, counters):
+        super().__init__(model, options, counters)
+        stab = self.opt["stabilization"]
+        if stab not in ("projection", "baumgarte", "none"):
+            raise ValueError(f"stabilization {stab!r}: expected projection, baumgarte or none")
+        mode = self.opt["linsolve"]
+        if mode not in ("auto", "schur", "qr"):
+            raise ValueError(f"linsolve {mode!r}: expected auto, schur or qr")
+        self.Minv = np.linalg.inv(self.M) if _is_spd(self.M) else None
+        if mode == "schur" and self.Minv is None:
+            raise ValueError("linsolve 'schur' needs a regular mass matrix")
+        self.mode = mode
+
+    def init(self, t, q, qd):
+        if self.mode == "auto":
+            r = np.linalg.matrix_rank(self.cs.jacobian(q, t), self.opt["rank_tol"])
+            self.mode = "schur" if self.Minv is not None and r == self.cs.m else "qr"
+        return np.concatenate([q, qd])
+
+    def state(self, t, y):
+        return y[:self.n], y[self.n:]
+
+    def rhs(self, t, y):
+        q, qd = y[:self.n], y[self.n:]
+        return np.concatenate([qd, self.accelerations(t, q, qd)])
+
+    def accelerations(self, t, q, qd):
+        """qdd (n,) of Eq. (6) (Baumgarte terms in c when chosen)."""
+        self.cnt.rhs += 1
+        self.cnt.factorizations += 1
+        F = self.model.forces(t, q, qd)
+        p, J, pt, c = self.cs.all(q, qd, t)
+        if self.opt["stabilization"] == "baumgarte":
+            a, b = self.opt["baumgarte"]
+            c = c - 2.0 * a * (J @ qd + pt) - b * b * p
+        if self.mode == "schur":  # M^-1 constant: one (m, m) solve per evaluation
+            MiF, MiJt = self.Minv @ F, self.Minv @ J.T
+            lam = np.linalg.solve(J @ MiJt, J @ MiF - c)
+            return MiF - MiJt @ lam
+        Q1, Q2, R1, P = self._qr(J)
+        r = R1.shape[0]
+        y1 = np.linalg.solve(R1[:, :r].T, c[P[:r]]) if r else np.zeros(0)
+        v1 = Q1 @ y1
+        if Q2.shape[1] == 0:
+            return v1
+        K = Q2.T @ self.M @ Q2
+        y2 = np.linalg.solve(K, Q2.T @ (F - self.M @ v1))
+        return v1 + Q2 @ y2
+
+    def _qr(self, J):
+        """Pivoted QR of Phi_q^T: Phi_q^T[:, P] = Q R; rank r reveals redundant rows."""
+        if J.shape[0] == 0:
+            return np.zeros((self.n, 0)), np.eye(self.n), np.zeros((0, 0)), np.zeros(0, int)
+        Q, R, P = scipy.linalg.qr(J.T, pivoting=True)
+        d = np.abs(np.diag(R))
+        r = int(np.sum(d > self.opt["rank_tol"] * max(d[0], 1e-300))) if len(d) else 0
+        return Q[:, :r], Q[:, r:], R[:r, :], P
+
+    def _corrector(self, J):
+        """dx = corr(rhs) with J dx = rhs (consistent rows), M-orthogonal when M is regular."""
+        self.cnt.factorizations += 1
+        if self.mode == "schur":
+            MiJt = self.Minv @ J.T
+            W = J @ MiJt
+            return lambda rhs: MiJt @ np.linalg.solve(W, rhs)
+        Q1, _, R1, P = self._qr(J)
+        r = R1.shape[0]
+        L = R1[:, :r].T
+        return lambda rhs: Q1 @ np.linalg.solve(L, rhs[P[:r]])
+
+    def post_step(self, t, y):
+        if self.opt["stabilization"] != "projection":
+            return y
+        return np.concatenate(self.project(t, y[:self.n], y[self.n:]))
+
+    def project(self, t, q, qd):
+        """Newton projection of q on Phi(q, t) = 0, then qd on Phi_q qd = -Phi_t."""
+        self._drift(t, q, qd)
+        cs, tol = self.cs, self.opt["project_tol"]
+        q = q.copy()
+        corr = None
+        for _ in range(10):
+            p = cs.phi(q, t)
+            if np.max(np.abs(p), initial=0.0) < tol:
+                break
+            if corr is None:  # simplified Newton: one factorization per projection
+                corr = self._corrector(cs.jacobian(q, t))
+            q -= corr(p)
+            self.cnt.newton += 1
+        J = cs.jacobian(q, t)
+        res = J @ qd + cs.phi_t(q, t)
+        if np.max(np.abs(res), initial=0.0) > tol:
+            qd = qd - self._corrector(J)(res)
+        self.cnt.projections += 1
+        return q, qd
+
+
+class Maggi(Formulation):
+    """Eq. (23) as an ODE in y = [q^i, qd^i] (2f), R from coordinate partitioning."""
+
+    name = "maggi"
+    methods = Index1.methods
+
+    def init(self, t, q, qd):
+        self.q = np.array(q, dtype=float)
+        self._partition(t, self.q)
+        return np.concatenate([q[self.indep], qd[self.indep]])
+
+    def _partition(self, t, q):
+        J = self.cs.jacobian(q, t)
+        self.rows, self.dep, self.indep, _ = full_pivot_partition(J, self.opt["rank_tol"])
+        self.f = len(self.indep)
+        self.cnt.factorizations += 1
+        self.R0 = None
+
+    def _positions(self, t, qi):
+        """Dependent coordinates by Newton on the independent rows: q (n,)."""
+        q = self.q.copy()
+        q[self.indep] = qi
+        cs, rows, dep = self.cs, self.rows, self.dep
+        for _ in range(20):
+            p = cs.phi(q, t)[rows]
+            if np.max(np.abs(p), initial=0.0) < self.opt["newton_tol"]:
+                break
+            J = cs.jacobian(q, t)
+            q[dep] -= np.linalg.solve(J[np.ix_(rows, dep)], p)
+            self.cnt.newton += 1
+            self.cnt.factorizations += 1
+        else:
+            raise RuntimeError(f"maggi: position Newton did not converge at t = {t:.6g} s "
+                               f"(max |Phi| = {np.max(np.abs(p)):.3g})")
+        self.q = q
+        return q
+
+    def _kinematics(self, t, y):
+        """(q, qd, R (n, f), Sc (n,), Rd) at the integrated independent state."""
+        f, n = self.f, self.n
+        q = self._positions(t, y[:f])
+        p, J, pt, _ = self.cs.all(q, np.zeros(n), t)
+        Jr = J[self.rows]
+        Jd_inv = np.linalg.inv(Jr[:, self.dep])
+        self.cnt.factorizations += 1
+        Rd = -Jd_inv @ Jr[:, self.indep]
+        R = np.zeros((n, f))
+        R[self.dep], R[self.indep] = Rd, np.eye(f)
+        qd = R @ y[f:]
+        qd[self.dep] += Jd_inv @ (-pt[self.rows])  # S b, Eq. (20)
+        c = self.cs.gamma(q, qd, t)[self.rows]
+        Sc = np.zeros(n)
+        Sc[self.dep] = Jd_inv @ c  # Eq. (22) with qdd^i = 0
+        return q, qd, R, Sc, Rd
+
+    def rhs(self, t, y):
+        q, qd, R, Sc, _ = self._kinematics(t, y)
+        qdd_i = self._indep_acc(t, q, qd, R, Sc)
+        return np.concatenate([y[self.f:], qdd_i])
+
+    def _indep_acc(self, t, q, qd, R, Sc):
+        self.cnt.rhs += 1
+        self.cnt.factorizations += 1
+        if self.f == 0:
+            return np.zeros(0)
+        F = self.model.forces(t, q, qd)
+        A3 = R.T @ self.M @ R
+        return np.linalg.solve(A3, R.T @ (F - self.M @ Sc))  # Eq. (23)
+
+    def state(self, t, y):
+        q, qd, *_ = self._kinematics(t, y)
+        return q, qd
+
+    def accelerations(self, t, q, qd):
+        y = np.concatenate([q[self.indep], qd[self.indep]])
+        self.q = q.copy()
+        q, qd, R, Sc, _ = self._kinematics(t, y)
+        return Sc + R @ self._indep_acc(t, q, qd, R, Sc)
+
+    def post_step(self, t, y):
+        """Re-partition when the dependent block Phi_q^d degrades (max |R^d| grows)."""
+        q, qd, _, _, Rd = self._kinematics(t, y)
+        g = float(np.max(np.abs(Rd), initial=0.0))
+        if self.R0 is None:
+            self.R0 = max(g, 1.0)
+            return y
+        if g > self.opt["repartition_growth"] * self.R0:
+            self._partition(t, q)
+            self.cnt.repartitions += 1
+            return np.concatenate([q[self.indep], qd[self.indep]])
+        return y
+
+
+class Index3(Formulation):
+    """Index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal projections.
+
+    y = [q, qd, qdd, lambda*] (3n + m). Per step: Newton on
+    ``M (q - qhat) + h^2/4 (Phi_q^T (lambda* + alpha Phi) - F) = 0`` with lambda* updated
+    by ``alpha Phi`` after every iteration, then qd and qdd projected onto
+    ``Phi_q qd = -Phi_t`` and ``Phi_q qdd = c`` in the metric of M (Bayo & Ledesma).
+    """
+
+    name = "index3"
+    ode = False
+    methods = ("trapezoidal",)
+
+    def init(self, t, q, qd):
+        i1 = Index1(self.model, {**self.opt, "linsolve": "qr"}, self.cnt)
+        qdd = i1.accelerations(t, q, qd)
+        lam = multipliers(self.model, self.cs, t, q, qd, qdd)
+        self.mscale = float(np.max(np.abs(np.diag(self.M))))
+        self._last_qdd = qdd
+        return np.concatenate([q, qd, qdd, lam])
+
+    def _split(self, y):
+        n = self.n
+        return y[:n], y[n:2 * n], y[2 * n:3 * n], y[3 * n:]
+
+    def state(self, t, y):
+        q, qd, _, _ = self._split(y)
+        return q, qd
+
+    def accelerations(self, t, q, qd):
+        return self._last_qdd
+
+    def step(self, t, y, h):
+        q0, qd0, qdd0, lam = self._split(y)
+        lam = lam.copy()
+        t1 = t + h
+        beta = self.opt["penalty"] * self.mscale  # alpha h^2 / 4
+        alpha = 4.0 * beta / (h * h)
+        qhat = q0 + h * qd0 + 0.25 * h * h * qdd0
+        q = q0 + h * qd0 + 0.5 * h * h * qdd0
+        cs, con, n = self.cs, self.cs.con, self.n
+        sel = (con.i < n) & (con.j < n)
+        for _ in range(30):
+            qdd = 4.0 / (h * h) * (q - qhat)
+            qd = qd0 + 0.5 * h * (qdd0 + qdd)
+            p, J = cs.phi(q, t1), cs.jacobian(q, t1)
+            F = self.model.forces(t1, q, qd)
+            self.cnt.rhs += 1
+            mu = lam + alpha * p
+            g = self.M @ (q - qhat) + 0.25 * h * h * (J.T @ mu - F)
+            H = np.zeros(n * n)  # sum_k mu_k d2Phi_k/dq2 from the triplets
+            np.add.at(H, con.i[sel] * n + con.j[sel], mu[con.k[sel]] * con.v[sel])
+            Tg = self.M + beta * (J.T @ J) + 0.25 * h * h * H.reshape(n, n)
+            dq = np.linalg.solve(Tg, -g)
+            self.cnt.factorizations += 1
+            self.cnt.newton += 1
+            q = q + dq
+            lam = lam + alpha * cs.phi(q, t1)
+            if np.max(np.abs(dq)) < self.opt["newton_tol"] * 10 * max(1.0, np.max(np.abs(q))):
+                break
+        else:
+            raise RuntimeError(f"index3: Newton did not converge at t = {t1:.6g} s")
+        qdd = 4.0 / (h * h) * (q - qhat)
+        qd = qd0 + 0.5 * h * (qdd0 + qdd)
+        self._drift(t1, q, qd)
+        J = cs.jacobian(q, t1)
+        Pinv = np.linalg.inv(self.M + beta * (J.T @ J))
+        self.cnt.factorizations += 1
+        qd = self._mproject(Pinv, J, beta, qd, -cs.phi_t(q, t1))
+        qdd = self._mproject(Pinv, J, beta, qdd, cs.gamma(q, qd, t1))
+        self.cnt.projections += 1
+        self._last_qdd = qdd
+        return np.concatenate([q, qd, qdd, lam])
+
+    def _mproject(self, Pinv, J, beta, x, b):
+        """argmin (x' - x)^T M (x' - x) subject to J x' = b, by augmented-Lagrangian sweeps
+        (M + beta J^T J) x' = M x + J^T (beta b - sigma) that reuse one factorization."""
+        Mx, sigma = self.M @ x, np.zeros(len(b))
+        for _ in range(20):
+            x = Pinv @ (Mx + J.T @ (beta * b - sigma))
+            res = J @ x - b
+            if np.max(np.abs(res), initial=0.0) < self.opt["project_tol"]:
+                break
+            sigma = sigma + beta * res
+        return x
+
+
+FORMULATIONS: dict[str, type[Formulation]] = {f.name: f for f in (Index1, Maggi, Index3)}

@@ -1,0 +1,147 @@
+"""Integrators by name (``INTEGRATORS``) and the one time loop that drives a formulation.
+
+``rk4``          classical Runge-Kutta, fixed step (order 4)
+``dopri5``       Dormand-Prince 5(4): adaptive (rtol, atol) or fixed step (order 5); the
+                 formulation's ``post_step`` (projection, re-partitioning) runs after every
+                 accepted step, so k1 is re-evaluated at the corrected state (no FSAL)
+``trapezoidal``  the index-3 formulation's own implicit step (order 2), fixed step
+scipy names      (``DOP853``, ``RK45``, ``Radau``, ``LSODA``, ``BDF``): ``solve_ivp`` between
+                 output samples, ``post_step`` at each sample only
+
+Steps are clipped to land on every output time, so no interpolation enters the samples.
+:func:`time_loop` is the single place a later compiled kernel replaces.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+
+class ExplicitRK:
+    """Explicit Runge-Kutta method from its Butcher tableau (class constants)."""
+
+    name = ""
+    order = 0
+    C: np.ndarray
+    A: np.ndarray
+    B: np.ndarray
+    E: np.ndarray | None = None  # B - B_embedded: error estimate weights
+
+    @classmethod
+    def step(cls, f, t, y, h):
+        """One step: (y_new, error estimate or None)."""
+        s = len(cls.B)
+        K = np.empty((s, len(y)))
+        for i in range(s):
+            K[i] = f(t + cls.C[i] * h, y + h * (cls.A[i, :i] @ K[:i]))
+        y_new = y + h * (cls.B @ K)
+        err = h * (cls.E @ K) if cls.E is not None else None
+        return y_new, err
+
+
+class RK4(ExplicitRK):
+    name, order = "rk4", 4
+    C = np.array([0.0, 0.5, 0.5, 1.0])
+    A = np.array([[0, 0, 0, 0], [0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 1.0, 0]])
+    B = np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6])
+
+
+class DormandPrince5(ExplicitRK):
+    name, order = "dopri5", 5
+    C = np.array([0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1, 1])
+    A = np.array([
+        [0, 0, 0, 0, 0, 0, 0],
+        [1 / 5, 0, 0, 0, 0, 0, 0],
+        [3 / 40, 9 / 40, 0, 0, 0, 0, 0],
+        [44 / 45, -56 / 15, 32 / 9, 0, 0, 0, 0],
+        [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0, 0, 0],
+        [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0, 0],
+        [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0]])
+    B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
+    E = B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200,
+                      187 / 2100, 1 / 40])
+
+
+SCIPY_METHODS = ("DOP853", "RK45", "Radau", "LSODA", "BDF")
+INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "trapezoidal": None,
+               **{k: None for k in SCIPY_METHODS}}
+SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 5.0
+
+
+def _rms(x):
+    return math.sqrt(float(np.mean(x * x))) if len(x) else 0.0
+
+
+def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol: float,
+              record) -> None:
+    """Advance ``y`` through ``times`` (T,), calling ``record(k, t, y)`` at every sample.
+
+    Fixed step when ``h`` is given (steps of at most h that land on each sample), adaptive
+    otherwise (dopri5 and the scipy methods).
+    """
+    cnt = form.cnt
+    if method not in INTEGRATORS:
+        raise ValueError(f"unknown integrator {method!r}; expected one of {', '.join(INTEGRATORS)}")
+    if method not in form.methods:
+        raise ValueError(f"formulation {form.name!r} does not run with {method!r}; "
+                         f"use one of {', '.join(form.methods)}")
+    if method in ("rk4", "trapezoidal") and h is None:
+        raise ValueError(f"{method} is a fixed-step method: give h")
+    record(0, times[0], y)
+    h_adapt = None
+    for k in range(1, len(times)):
+        t0, t1 = float(times[k - 1]), float(times[k])
+        if method in SCIPY_METHODS:
+            sol = solve_ivp(form.rhs, (t0, t1), y, method=method, rtol=rtol, atol=atol,
+                            first_step=None if h_adapt is None else min(h_adapt, t1 - t0),
+                            **({} if h is None else {"max_step": h}))
+            if not sol.success:
+                raise RuntimeError(f"integration failed at t = {t0:.6g} s: {sol.message}")
+            cnt.steps += len(sol.t) - 1
+            h_adapt = float(sol.t[-1] - sol.t[-2]) if len(sol.t) > 1 else None
+            y = form.post_step(t1, sol.y[:, -1])
+        elif h is not None:
+            nsub = max(1, math.ceil((t1 - t0) / h - 1e-9))
+            hh = (t1 - t0) / nsub
+            for i in range(nsub):
+                t = t0 + i * hh
+                y = form.step(t, y, hh) if method == "trapezoidal" else \
+                    DormandPrince5.step(form.rhs, t, y, hh)[0] if method == "dopri5" else \
+                    RK4.step(form.rhs, t, y, hh)[0]
+                y = form.post_step(t + hh, y)
+                cnt.steps += 1
+        else:
+            y, h_adapt = _adaptive(form, DormandPrince5, y, t0, t1, h_adapt, rtol, atol)
+        record(k, t1, y)
+
+
+def _adaptive(form, rk, y, t0, t1, h, rtol, atol):
+    """Embedded-pair step control from t0 to t1; returns (y, last unclipped step)."""
+    cnt, f = form.cnt, form.rhs
+    if h is None:  # Hairer's first guess from |y| and |f|
+        f0 = f(t0, y)
+        scale = atol + rtol * np.abs(y)
+        d0, d1 = _rms(y / scale), _rms(f0 / scale)
+        h = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
+    t, h_last = t0, h
+    while t < t1 - 1e-14 * max(1.0, abs(t1)):
+        hh = min(h, t1 - t)
+        y_new, err = rk.step(f, t, y, hh)
+        e = _rms(err / (atol + rtol * np.maximum(np.abs(y), np.abs(y_new))))
+        if e <= 1.0:
+            t += hh
+            y = form.post_step(t, y_new)
+            cnt.steps += 1
+            if hh == h:
+                h_last = h
+            factor = MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** (-1 / rk.order))
+            h = hh * factor if hh == h else max(h, hh * factor)
+        else:
+            cnt.rejected += 1
+            h = hh * max(MIN_FACTOR, SAFETY * e ** (-1 / rk.order))
+            if h < 1e-14 * max(1.0, abs(t)):
+                raise RuntimeError(f"step size underflow at t = {t:.6g} s")
+    return y, h_last
