@@ -1,0 +1,727 @@
+"""Self-contained HTML report of a results directory.
+
+Input (the runner's contract, DESIGN.md section 2):
+
+- ``DIR/summary.json``: header fields and one record per case x engine;
+- ``DIR/results/<case>/<engine>.csv``: column ``t`` then one column per channel;
+- ``references/<case>.csv`` and ``references/<case>.json`` (data and provenance);
+- optionally ``DIR/bench.json`` (speed benchmark).
+
+Output: ``DIR/index.html``, one file that works offline: plotly.js is embedded once,
+inline, and every figure is drawn from data embedded in the page (float32, base64).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from collections.abc import Iterable
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import jinja2
+import numpy as np
+import pandas as pd
+import plotly.graph_objects as go
+import plotly.io as pio
+import plotly.offline
+from markupsafe import Markup
+from plotly.subplots import make_subplots
+
+ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
+ENGINE_COLORS = {
+    "natcoord": "#1f77b4",
+    "mujoco": "#e07b00",
+    "pinocchio": "#2ca02c",
+    "exudyn": "#d62728",
+    "dart": "#9467bd",
+}
+_EXTRA_COLORS = ["#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f"]
+REFERENCE_COLOR = "#222222"
+MAX_POINTS = 1000  # samples per plotted series
+FIG_HEIGHT = 480  # px, every channel figure (grid rows line up)
+KIND_ORDER = {"angle": 0, "position": 1, "velocity": 2, "energy": 3, "reaction": 4}
+PLOT_CONFIG = {
+    "displaylogo": False,
+    "responsive": True,
+    "modeBarButtonsToRemove": ["lasso2d", "select2d", "autoScale2d"],
+    "toImageButtonOptions": {"format": "svg"},
+}
+
+_TEMPLATES = Path(__file__).with_name("templates")
+
+
+# ---------------------------------------------------------------- number formatting
+
+
+def num(x: Any) -> float | None:
+    """A finite float, or None for null / NaN / inf / non-numbers."""
+    if x is None or isinstance(x, bool):
+        return None
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+def fmt_num(x: Any, unit: str = "") -> str:
+    """3 significant digits; scientific outside [0.01, 1e4); an em dash for no value."""
+    v = num(x)
+    if v is None:
+        return "—"
+    if v == 0 or 1e-2 <= abs(v) < 1e4:
+        s = f"{v:.3g}"
+    else:
+        m, e = f"{v:.2e}".split("e")
+        s = f"{m}e{int(e)}"
+    s = s.replace("-", "−")
+    return f"{s}\u00a0{unit}" if unit else s
+
+
+def fmt_time(x: Any) -> str:
+    """A duration in seconds with an SI prefix and 3 significant digits."""
+    v = num(x)
+    if v is None:
+        return "—"
+    a = abs(v)
+    for scale, unit in ((1.0, "s"), (1e-3, "ms"), (1e-6, "µs"), (1e-9, "ns")):
+        if a >= scale or scale == 1e-9:
+            if a >= 1e4 and scale == 1.0:
+                return fmt_num(v, "s")
+            return f"{v / scale:.3g}\u00a0{unit}"
+    return fmt_num(v, "s")  # pragma: no cover
+
+
+def fmt_int(x: Any) -> str:
+    v = num(x)
+    return "—" if v is None else f"{int(round(v)):,}".replace(",", "\u202f")
+
+
+def fmt_ratio(x: Any) -> str:
+    v = num(x)
+    return "—" if v is None else f"{v:.3g}×"
+
+
+def fmt_value(x: Any) -> str:
+    """Provenance / settings values: dicts as ``k = v`` lists, floats with 3 digits."""
+    if isinstance(x, dict):
+        return ", ".join(f"{k} = {fmt_value(v)}" for k, v in x.items()) or "—"
+    if isinstance(x, list | tuple):
+        return ", ".join(fmt_value(v) for v in x) or "—"
+    if isinstance(x, float):
+        return fmt_num(x)
+    if x is None:
+        return "—"
+    return str(x)
+
+
+def fmt_when(iso: str | None) -> str:
+    if not iso:
+        return "unknown time"
+    try:
+        d = datetime.fromisoformat(str(iso).replace("Z", "+00:00"))
+    except ValueError:
+        return str(iso)
+    tz = d.strftime("%Z") or ""
+    return d.strftime("%Y-%m-%d %H:%M:%S") + (f" {tz}" if tz else "")
+
+
+def anchor(*parts: str) -> str:
+    return "-".join(re.sub(r"[^A-Za-z0-9_-]+", "_", p) for p in parts)
+
+
+# ---------------------------------------------------------------- reading the inputs
+
+
+def _read_json(path: Path) -> Any:
+    with open(path, encoding="utf-8") as f:
+        return json.load(f)  # accepts NaN / Infinity as written by Python's json
+
+
+def _read_csv(path: Path) -> pd.DataFrame | None:
+    if not path.is_file():
+        return None
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.EmptyDataError, pd.errors.ParserError, OSError):
+        return None
+    if "t" not in df.columns:
+        return None
+    return df.apply(pd.to_numeric, errors="coerce")
+
+
+def _engine_order(names: Iterable[str]) -> list[str]:
+    names = list(dict.fromkeys(names))
+    known = [e for e in ENGINE_ORDER if e in names]
+    return known + sorted(n for n in names if n not in ENGINE_ORDER)
+
+
+def _engine_colors(engines: list[str]) -> dict[str, str]:
+    colors = dict(ENGINE_COLORS)
+    extra = iter(_EXTRA_COLORS * 10)
+    for e in engines:
+        colors.setdefault(e, next(extra))
+    return colors
+
+
+# ---------------------------------------------------------------- cells and verdicts
+
+_CELL = {
+    # key: (label, css class)
+    "pass": ("pass", "pass"),
+    "fail": ("fail", "fail"),
+    "failed": ("failed", "failed"),
+    "unsupported": ("unsupported", "unsupported"),
+    "skipped": ("skipped", "skipped"),
+    "no-reference": ("no reference", "noref"),
+    "n/a": ("ran", "na"),
+    "missing": ("not run", "missing"),
+}
+
+
+def _failing_channels(rec: dict) -> list[str]:
+    out = []
+    for name, ch in (rec.get("channels") or {}).items():
+        if ch.get("pass") is False and ch.get("determined", True):
+            unit = ch.get("unit") or ""
+            out.append(
+                f"{name}: {fmt_num(ch.get('max_abs'), unit)} > {fmt_num(ch.get('tolerance'), unit)}"
+            )
+    return out
+
+
+def cell_for(rec: dict | None) -> dict:
+    """Matrix cell of one case x engine record: label, css class and reason text."""
+    if rec is None:
+        label, css = _CELL["missing"]
+        return {"key": "missing", "label": label, "css": css, "reason": "no record", "note": None}
+    status = str(rec.get("status") or "").lower()
+    verdict = str(rec.get("verdict") or "").lower()
+    reason = str(rec.get("reason") or "").strip()
+    if status in ("failed", "unsupported", "skipped"):
+        key = status
+    elif status == "ok":
+        key = verdict if verdict in ("pass", "fail", "no-reference", "n/a") else "n/a"
+    else:
+        key, reason = "failed", reason or f"unknown status {status!r}"
+    if key == "fail":
+        bad = _failing_channels(rec)
+        reason = "; ".join(filter(None, ["; ".join(bad), reason]))
+    elif key == "no-reference" and not reason:
+        reason = "no stored reference for this case: errors not computed"
+    label, css = _CELL[key]
+    return {"key": key, "label": label, "css": css, "reason": reason, "note": None}
+
+
+def overall_verdict(records: list[dict]) -> dict:
+    cells = [cell_for(r) for r in records]
+    counts: dict[str, int] = {}
+    for c in cells:
+        counts[c["key"]] = counts.get(c["key"], 0) + 1
+    n = len(cells)
+    bad = [
+        f"{r.get('case')} / {r.get('engine')}"
+        for r, c in zip(records, cells, strict=True)
+        if c["key"] in ("fail", "failed")
+    ]
+    if not n:
+        state, word = "empty", "NO RESULTS"
+    elif bad:
+        state, word = "fail", "FAIL"
+    elif counts.get("pass", 0) == 0:
+        state, word = "incomplete", "NOT GATED"
+    else:
+        state, word = "pass", "PASS"
+    parts = []
+    for key in ("pass", "fail", "failed", "no-reference", "n/a", "unsupported", "skipped"):
+        if counts.get(key):
+            parts.append(f"{counts[key]} {_CELL[key][0]}")
+    return {
+        "state": state,
+        "word": word,
+        "n": n,
+        "summary": ", ".join(parts),
+        "bad": bad,
+        "counts": counts,
+    }
+
+
+# ---------------------------------------------------------------- plotting
+
+
+def _stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
+    if n <= m:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, m).round().astype(int))
+
+
+def _envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """Downsample an error series keeping each bucket's largest value (peaks survive)."""
+    n = len(e)
+    if n <= m:
+        return t, e
+    edges = np.linspace(0, n, m + 1).astype(int)
+    idx = []
+    for a, b in zip(edges[:-1], edges[1:], strict=True):
+        if b <= a:
+            continue
+        seg = e[a:b]
+        if np.all(np.isnan(seg)):
+            idx.append(a)
+        else:
+            idx.append(a + int(np.nanargmax(seg)))
+    idx = np.asarray(idx)
+    return t[idx], e[idx]
+
+
+def _f32(a: np.ndarray) -> np.ndarray:
+    return np.asarray(a, dtype=np.float32)
+
+
+def _on_reference_times(ref_t: np.ndarray, t: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Engine series at the reference's sample times (NaN outside the engine's span)."""
+    if len(t) == len(ref_t) and np.allclose(t, ref_t, rtol=0, atol=1e-12):
+        return y
+    ok = np.isfinite(t) & np.isfinite(y)
+    if ok.sum() < 2:
+        return np.full_like(ref_t, np.nan, dtype=float)
+    out = np.interp(ref_t, t[ok], y[ok])
+    out[(ref_t < t[ok][0] - 1e-12) | (ref_t > t[ok][-1] + 1e-12)] = np.nan
+    return out
+
+
+def channel_figure(
+    name: str,
+    unit: str,
+    ref: pd.DataFrame | None,
+    runs: dict[str, pd.DataFrame],
+    colors: dict[str, str],
+    undetermined: bool = False,
+) -> str:
+    """One figure per channel: values over the reference (dashed) and |error| (log)."""
+    has_ref = ref is not None and name in ref.columns
+    has_err = False
+    ref_t = ref_y = None
+    if has_ref:
+        ref_t = ref["t"].to_numpy(float)
+        ref_y = ref[name].to_numpy(float)
+    errors: dict[str, np.ndarray] = {}
+    if has_ref and not undetermined:  # an undetermined multiplier has no "error"
+        for eng, df in runs.items():
+            if name in df.columns:
+                y = _on_reference_times(ref_t, df["t"].to_numpy(float), df[name].to_numpy(float))
+                e = np.abs(y - ref_y)
+                e[e <= 0] = np.nan  # log axis: exact agreement is not drawable
+                if np.any(np.isfinite(e)):
+                    errors[eng] = e
+                    has_err = True
+    rows = 2 if has_err else 1
+    if rows == 2:
+        fig = make_subplots(
+            rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.07, row_heights=[0.6, 0.4]
+        )
+    else:
+        fig = go.Figure()
+
+    def add(trace: go.Scatter, row: int) -> None:
+        if rows == 2:
+            fig.add_trace(trace, row=row, col=1)
+        else:
+            fig.add_trace(trace)
+
+    for eng, df in runs.items():
+        if name not in df.columns:
+            continue
+        t = df["t"].to_numpy(float)
+        y = df[name].to_numpy(float)
+        if not np.any(np.isfinite(y)):
+            continue
+        i = _stride(len(t))
+        add(
+            go.Scatter(
+                x=_f32(t[i]), y=_f32(y[i]), name=eng, mode="lines", legendgroup=eng,
+                line={"color": colors[eng], "width": 1.5},
+                hovertemplate=f"{eng}<br>t=%{{x:.4g}} s<br>%{{y:.4g}}<extra></extra>",
+            ),
+            1,
+        )
+    if has_ref:  # drawn last: its dashes stay visible over engines that agree with it
+        i = _stride(len(ref_t))
+        add(
+            go.Scatter(
+                x=_f32(ref_t[i]), y=_f32(ref_y[i]), name="reference", mode="lines",
+                legendgroup="reference",
+                line={"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
+                hovertemplate="reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>",
+            ),
+            1,
+        )
+    for eng, e in errors.items():
+        te, ee = _envelope(ref_t, e)
+        add(
+            go.Scatter(
+                x=_f32(te), y=_f32(ee), name=eng, mode="lines", legendgroup=eng,
+                showlegend=False, line={"color": colors[eng], "width": 1.2},
+                hovertemplate=f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>",
+            ),
+            2,
+        )
+    ulabel = f" [{unit}]" if unit else ""
+    axis = {
+        "showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
+        "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
+        "exponentformat": "power",
+    }
+    fig.update_layout(
+        template="none",
+        height=FIG_HEIGHT,
+        margin={"l": 64, "r": 14, "t": 30, "b": 70},
+        font={"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12},
+        legend={"orientation": "h", "x": 0, "xanchor": "left", "y": -50 / (FIG_HEIGHT - 100),
+                "yanchor": "top", "font": {"size": 11}},
+        hovermode="closest",
+        paper_bgcolor="white",
+        plot_bgcolor="white",
+    )
+    fig.update_xaxes(**axis)
+    fig.update_yaxes(**axis)
+    if rows == 2:
+        fig.update_yaxes(title_text=f"{name}{ulabel}", row=1, col=1)
+        fig.update_yaxes(
+            title_text=f"|error|{ulabel}", type="log", row=2, col=1, exponentformat="power"
+        )
+        fig.update_xaxes(title_text="t [s]", row=2, col=1)
+    else:
+        fig.update_yaxes(title_text=f"{name}{ulabel}")
+        fig.update_xaxes(title_text="t [s]")
+    if not fig.data:
+        fig.add_annotation(
+            text="no data", showarrow=False, xref="paper", yref="paper", x=0.5, y=0.5
+        )
+    return pio.to_html(
+        fig, include_plotlyjs=False, full_html=False, config=PLOT_CONFIG,
+        default_height=f"{fig.layout.height}px", default_width="100%",
+    )
+
+
+# ---------------------------------------------------------------- building the page
+
+
+def _channel_meta(records: list[dict], names: list[str]) -> dict[str, dict]:
+    meta: dict[str, dict] = {}
+    for name in names:
+        kind, unit, determined = None, None, True
+        for r in records:
+            ch = (r.get("channels") or {}).get(name)
+            if not ch:
+                continue
+            kind = kind or ch.get("kind")
+            unit = unit or ch.get("unit")
+            if ch.get("determined") is False:
+                determined = False
+        meta[name] = {"kind": kind or "other", "unit": unit or "", "determined": determined}
+    return meta
+
+
+def _channel_cell(ch: dict | None, rec: dict) -> dict:
+    status = str(rec.get("status") or "")
+    if status != "ok":
+        return {"css": "na", "text": "—", "sub": "", "title": f"{status}"}
+    if not ch:
+        return {"css": "na", "text": "—", "sub": "", "title": "channel not reported"}
+    unit = ch.get("unit") or ""
+    text = fmt_num(ch.get("max_abs"), unit)
+    tol = num(ch.get("tolerance"))
+    rel = num(ch.get("max_rel"))
+    sub = []
+    if tol is not None:
+        sub.append(f"tol {fmt_num(tol, unit)}")
+    if rel is not None:
+        sub.append(f"rel {fmt_num(rel)}")
+    if ch.get("determined") is False:
+        css, title = "undet", "undetermined redundant reaction: shown, not gated"
+        sub.append("not gated")
+    elif ch.get("pass") is True:
+        css, title = "pass", "within tolerance"
+    elif ch.get("pass") is False:
+        css, title = "fail", "outside tolerance"
+    else:
+        css, title = "na", "no tolerance or no reference: not gated"
+    return {"css": css, "text": text, "sub": " · ".join(sub), "title": title}
+
+
+def _sim_time(rec: dict, run: pd.DataFrame | None) -> float | None:
+    s = num(rec.get("sim_time_s"))
+    if s is None and run is not None and len(run):
+        t = run["t"].to_numpy(float)
+        s = num(np.nanmax(t) - np.nanmin(t)) if np.any(np.isfinite(t)) else None
+    return s if s else None
+
+
+def _speed_row(rec: dict, run: pd.DataFrame | None, base: float | None) -> dict:
+    sim = _sim_time(rec, run)
+    wall = num(rec.get("wall_time_s"))
+    wps = wall / sim if (wall is not None and sim) else None
+    us = num(rec.get("us_per_step"))
+    if us is None and wall is not None and num(rec.get("n_steps")):
+        us = 1e6 * wall / float(rec["n_steps"])
+    return {
+        "engine": rec.get("engine", ""),
+        "status": rec.get("status", ""),
+        "build": fmt_time(rec.get("build_time_s")),
+        "wall": fmt_time(wall),
+        "wall_per_sim": fmt_time(wps),
+        "us_per_step": fmt_time(us * 1e-6 if us is not None else None),
+        "steps": fmt_int(rec.get("n_steps")) if num(rec.get("n_steps")) else "—",
+        "sim": fmt_time(sim),
+        "ratio": fmt_ratio(wps / base) if (wps is not None and base) else "—",
+        "_wps": wps,
+    }
+
+
+def _reference_info(references: Path, case: str) -> tuple[pd.DataFrame | None, dict | None]:
+    ref = _read_csv(references / f"{case}.csv")
+    meta_path = references / f"{case}.json"
+    meta = None
+    if meta_path.is_file():
+        try:
+            meta = _read_json(meta_path)
+        except (OSError, ValueError):
+            meta = {"error": f"unreadable provenance file {meta_path.name}"}
+    return ref, meta
+
+
+def _provenance_items(meta: dict | None) -> list[tuple[str, str]]:
+    if not meta:
+        return []
+    order = ["method", "created", "max_phi", "settings", "tolerances", "versions"]
+    keys = [k for k in order if k in meta] + [
+        k for k in meta if k not in order and k != "case"
+    ]
+    return [(k.replace("_", " "), fmt_value(meta[k])) for k in keys]
+
+
+def _bench_section(bench: dict | None, cases_order: list[str]) -> dict | None:
+    if not bench:
+        return None
+    recs = [r for r in bench.get("records") or [] if isinstance(r, dict)]
+    by_case: dict[str, list[dict]] = {}
+    for r in recs:
+        by_case.setdefault(str(r.get("case", "")), []).append(r)
+    groups = []
+    order = [c for c in cases_order if c in by_case] + sorted(
+        c for c in by_case if c not in cases_order
+    )
+    for case in order:
+        rs = by_case[case]
+        engs = _engine_order(str(r.get("engine", "")) for r in rs)
+        rs = sorted(rs, key=lambda r: engs.index(str(r.get("engine", ""))))
+        base = next(
+            (num(r.get("wall_per_sim_s")) for r in rs if r.get("engine") == "natcoord"), None
+        )
+        rows = []
+        for r in rs:
+            w = num(r.get("wall_per_sim_s"))
+            rows.append({
+                "engine": r.get("engine", ""),
+                "us_per_step": fmt_time(
+                    num(r.get("us_per_step")) * 1e-6 if num(r.get("us_per_step")) else None
+                ),
+                "wall_per_sim": fmt_time(w),
+                "build": fmt_time(r.get("build_time_s")),
+                "repeats": fmt_int(r.get("repeats")),
+                "ratio": fmt_ratio(w / base) if (w is not None and base) else "—",
+            })
+        groups.append({"case": case, "anchor": anchor("case", case), "rows": rows})
+    machine = bench.get("machine") or {}
+    return {"groups": groups, "machine": [(k, fmt_value(v)) for k, v in machine.items()],
+            "error": ""}
+
+
+def build_context(results_dir: Path, references: Path = Path("references")) -> dict:
+    """Everything the template needs, as plain values (no file access in the template)."""
+    results_dir = Path(results_dir)
+    references = Path(references)
+    summary_path = results_dir / "summary.json"
+    if not summary_path.is_file():
+        raise FileNotFoundError(f"{summary_path} not found: run `natcoord run` first")
+    summary = _read_json(summary_path)
+    records = [r for r in summary.get("records") or [] if isinstance(r, dict)]
+
+    case_names = list(dict.fromkeys(str(r.get("case", "")) for r in records))
+    engines = _engine_order(str(r.get("engine", "")) for r in records)
+    colors = _engine_colors(engines)
+    by_key = {(str(r.get("case")), str(r.get("engine"))): r for r in records}
+
+    footnotes: list[dict] = []
+    matrix = []
+    cases = []
+    speed_groups = []
+    for case in case_names:
+        crecs = [by_key[(case, e)] for e in engines if (case, e) in by_key]
+        case_anchor = anchor("case", case)
+        # matrix row
+        row = []
+        for e in engines:
+            cell = cell_for(by_key.get((case, e)))
+            cell["engine"] = e
+            cell["color"] = colors[e]
+            if cell["reason"] and cell["key"] != "missing":
+                footnotes.append({"n": len(footnotes) + 1, "case": case, "engine": e,
+                                  "label": cell["label"], "css": cell["css"],
+                                  "reason": cell["reason"]})
+                cell["note"] = len(footnotes)
+            row.append(cell)
+        description = next((r.get("description") for r in crecs if r.get("description")), "")
+        matrix.append({"case": case, "anchor": case_anchor, "cells": row,
+                       "description": description})
+
+        # data
+        ref, ref_meta = _reference_info(references, case)
+        runs: dict[str, pd.DataFrame] = {}
+        for r in crecs:
+            df = _read_csv(results_dir / "results" / case / f"{r.get('engine')}.csv")
+            if df is not None:
+                runs[str(r.get("engine"))] = df
+        names: list[str] = []
+        if ref is not None:
+            names += [c for c in ref.columns if c != "t"]
+        for df in runs.values():
+            names += [c for c in df.columns if c != "t"]
+        for r in crecs:
+            names += list((r.get("channels") or {}).keys())
+        names = list(dict.fromkeys(names))
+        meta = _channel_meta(crecs, names)
+        names.sort(key=lambda n: (KIND_ORDER.get(meta[n]["kind"], 5), not meta[n]["determined"]))
+
+        ran = [r for r in crecs]
+        table = []
+        for n in names:
+            m = meta[n]
+            table.append({
+                "name": n, "unit": m["unit"], "kind": m["kind"], "determined": m["determined"],
+                "anchor": anchor("fig", case, n),
+                "cells": [_channel_cell((r.get("channels") or {}).get(n), r) for r in ran],
+            })
+        plots_runs = {e: runs[e] for e in engines if e in runs}
+        trajectories, reactions = [], []
+        for n in names:
+            m = meta[n]
+            fig = {
+                "name": n, "unit": m["unit"], "determined": m["determined"],
+                "anchor": anchor("fig", case, n),
+                "html": Markup(channel_figure(n, m["unit"], ref, plots_runs, colors,
+                                              not m["determined"])),
+            }
+            (reactions if m["kind"] == "reaction" else trajectories).append(fig)
+
+        notes = [(str(r.get("engine")), [str(x) for x in r.get("notes") or []])
+                 for r in crecs if r.get("notes")]
+        tol_reasons = [(str(r.get("engine")), str(r.get("tolerance_reason")))
+                       for r in crecs if r.get("tolerance_reason")]
+        details = []
+        for r in crecs:
+            details.append({
+                "engine": r.get("engine"),
+                "version": r.get("engine_version") or "",
+                "settings": [(k, fmt_value(v)) for k, v in (r.get("settings") or {}).items()],
+                "counters": [(k, fmt_value(v)) for k, v in (r.get("counters") or {}).items()],
+            })
+
+        base = None
+        nat = by_key.get((case, "natcoord"))
+        if nat is not None:
+            base = _speed_row(nat, runs.get("natcoord"), None)["_wps"]
+        speed_rows = [_speed_row(r, runs.get(str(r.get("engine"))), base) for r in crecs]
+        speed_groups.append({"case": case, "anchor": case_anchor, "rows": speed_rows})
+
+        cases.append({
+            "name": case,
+            "anchor": case_anchor,
+            "description": description,
+            "cells": row,
+            "columns": [{"engine": r.get("engine"), "color": colors[str(r.get("engine"))],
+                         "cell": cell_for(r)} for r in ran],
+            "table": table,
+            "trajectories": trajectories,
+            "reactions": reactions,
+            "any_undetermined": any(not f["determined"] for f in reactions + trajectories),
+            "has_reference": ref is not None,
+            "reference_file": f"{case}.csv",
+            "provenance": _provenance_items(ref_meta),
+            "notes": notes,
+            "tolerance_reasons": tol_reasons,
+            "details": details,
+            "n_samples": None if ref is None else len(ref),
+        })
+
+    versions: dict[str, list[str]] = {}
+    for r in records:
+        v = str(r.get("engine_version") or "")
+        if v:
+            versions.setdefault(str(r.get("engine")), [])
+            if v not in versions[str(r.get("engine"))]:
+                versions[str(r.get("engine"))].append(v)
+    engine_versions = [(e, ", ".join(versions.get(e, [])) or "—") for e in engines]
+    machine = summary.get("machine") or {}
+
+    bench = None
+    bench_path = results_dir / "bench.json"
+    if bench_path.is_file():
+        try:
+            bench = _bench_section(_read_json(bench_path), case_names)
+        except (OSError, ValueError) as exc:
+            bench = {"groups": [], "machine": [], "error": f"unreadable bench.json: {exc}"}
+
+    return {
+        "title": "natcoord validation report",
+        "generated": fmt_when(summary.get("generated")),
+        "generated_iso": str(summary.get("generated") or ""),
+        "version": str(summary.get("natcoord_version") or "unknown"),
+        "machine": [(k.replace("_", " "), fmt_value(v)) for k, v in machine.items()],
+        "engine_versions": engine_versions,
+        "engines": [{"name": e, "color": colors[e]} for e in engines],
+        "overall": overall_verdict(records),
+        "matrix": matrix,
+        "footnotes": footnotes,
+        "cases": cases,
+        "speed": speed_groups,
+        "bench": bench,
+        "references_dir": str(references),
+        "results_dir": str(results_dir),
+    }
+
+
+def _environment() -> jinja2.Environment:
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(_TEMPLATES)),
+        autoescape=True,
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["num"] = fmt_num
+    env.filters["time"] = fmt_time
+    return env
+
+
+def render(context: dict) -> str:
+    js = plotly.offline.get_plotlyjs()
+    if "</script" in js.lower():  # cannot happen with plotly's bundle; keep the page sound
+        js = re.sub(r"</script", r"<\\/script", js, flags=re.IGNORECASE)
+    template = _environment().get_template("report.html.j2")
+    return template.render(plotlyjs=Markup(js), **context)
+
+
+def write_report(results_dir: Path, references: Path = Path("references")) -> Path:
+    """Write ``results_dir/index.html`` from the run's results and the stored references."""
+    results_dir = Path(results_dir)
+    html = render(build_context(results_dir, references))
+    out = results_dir / "index.html"
+    tmp = out.with_suffix(".html.tmp")
+    tmp.write_text(html, encoding="utf-8")
+    tmp.replace(out)
+    return out

@@ -1,0 +1,349 @@
+"""The HTML report: rendering of a results directory (not physics)."""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from natcoord.report import write_report
+from natcoord.report.html import MAX_POINTS, cell_for, fmt_num, fmt_time
+
+ENGINES = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
+CHROMIUM = Path("/usr/bin/chromium")
+EVIL = "<script>alert('x')</script> & \"quotes\""
+
+
+# ---------------------------------------------------------------- a results directory
+
+
+def _pendulum(t: np.ndarray) -> pd.DataFrame:
+    """Rigid pendulum-like motion: an analytic angle, mass position, link tension."""
+    w = 2 * np.pi / 2.3678419
+    th = -np.pi / 2 + (np.pi / 2) * np.cos(w * t)
+    thd = -(np.pi / 2) * w * np.sin(w * t)
+    x, y = np.cos(th), np.sin(th)
+    tension = -9.81 * y + thd**2
+    return pd.DataFrame({"t": t, "x": x, "y": y, "tension": tension})
+
+
+def _five_bar(t: np.ndarray, share: float = 0.5) -> pd.DataFrame:
+    """An angle and two redundant axial forces whose split (``share``) is arbitrary."""
+    phi = np.pi / 2 + t - 4.0 * t**2
+    m = 200.0 + 50.0 * np.sin(3 * t)  # determined combination N34 + 2 N56
+    n56 = share * m / 2
+    n34 = m - 2 * n56
+    return pd.DataFrame({"t": t, "phi": phi, "N34": n34, "N56": n56, "N34_2N56": n34 + 2 * n56})
+
+
+CHANNELS = {
+    "pendulum": {"x": ("position", "m"), "y": ("position", "m"), "tension": ("reaction", "N")},
+    "five_bar": {"phi": ("angle", "rad"), "N34": ("reaction", "N"), "N56": ("reaction", "N"),
+                 "N34_2N56": ("reaction", "N")},
+}
+UNDETERMINED = {"N34", "N56"}
+TOL = {"angle": 1e-6, "position": 1e-6, "reaction": 1e-3, "energy": 1e-6}
+
+# (status, verdict, reason, how the engine's series differ from the reference)
+PLAN = {
+    "pendulum": {
+        "natcoord": ("ok", "pass", "", 1e-9),
+        "mujoco": ("ok", "fail", "", 2e-3),
+        "pinocchio": ("ok", "pass", "", 3e-7),
+        "exudyn": ("failed", "n/a", "diverged at t = 4.2 s (NaN state)", None),
+        "dart": ("unsupported", "n/a", f"no massless link {EVIL}", None),
+    },
+    "five_bar": {
+        "natcoord": ("ok", "pass", "", 0.0),
+        "mujoco": ("unsupported", "n/a", "singular mass matrix cannot be modelled", None),
+        "pinocchio": ("skipped", "n/a", "package pin not installed", None),
+        "exudyn": ("ok", "pass", "", 1e-8),
+        "dart": ("ok", "fail", "", 5e-2),
+    },
+}
+
+
+def _record(case, engine, status, verdict, reason, offset, run, ref):
+    channels = {}
+    for name, (kind, unit) in CHANNELS[case].items():
+        det = name not in UNDETERMINED
+        if status == "ok":
+            err = np.abs(run[name].to_numpy() - ref[name].to_numpy())
+            max_abs = float(np.max(err))
+            rng = float(np.ptp(ref[name].to_numpy())) or 1.0
+            tol = TOL[kind]
+            channels[name] = {"kind": kind, "unit": unit, "max_abs": max_abs,
+                              "max_rel": max_abs / rng, "tolerance": tol if det else None,
+                              "pass": (max_abs <= tol) if det else None, "determined": det}
+        else:
+            channels[name] = {"kind": kind, "unit": unit, "max_abs": None, "max_rel": float("nan"),
+                              "tolerance": TOL[kind], "pass": None, "determined": det}
+    n_steps = 10000 if status == "ok" else 0
+    return {
+        "case": case, "description": f"{case} test case: description with <b>markup</b>",
+        "engine": engine, "engine_version": f"{engine}-1.2.3", "status": status,
+        "reason": reason, "verdict": verdict, "channels": channels,
+        "tolerance_reason": f"{engine} tolerance: step 1e-4 s, RK4" if status == "ok" else "",
+        "wall_time_s": 0.0123 * (1 + ENGINES.index(engine)) if status == "ok" else float("nan"),
+        "build_time_s": 0.5 if status == "ok" else None,
+        "n_steps": n_steps,
+        "us_per_step": 1.23 * (1 + ENGINES.index(engine)) if status == "ok" else None,
+        "sim_time_s": float(ref["t"].iloc[-1]),
+        "settings": {"integrator": "RK4", "dt": 1e-4},
+        "counters": {"rhs_evals": 4 * n_steps, "max_drift": 1.5e-12},
+        "notes": [f"{engine}: link modelled as a stiff capsule"] if engine == "mujoco" else [],
+    }
+
+
+def make_results(root: Path, with_bench: bool = True) -> tuple[Path, Path]:
+    """A results directory (2 cases x 5 engines) and a references directory under root."""
+    out, refs = root / "run", root / "references"
+    refs.mkdir(parents=True)
+    records = []
+    for case, plan in PLAN.items():
+        t = np.linspace(0.0, 10.0 if case == "pendulum" else 1.8, 10001)
+        ref = _pendulum(t) if case == "pendulum" else _five_bar(t)
+        ref.to_csv(refs / f"{case}.csv", index=False)
+        (refs / f"{case}.json").write_text(json.dumps({
+            "case": case, "method": "natcoord index-3 augmented Lagrangian, dt 1e-5",
+            "settings": {"dt": 1e-5, "tol": 1e-12}, "tolerances": {"angle": 1e-9},
+            "versions": {"natcoord": "0.1.0", "numpy": "2.4"},
+            "created": "2025-11-20T10:00:00+00:00", "max_phi": 3.1e-14}))
+        for engine, (status, verdict, reason, offset) in plan.items():
+            run = None
+            if status == "ok":
+                run = _pendulum(t) if case == "pendulum" else _five_bar(t, share=0.3 + 0.1 *
+                                                                        ENGINES.index(engine))
+                for name in CHANNELS[case]:
+                    if name not in UNDETERMINED:
+                        run[name] = run[name] + offset * np.sin(7 * t) ** 2
+                d = out / "results" / case
+                d.mkdir(parents=True, exist_ok=True)
+                run.to_csv(d / f"{engine}.csv", index=False)
+            elif status == "failed":  # a partial run ending in NaN
+                part = ref.iloc[:4200].copy()
+                part.iloc[-50:, 1:] = np.nan
+                d = out / "results" / case
+                d.mkdir(parents=True, exist_ok=True)
+                part.to_csv(d / f"{engine}.csv", index=False)
+            records.append(_record(case, engine, status, verdict, reason, offset,
+                                   run if run is not None else ref, ref))
+    summary = {
+        "generated": "2025-11-21T23:40:00+00:00", "natcoord_version": "0.1.0",
+        "machine": {"python": "3.11.9", "platform": "Linux-6.1-x86_64", "cpu": "Test CPU @ 3 GHz",
+                    "blas_threads": 1},
+        "records": records,
+    }
+    (out / "summary.json").write_text(json.dumps(summary))  # NaN written as NaN
+    if with_bench:
+        bench = {"machine": {"cpu": "Test CPU @ 3 GHz"}, "records": [
+            {"case": c, "engine": e, "us_per_step": 0.7 * (i + 1), "wall_per_sim_s": 1e-3 * (i + 1),
+             "build_time_s": 0.1, "repeats": 5}
+            for c in PLAN for i, e in enumerate(ENGINES)]}
+        (out / "bench.json").write_text(json.dumps(bench))
+    return out, refs
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> tuple[Path, str]:
+    out, refs = make_results(tmp_path_factory.mktemp("report"))
+    path = write_report(out, references=refs)
+    return path, path.read_text(encoding="utf-8")
+
+
+# ---------------------------------------------------------------- page content
+
+
+def test_writes_index_html(report):
+    path, html = report
+    assert path.name == "index.html" and path.is_file()
+    assert html.startswith("<!DOCTYPE html>")
+
+
+def test_every_case_and_engine_shown(report):
+    _, html = report
+    for case in PLAN:
+        assert f'id="case-{case}"' in html
+        assert case in html
+    for engine in ENGINES:
+        assert engine in html
+        assert f"{engine}-1.2.3" in html  # engine versions
+
+
+def test_verdict_cells(report):
+    _, html = report
+    cells = re.findall(r'<td class="cell (\w+)"', html)
+    assert len(cells) == len(PLAN) * len(ENGINES)
+    assert sorted(set(cells)) == ["fail", "failed", "pass", "skipped", "unsupported"]
+    # reasons on hover and in text
+    assert 'title="exudyn · failed: diverged at t = 4.2 s (NaN state)"' in html
+    assert "singular mass matrix cannot be modelled" in html
+    assert html.count("package pin not installed") >= 2  # hover + footnote
+    assert 'class="verdict v-fail"' in html  # overall verdict: two runs outside tolerance
+
+
+def test_failing_channels_named(report):
+    _, html = report
+    # the mujoco pendulum offset (2e-3 m) is named with its tolerance
+    assert re.search(r"x: 2(\.00)?e−3\u00a0m &gt; 1(\.00)?e−6\u00a0m", html)
+
+
+def test_self_contained(report):
+    _, html = report
+    assert '<script src="http' not in html
+    assert not re.search(r"""<(script|link|img|iframe)[^>]+(src|href)\s*=\s*["']?(https?:)?//""",
+                         html)
+    assert html.count("<script>/**\n* plotly.js") == 1  # plotly.js embedded once, inline
+    assert "cdn.plot.ly" not in html.split("* plotly.js", 1)[0]
+
+
+def test_text_is_escaped(report):
+    _, html = report
+    assert EVIL not in html
+    assert "&lt;script&gt;alert(" in html
+    assert "<b>markup</b>" not in html and "&lt;b&gt;markup&lt;/b&gt;" in html
+
+
+def test_figures_per_channel(report):
+    _, html = report
+    n_channels = sum(len(c) for c in CHANNELS.values())
+    assert html.count('class="plotly-graph-div"') == n_channels
+    assert html.count("Plotly.newPlot(") == n_channels
+    # float32 base64 arrays, downsampled
+    assert '"dtype":"f4"' in html
+    assert "undetermined: not gated" in html
+    assert "dash" in html and "log" in html
+
+
+def test_downsampled_and_reasonably_small(report):
+    path, html = report
+    size = path.stat().st_size
+    plotly_js = len(html.split("</script>", 1)[0])
+    assert size - plotly_js < 1_500_000, f"figures and tables take {size - plotly_js} bytes"
+    arrays = [a.replace("\\u002f", "/") for a in re.findall(r'"bdata":"([^"]*)"', html)]
+    assert arrays and max(len(base64.b64decode(a)) // 4 for a in arrays) <= MAX_POINTS
+
+
+def test_speed_and_bench_sections(report):
+    _, html = report
+    assert 'id="speed"' in html and 'id="bench"' in html
+    assert "µs" in html and "× natcoord" in html
+
+
+def test_tolerance_reasons_notes_and_provenance(report):
+    _, html = report
+    assert "tolerance: step 1e-4 s, RK4" in html
+    assert "link modelled as a stiff capsule" in html
+    assert "natcoord index-3 augmented Lagrangian" in html
+    assert "Test CPU @ 3 GHz" in html
+
+
+def test_missing_reference_and_bench(tmp_path):
+    out, refs = make_results(tmp_path, with_bench=False)
+    (refs / "five_bar.csv").unlink()
+    (refs / "five_bar.json").unlink()
+    html = write_report(out, references=refs).read_text(encoding="utf-8")
+    assert "No reference for this case yet" in html
+    assert 'id="bench"' not in html
+    assert html.count('class="plotly-graph-div"') == sum(len(c) for c in CHANNELS.values())
+
+
+def test_sparse_records(tmp_path):
+    """Records with only the essentials (a crashed runner, NaN numbers) still render."""
+    (tmp_path / "summary.json").write_text(
+        '{"records": [{"case": "c1", "engine": "natcoord", "status": "failed", '
+        '"wall_time_s": NaN, "channels": {"q": {"max_abs": NaN}}}, '
+        '{"case": "c1", "engine": "newengine", "status": "ok", "verdict": "pass"}]}'
+    )
+    (tmp_path / "results" / "c1").mkdir(parents=True)
+    (tmp_path / "results" / "c1" / "newengine.csv").write_text("t,q\n0,1\n1,2\n")
+    (tmp_path / "results" / "c1" / "natcoord.csv").write_text("")
+    html = write_report(tmp_path, references=tmp_path / "none").read_text(encoding="utf-8")
+    assert "newengine" in html and 'class="cell failed"' in html
+    assert "No reference for this case yet" in html
+
+
+def test_missing_summary(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        write_report(tmp_path, references=tmp_path)
+
+
+def test_formatting():
+    assert fmt_num(0.000123456, "rad") == "1.23e−4\u00a0rad"
+    assert fmt_num(12.3456) == "12.3"
+    assert fmt_num(float("nan")) == "—" and fmt_num(None) == "—"
+    assert fmt_time(0.0123) == "12.3\u00a0ms"
+    assert fmt_time(2.5e-6) == "2.5\u00a0µs"
+    assert cell_for({"status": "ok", "verdict": "pass"})["css"] == "pass"
+    assert cell_for({"status": "skipped", "reason": "r"})["reason"] == "r"
+    assert cell_for(None)["key"] == "missing"
+    assert math.isfinite(1.0)
+
+
+# ---------------------------------------------------------------- in a browser
+
+
+def _chromium(args: list[str], profile: Path, timeout: float = 180) -> subprocess.CompletedProcess:
+    cmd = [
+        str(CHROMIUM), "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic",
+        "--no-first-run", "--disable-background-networking", "--disable-component-update",
+        "--disable-sync", "--disable-dev-shm-usage", f"--user-data-dir={profile}",
+        # any network access would fail (and show up as an error): the page must not need it
+        "--host-resolver-rules=MAP * ~NOTFOUND, EXCLUDE localhost",
+        *args,
+    ]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium (/usr/bin/chromium) absent")
+def test_renders_in_chromium(report, tmp_path):
+    path, _ = report
+    proc = _chromium(
+        ["--enable-logging=stderr", "--v=0", "--virtual-time-budget=20000",
+         "--window-size=1400,1000", "--dump-dom", path.resolve().as_uri()],
+        tmp_path / "profile",
+    )
+    dom, log = proc.stdout, proc.stderr
+    assert proc.returncode == 0, log[-3000:]
+    console = [ln for ln in log.splitlines()
+               if "CONSOLE" in ln or "Uncaught" in ln or "ERR_NAME_NOT_RESOLVED" in ln]
+    assert not console, "\n".join(console)
+    n_channels = sum(len(c) for c in CHANNELS.values())
+    # plotly drew every figure (each has its own main-svg layers)
+    drawn = re.findall(r'<div id="[^"]+" class="plotly-graph-div js-plotly-plot"', dom)
+    assert len(drawn) == n_channels, f"{len(drawn)} of {n_channels} figures drawn"
+    assert dom.count('class="main-svg"') >= n_channels
+    for case in PLAN:
+        assert f'id="case-{case}"' in dom
+    for engine in ENGINES:  # matrix header and a drawn plot legend entry for each engine
+        assert f"{engine}</th>" in dom
+        assert re.search(rf'class="legendtext"[^>]*>{engine}<', dom), engine
+
+
+def _screenshot(path: Path, png: Path, profile: Path, height: int = 5000) -> None:
+    """Full-page screenshot for a human look (not run by default)."""
+    _chromium(["--hide-scrollbars", f"--window-size=1400,{height}", "--virtual-time-budget=20000",
+               f"--screenshot={png}", path.resolve().as_uri()], profile)
+
+
+if __name__ == "__main__":  # python tests/test_report.py DIR: build a sample page + screenshot
+    import sys
+    import tempfile
+
+    root = Path(sys.argv[1] if len(sys.argv) > 1 else tempfile.mkdtemp())
+    shutil.rmtree(root, ignore_errors=True)
+    out, refs = make_results(root)
+    page = write_report(out, references=refs)
+    print(page, page.stat().st_size)
+    if CHROMIUM.exists():
+        _screenshot(page, root / "screenshot.png", root / "profile")
+        print(root / "screenshot.png")
