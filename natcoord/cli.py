@@ -19,7 +19,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="Natural-coordinate multibody solver and cross-engine validation suite.")
 reference_app = typer.Typer(no_args_is_help=True, help="Stored reference solutions.")
 app.add_typer(reference_app, name="reference")
-out = Console()
+out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
 
 DEFAULT_OUT = Path("reports/latest")
