@@ -16,7 +16,7 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -218,6 +218,45 @@ def spanning_tree(case: Case) -> tuple[list[Joint], list[Joint]]:
                 progress = True
                 break
     return tree, remaining
+
+
+def point_loop_tree(case: Case, why: str) -> tuple[list[Joint], list[Joint], list[str]]:
+    """Spanning tree for engines that close loops with point constraints (MuJoCo ``connect``,
+    Pinocchio ``CONTACT_3D``, DART ball joints), which cannot slide.
+
+    When :func:`spanning_tree` leaves a prismatic joint to close a loop, the tree is
+    recomputed with prismatic joints first so that the loop is cut at a revolute joint.
+    Returns ``(tree, loops, recut)``, ``recut`` naming the prismatic joints the plain tree
+    would have left as loops (empty when it was kept). Raises Unsupported (``why`` says
+    what the engine lacks) when a prismatic joint must still close a loop.
+    """
+    from .errors import Unsupported
+
+    tree, loops = spanning_tree(case)
+    recut = [j.name for j in loops if j.type == "prismatic"]
+    if not recut:
+        return tree, loops, recut
+    first = tuple(sorted(case.joints, key=lambda j: j.type != "prismatic"))
+    tree, loops = spanning_tree(replace(case, joints=first))
+    bad = [j.name for j in loops if j.type != "revolute"]
+    if bad:
+        raise Unsupported(f"prismatic joint(s) {', '.join(bad)} must close a loop: {why}")
+    return tree, loops, recut
+
+
+def tree_parents(tree: list[Joint]) -> list[tuple[Joint, str, str]]:
+    """``(joint, parent, child)`` in tree order; the parent is the end the tree reached first
+    (a joint may name its child first)."""
+    reached = {GROUND}
+    out = []
+    for j in tree:
+        a, b = j.bodies
+        parent, child = (a, b) if a in reached else (b, a)
+        if parent not in reached or child in reached:
+            raise ValueError(f"joint {j.name!r} does not extend the tree")
+        reached.add(child)
+        out.append((j, parent, child))
+    return out
 
 
 def tree_orientation(joint: Joint, parent: str) -> int:

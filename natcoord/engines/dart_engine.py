@@ -48,7 +48,7 @@ import time
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, Joint, spanning_tree, tree_orientation
+from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
 
@@ -101,35 +101,13 @@ def _angle_of(R: np.ndarray) -> float:
 
 # ---- tree --------------------------------------------------------------------------------
 def choose_tree(case: Case) -> tuple[list[Joint], list[Joint], bool]:
-    """Tree and loop joints; the loops must be revolute (DART has no prismatic constraint).
-
-    Returns (tree, loops, recut) with recut True when natcoord's spanning tree left a
-    prismatic joint as a loop and the tree was recomputed with prismatic joints first.
-    """
-    tree, loops = spanning_tree(case)
-    if all(j.type == "revolute" for j in loops):
-        return tree, loops, False
-    order = [j for j in case.joints if j.type == "prismatic"] + [
-        j for j in case.joints if j.type != "prismatic"]
-    tree, loops = spanning_tree(dataclasses.replace(case, joints=tuple(order)))
-    bad = [j.name for j in loops if j.type != "revolute"]
-    if bad:
-        raise Unsupported(
-            f"prismatic joint(s) {', '.join(bad)} must close a loop and DART has no "
-            "prismatic joint constraint")
-    return tree, loops, True
+    """Tree and loop joints (loops revolute: DART has no prismatic joint constraint), and
+    whether the tree was recut with prismatic joints first."""
+    tree, loops, recut = point_loop_tree(case, "DART has no prismatic joint constraint")
+    return tree, loops, bool(recut)
 
 
-def _parents(tree: list[Joint]) -> list[tuple[Joint, str, str]]:
-    """(joint, parent, child) in tree order; the parent is the end reached first."""
-    reached = {GROUND}
-    out = []
-    for j in tree:
-        a, b = j.bodies
-        parent, child = (a, b) if a in reached else (b, a)
-        reached.add(child)
-        out.append((j, parent, child))
-    return out
+_parents = tree_parents
 
 
 def _point(case: Case, body: str, name: str) -> np.ndarray:

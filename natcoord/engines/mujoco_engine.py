@@ -41,7 +41,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, Joint, spanning_tree, tree_orientation
+from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
 
@@ -91,43 +91,19 @@ def _quat_z(a: float) -> str:
 # -------------------------------------------------------------------------------- the tree
 
 def _tree(case: Case) -> tuple[list[Joint], list[Joint], list[str]]:
-    """Tree joints (parent first, oriented), loop joints, notes."""
-    tree, loops = spanning_tree(case)
+    """Tree joints (parent first), loop joints, notes."""
+    tree, loops, recut = point_loop_tree(case, "MuJoCo has no point-on-line equality")
     notes = []
-    if any(j.type == "prismatic" for j in loops):
-        cut = [j.name for j in loops if j.type == "prismatic"]
-        order = [j for j in case.joints if j.type == "prismatic"] + [
-            j for j in case.joints if j.type != "prismatic"]
-        tree, loops = spanning_tree(dataclasses.replace(case, joints=tuple(order)))
-        bad = [j.name for j in loops if j.type == "prismatic"]
-        if bad:
-            raise Unsupported(
-                f"prismatic joint(s) {', '.join(bad)} cannot be tree joints (a loop of "
-                "prismatic joints, or bodies not joined to the ground); "
-                "MuJoCo has no point-on-line equality constraint")
-        notes.append(
-            f"loop cut at revolute {', '.join(j.name for j in loops)} instead of prismatic "
-            f"{', '.join(cut)} (MuJoCo has no point-on-line equality); prismatic joints "
-            "are tree slide joints")
+    if recut:
+        notes.append(f"loop cut at revolute {', '.join(j.name for j in loops)} instead of "
+                     f"prismatic {', '.join(recut)} (MuJoCo has no point-on-line equality); "
+                     "prismatic joints are tree slide joints")
     return tree, loops, notes
 
 
 def _parent_of(case: Case, tree: list[Joint]) -> dict[str, tuple[str, Joint]]:
-    """child body -> (parent body, the case's joint), in tree order.
-
-    The parent is found by walking the tree from the ground rather than read from
-    ``bodies[0]``, so the result does not depend on how spanning_tree orients its joints.
-    """
-    out = {}
-    reached = {GROUND}
-    for j in tree:
-        a, b = j.bodies
-        parent, child = (a, b) if a in reached else (b, a)
-        if parent not in reached or child in reached:
-            raise RuntimeError(f"internal: joint {j.name} does not extend the tree")
-        reached.add(child)
-        out[child] = (parent, case.joint(j.name))
-    return out
+    """child body -> (parent body, the case's joint), in tree order."""
+    return {child: (parent, case.joint(j.name)) for j, parent, child in tree_parents(tree)}
 
 
 # -------------------------------------------------------------------------------- MJCF

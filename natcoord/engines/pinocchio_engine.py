@@ -31,14 +31,13 @@ signed with :func:`natcoord.mechanism.tree_orientation`. ``data.f`` after
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, spanning_tree, tree_orientation
+from ..mechanism import GROUND, Case, point_loop_tree, tree_orientation
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
 
@@ -110,17 +109,11 @@ def _v3(p) -> np.ndarray:
 
 
 def _tree_of(case: Case):
-    tree, loops = spanning_tree(case)
+    tree, loops, recut = point_loop_tree(case, "a rigid point constraint cannot slide")
     notes = []
-    if any(j.type == "prismatic" for j in loops):
-        first = sorted(case.joints, key=lambda j: j.type != "prismatic")
-        tree, loops = spanning_tree(dataclasses.replace(case, joints=tuple(first)))
+    if recut:
         notes.append("loop-closing prismatic joint moved into the tree (prismatic joints first); "
                      f"loops cut at {', '.join(j.name for j in loops)} instead")
-    bad = [j.name for j in loops if j.type != "revolute"]
-    if bad:
-        raise Unsupported(f"loop-closing prismatic joint(s) {', '.join(bad)}: a rigid point "
-                          "constraint cannot slide, and no tree keeps them all")
     return tree, loops, notes
 
 
