@@ -69,6 +69,7 @@ DEFAULT_OPTIONS = {
     "repartition_growth": 1.5,      # maggi: re-partition when max|R^d| grows this much
     "penalty": 1e6,                 # index3: alpha h^2 / 4 = penalty * max|M|
     "rank_tol": 1e-9,
+    "compiled": True,               # index1 + dop853/dopri5 adaptive: numba loop when it fits
 }
 
 
@@ -157,6 +158,12 @@ def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray
     return np.linalg.lstsq(J.T, model.forces(t, q, qd) - model.M @ qdd, rcond=None)[0]
 
 
+def _forces_are_linear(model) -> bool:
+    """True when model.forces is Model.forces (Q = Q0 + T q), which the kernels inline."""
+    from .model import Model
+    return type(model).forces is Model.forces
+
+
 def _is_spd(M: np.ndarray) -> bool:
     try:
         np.linalg.cholesky(M)
@@ -200,7 +207,8 @@ class Index1(Formulation):
     """Eq. (6) as an ODE in y = [q, qd] (2n)."""
 
     name = "index1"
-    methods = ("rk4", "dopri5", "DOP853", "RK45", "Radau", "LSODA", "BDF")
+    methods = ("rk4", "dopri5", "dop853", "DOP853", "RK45", "Radau", "LSODA", "BDF")
+    COMPILED_METHODS = ("dop853", "dopri5")
 
     def __init__(self, model, options, counters):
         super().__init__(model, options, counters)
@@ -223,6 +231,25 @@ class Index1(Formulation):
 
     def state(self, t, y):
         return y[:self.n], y[self.n:]
+
+    def compiled_candidate(self, method: str, h) -> bool:
+        """Whether the compiled loop may run (decided before ``init``; ``compiled_ready``
+        after it also needs the Schur mode)."""
+        from . import kernels
+        return (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and h is None
+                and method in self.COMPILED_METHODS and self.Minv is not None
+                and self.opt["stabilization"] == "projection" and not self.cs.rheonomic
+                and self.opt["linsolve"] in ("auto", "schur")
+                and callable(getattr(self.model, "forces", None))
+                and hasattr(self.model, "Q0") and hasattr(self.model, "T")
+                and _forces_are_linear(self.model))
+
+    def run_compiled(self, times, y, method, rtol, atol):
+        """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) at ``times``."""
+        from . import kernels
+        return kernels.run(method, self.cs.con, self.Minv, self.model.Q0, self.model.T,
+                           times, y[:self.n], y[self.n:], rtol=rtol, atol=atol,
+                           ptol=self.opt["project_tol"], cnt=self.cnt)
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]

@@ -4,12 +4,16 @@
 ``dopri5``       Dormand-Prince 5(4): adaptive (rtol, atol) or fixed step (order 5); the
                  formulation's ``post_step`` (projection, re-partitioning) runs after every
                  accepted step, so k1 is re-evaluated at the corrected state (no FSAL)
+``dop853``       Dormand-Prince 8(5,3), adaptive; on index1 with projection, a regular M and
+                 no drivers the whole run is one compiled kernel (:mod:`natcoord.kernels`):
+                 steps cross the output samples, which come from the method's continuous
+                 extension (order 7), projected. Elsewhere the Python loop below runs it.
 ``trapezoidal``  the index-3 formulation's own implicit step (order 2), fixed step
 scipy names      (``DOP853``, ``RK45``, ``Radau``, ``LSODA``, ``BDF``): ``solve_ivp`` between
                  output samples, ``post_step`` at each sample only
 
-Steps are clipped to land on every output time, so no interpolation enters the samples.
-:func:`time_loop` is the single place a later compiled kernel replaces.
+In this Python loop, steps are clipped to land on every output time, so no interpolation
+enters the samples; the compiled loop of :mod:`natcoord.kernels` interpolates instead.
 """
 
 from __future__ import annotations
@@ -65,8 +69,35 @@ class DormandPrince5(ExplicitRK):
                       187 / 2100, 1 / 40])
 
 
+class DormandPrince853(ExplicitRK):
+    """DOP853 (scipy's coefficients); the 13th stage is f(t + h, y_new) for the error."""
+
+    name, order = "dop853", 7  # order of the error estimate, for the step control
+
+    @staticmethod
+    def _tableau():
+        from scipy.integrate._ivp import dop853_coefficients as d
+        A = np.zeros((13, 13))
+        A[:12, :12] = d.A[:12, :12]
+        A[12, :12] = d.B
+        return (A, np.append(d.B, 0.0), np.append(d.C[:12], 1.0), np.array(d.E5, float),
+                np.array(d.E3, float))
+
+    @classmethod
+    def step(cls, f, t, y, h):
+        """One step: (y_new, (h E5 K, h E3 K)) for Hairer's combined error norm."""
+        A, B, C, E5, E3 = cls.TABLEAU
+        K = np.empty((13, len(y)))
+        for i in range(13):
+            K[i] = f(t + C[i] * h, y + h * (A[i, :i] @ K[:i]))
+        return y + h * (B @ K), (h * (E5 @ K), h * (E3 @ K))
+
+
+DormandPrince853.TABLEAU = DormandPrince853._tableau()
+
 SCIPY_METHODS = ("DOP853", "RK45", "Radau", "LSODA", "BDF")
-INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "trapezoidal": None,
+INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "dop853": DormandPrince853,
+               "trapezoidal": None,
                **{k: None for k in SCIPY_METHODS}}
 SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 5.0
 
@@ -88,6 +119,8 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
     if method not in form.methods:
         raise ValueError(f"formulation {form.name!r} does not run with {method!r}; "
                          f"use one of {', '.join(form.methods)}")
+    if method == "dop853" and h is not None:
+        raise ValueError("dop853 is adaptive only: give rtol/atol, not h")
     if method in ("rk4", "trapezoidal") and h is None:
         raise ValueError(f"{method} is a fixed-step method: give h")
     record(0, times[0], y)
@@ -114,7 +147,7 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
                 y = form.post_step(t + hh, y)
                 cnt.steps += 1
         else:
-            y, h_adapt = _adaptive(form, DormandPrince5, y, t0, t1, h_adapt, rtol, atol)
+            y, h_adapt = _adaptive(form, INTEGRATORS[method], y, t0, t1, h_adapt, rtol, atol)
         record(k, t1, y)
 
 
@@ -130,18 +163,25 @@ def _adaptive(form, rk, y, t0, t1, h, rtol, atol):
     while t < t1 - 1e-14 * max(1.0, abs(t1)):
         hh = min(h, t1 - t)
         y_new, err = rk.step(f, t, y, hh)
-        e = _rms(err / (atol + rtol * np.maximum(np.abs(y), np.abs(y_new))))
+        scale = atol + rtol * np.maximum(np.abs(y), np.abs(y_new))
+        if isinstance(err, tuple):  # DOP853: Hairer's combination of the 5th and 3rd order
+            e5, e3 = float(np.sum((err[0] / scale) ** 2)), float(np.sum((err[1] / scale) ** 2))
+            e = 0.0 if e5 == 0.0 and e3 == 0.0 else e5 / math.sqrt((e5 + 0.01 * e3) * len(y))
+        else:
+            e = _rms(err / scale)
         if e <= 1.0:
             t += hh
             y = form.post_step(t, y_new)
             cnt.steps += 1
             if hh == h:
                 h_last = h
-            factor = MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** (-1 / rk.order))
+            expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
+            factor = MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** expo)
             h = hh * factor if hh == h else max(h, hh * factor)
         else:
             cnt.rejected += 1
-            h = hh * max(MIN_FACTOR, SAFETY * e ** (-1 / rk.order))
+            expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
+            h = hh * max(MIN_FACTOR, SAFETY * e ** expo)
             if h < 1e-14 * max(1.0, abs(t)):
                 raise RuntimeError(f"step size underflow at t = {t:.6g} s")
     return y, h_last

@@ -26,7 +26,8 @@ from .runner import machine_info, run_subprocess
 # Work-precision sweeps: settings that trade accuracy for time, coarse to fine (data, not
 # code: a user tunes them here). MuJoCo's loop stiffness follows its step (solref_steps).
 SWEEPS: dict[str, list[dict]] = {
-    "natcoord": [{"rtol": r, "atol": r * 1e-2} for r in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10)],
+    "natcoord": [{"method": "dop853", "rtol": r, "atol": r * 1e-2}
+                 for r in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)],
     "mujoco": [{"dt": d, "solref_steps": 10} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
     "pinocchio": [{"dt": d} for d in (1e-2, 5e-3, 2e-3, 1e-3, 5e-4)],
     "exudyn": [{"dt": d} for d in (5e-3, 2e-3, 1e-3, 5e-4, 2e-4)],
