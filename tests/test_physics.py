@@ -64,3 +64,29 @@ def test_hanging_rod_reaction_sign():
     _, df, _ = _solve(DATA / "hanging_rod.toml")
     assert np.allclose(df["O_y"], 2.0 * 9.81, atol=1e-10)
     assert np.allclose(df["O_x"], 0.0, atol=1e-10)
+
+
+def test_pendulum_reference_is_the_elliptic_solution():
+    """IFToMM A01: the stored reference equals the exact solution (Jacobi elliptic functions):
+    angle, position and the pivot force T (g cos(phi) + L phi'^2) along the link."""
+    from scipy.special import ellipj, ellipk
+
+    from natcoord.suite.references import load_reference
+
+    from .conftest import REFERENCES
+
+    ref = load_reference("pendulum", REFERENCES)
+    g, L, m = 9.81, 1.0, 1.0
+    k = np.sin(np.pi / 4)  # released from horizontal: amplitude 90 deg from the vertical
+    K, w = ellipk(k**2), np.sqrt(g / L)
+    t = ref["t"].to_numpy()
+    sn, cn, dn, _ = ellipj(K - w * t, k**2)
+    phi = 2 * np.arcsin(k * sn)  # from the downward vertical, counter-clockwise
+    phi_dot = -2 * k * w * cn  # d/dt of 2 asin(k sn(K - w t)) = -2 k w cn
+    assert 4 * K / w == pytest.approx(2.3678419, abs=1e-7)  # the published period
+    assert np.max(np.abs(ref["theta"] - (phi - np.pi / 2))) < 1e-10
+    assert np.max(np.abs(ref["x"] - L * np.sin(phi))) < 1e-10
+    assert np.max(np.abs(ref["y"] + L * np.cos(phi))) < 1e-10
+    T = m * (g * np.cos(phi) + L * phi_dot**2)
+    assert np.max(np.abs(ref["O_x"] + T * np.sin(phi))) < 1e-8
+    assert np.max(np.abs(ref["O_y"] - T * np.cos(phi))) < 1e-8
