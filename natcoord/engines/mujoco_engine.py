@@ -62,6 +62,9 @@ DEFAULTS = {
 }
 
 
+ZERO_INERTIA_SUBSTITUTE = 1e-10
+
+
 def version() -> str:
     import mujoco
 
@@ -136,8 +139,6 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
     for b in case.bodies:
         if b.mass <= 0:
             raise Unsupported(f"body {b.name} is massless; MuJoCo bodies need mass")
-        if b.kind != "particle" and b.inertia <= 0:
-            raise Unsupported(f"body {b.name} has no rotational inertia")
 
     tree, loops, notes = _tree(case)
     parent = _parent_of(case, tree)
@@ -182,6 +183,13 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
         else:
             i = b.inertia
             cx, cy = b.com
+            if i <= 0:  # a point mass: MuJoCo refuses inertia below mjMINVAL (1e-15)
+                reach = max(float(np.linalg.norm(p - b.com)) for p in b.points.values())
+                i = ZERO_INERTIA_SUBSTITUTE * b.mass * reach**2
+                notes.append(f"body {b.name} is a point mass (zero inertia); MuJoCo needs "
+                             f"inertia > 1e-15, so it gets {i:.1e} kg m^2 "
+                             f"({ZERO_INERTIA_SUBSTITUTE:.0e} of m r^2 about its farthest "
+                             "point): a relative change of that size in its inertia")
         # planar: only Izz acts; Ixx = Iyy = Izz keeps the triangle inequality
         return (f'<inertial pos="{_fmt(cx, cy, 0.0)}" mass="{b.mass!r}" '
                 f'diaginertia="{_fmt(i, i, i)}"/>')

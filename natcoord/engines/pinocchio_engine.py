@@ -125,9 +125,9 @@ def _inertia(pin, body, X, s) -> object:
         pts = list(body.points.values())
         d = _v3((pts[1] - pts[0]) / np.linalg.norm(pts[1] - pts[0]))
         Izz = body.inertia
-        if Izz <= 0:
-            raise Unsupported(f"body {body.name!r} has zero rotational inertia")
-        # slender rod along d: Izz about both transverse axes, ~0 about d (kept definite)
+        # slender rod along d: Izz about both transverse axes, ~0 about d (kept definite).
+        # Izz = 0 is a point mass at the centre of mass: exact, and the joint still sees
+        # m r^2 as long as the mass is off its axis (Pinocchio's ABA reports otherwise).
         I3 = Izz * (np.eye(3) - np.outer(d, d)) + 1e-3 * Izz * np.outer(d, d)
     R = X.rotation
     return pin.Inertia(body.mass, X.act(_v3(body.com)), R @ I3 @ R.T)
