@@ -88,6 +88,17 @@ class ConstraintBuilder:
         self.scale.append(length_dim)
         return self.m - 1
 
+    def dot(self, A: np.ndarray, B: np.ndarray, value: float, label: str,
+            length_dim: int = 2) -> int:
+        """Add ``(A qh) . (B qh) - value = 0`` for maps A, B (d, n + 1); returns the row."""
+        return self.bilinear(A, np.eye(A.shape[0]), B, -float(value), label, length_dim)
+
+    def linear_rows(self, C: np.ndarray, label: str, length_dim: int = 1) -> list[int]:
+        """Add ``C qh = 0`` row by row for a map C (d, n + 1); returns the d row indices."""
+        axes = "xyz" if C.shape[0] <= 3 else range(C.shape[0])
+        return [self.linear(C[a], f"{label}: {ax}", length_dim) for a, ax in
+                zip(range(C.shape[0]), axes, strict=False)]
+
     def build(self) -> QuadraticConstraints:
         k = np.concatenate(self.k) if self.k else np.zeros(0, np.int64)
         i = np.concatenate(self.i) if self.i else np.zeros(0, np.int64)
