@@ -25,6 +25,8 @@ from natcoord.errors import Unsupported
 from natcoord.mechanism import Channel, Joint
 from natcoord.result import evaluate_channels
 
+from .conftest import DATA
+
 pytest.importorskip("dartpy")
 
 pytestmark = pytest.mark.engines
@@ -218,63 +220,12 @@ def test_free_bodies_fly_in_the_plane():
     assert any("body 'rod' is not joined to the ground" in n for n in run.notes)
 
 
-SLOT = """
-name = "slot"
-description = "a sleeve sliding along a swinging crank"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 0.3
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0] }
-
-[[bodies]]
-name = "crank"
-kind = "uniform_rod"
-mass = 1.0
-points = { O = [0.0, 0.0], A = [1.0, 0.0] }
-
-[[bodies]]
-name = "sleeve"
-kind = "uniform_rod"
-mass = 0.5
-points = { P = [0.0, 0.0], Q = [0.4, 0.0] }
-
-[[joints]]
-name = "O"
-type = "revolute"
-bodies = ["ground", "crank"]
-points = ["O", "O"]
-
-[[joints]]
-name = "S"
-type = "prismatic"
-bodies = ["crank", "sleeve"]
-points = ["A", "P"]
-axis = [1.0, 0.0]
-
-[initial]
-fix = { theta = "30 deg", s = 1.0 }
-velocity = { theta = 1.5, s = 0.7 }
-
-[initial.pose]
-crank = { origin = [0.0, 0.0], angle = "30 deg" }
-sleeve = { origin = [0.866, 0.5], angle = "30 deg" }
-
-[channels]
-theta = { kind = "angle", body = "crank" }
-s = { kind = "position", body = "sleeve", point = "P", axis = "x" }
-N = { kind = "reaction", joint = "S", axis = "normal" }
-"""
 
 
 @pytest.mark.parametrize("flip", [False, True])
 def test_slide_on_a_turning_body(tmp_path, flip):
     """Prismatic tree joint with its axis in a turning body's frame (either orientation)."""
-    path = tmp_path / "slot.toml"
-    path.write_text(SLOT)
-    case = load_case(path)
+    case = load_case(DATA / "slot.toml")
     if flip:
         case = dataclasses.replace(case, joints=(case.joints[0], _reversed(case.joints[1])))
     err = _motion_errors(case, _run(case).motion, _natcoord(case).motion)

@@ -27,6 +27,8 @@ from natcoord.errors import Unsupported
 from natcoord.mechanism import Channel, Joint
 from natcoord.result import evaluate_channels
 
+from .conftest import DATA
+
 pytest.importorskip("mujoco")
 
 pytestmark = pytest.mark.engines
@@ -178,61 +180,10 @@ def test_floating_bodies_slide_and_turn_in_the_plane():
     assert any("body rod is not joined to the ground" in n for n in run.notes)
 
 
-SLOT = """
-name = "slot"
-description = "a sleeve sliding along a swinging crank"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 0.3
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0] }
-
-[[bodies]]
-name = "crank"
-kind = "uniform_rod"
-mass = 1.0
-points = { O = [0.0, 0.0], A = [1.0, 0.0] }
-
-[[bodies]]
-name = "sleeve"
-kind = "uniform_rod"
-mass = 0.5
-points = { P = [0.0, 0.0], Q = [0.4, 0.0] }
-
-[[joints]]
-name = "O"
-type = "revolute"
-bodies = ["ground", "crank"]
-points = ["O", "O"]
-
-[[joints]]
-name = "S"
-type = "prismatic"
-bodies = ["crank", "sleeve"]
-points = ["A", "P"]
-axis = [1.0, 0.0]
-
-[initial]
-fix = { theta = "30 deg", s = 1.0 }
-velocity = { theta = 1.5, s = 0.7 }
-
-[initial.pose]
-crank = { origin = [0.0, 0.0], angle = "30 deg" }
-sleeve = { origin = [0.866, 0.5], angle = "30 deg" }
-
-[channels]
-theta = { kind = "angle", body = "crank" }
-s = { kind = "position", body = "sleeve", point = "P", axis = "x" }
-N = { kind = "reaction", joint = "S", axis = "normal" }
-"""
 
 
 def test_slide_on_a_rotating_body_is_exact(tmp_path):
-    path = tmp_path / "slot.toml"
-    path.write_text(SLOT)
-    case = load_case(path)
+    case = load_case(DATA / "slot.toml")
     err = _motion_errors(case, _run(case).motion, _natcoord(case).motion)
     assert max(err.values()) < 1e-11, err  # measured 5.9e-15
 
