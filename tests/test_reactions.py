@@ -20,7 +20,8 @@ def _redundant(seed: int, n: int, r: int, m: int):
 
 
 dims = st.tuples(st.integers(0, 10**6), st.integers(2, 9), st.integers(1, 9),
-                 st.integers(0, 4)).map(lambda t: (t[0], t[1], min(t[2], t[1]), min(t[2], t[1]) + t[3]))
+                 st.integers(0, 4)).map(
+    lambda t: (t[0], t[1], min(t[2], t[1]), min(t[2], t[1]) + t[3]))  # seed, n, r, m
 
 
 @settings(max_examples=60, deadline=None)
