@@ -20,11 +20,11 @@ import pytest
 
 from natcoord.casefile import load_case
 from natcoord.engines import adapter
-from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.mechanism import Channel, Joint
+from natcoord.mechanism import Channel
 from natcoord.result import evaluate_channels
 
+from . import engine_checks as ec
 from .conftest import DATA
 
 pytest.importorskip("dartpy")
@@ -32,61 +32,23 @@ pytest.importorskip("dartpy")
 pytestmark = pytest.mark.engines
 
 ROOT = Path(__file__).resolve().parents[1]
-G = 9.81
-
-
-def _case(name):
-    return load_case(ROOT / "cases" / f"{name}.toml")
-
-
-def _hanging_rod():
-    return load_case(ROOT / "tests" / "data" / "hanging_rod.toml")
+G = ec.G
 
 
 def _run(case, settings=None):
-    return adapter("dart").run(case, initial_body_states(case), settings or {})
-
-
-def _natcoord(case):
-    return adapter("natcoord").run(case, initial_body_states(case), {})
-
-
-def _reversed(j: Joint) -> Joint:
-    return dataclasses.replace(j, bodies=j.bodies[::-1], points=j.points[::-1])
-
-
-def _channel_errors(case, run, ref_run):
-    a = evaluate_channels(case, ref_run.motion)
-    b = evaluate_channels(case, run.motion)
-    assert list(a.columns) == list(b.columns)
-    np.testing.assert_array_equal(a["t"], b["t"])
-    return {c.name: float(np.max(np.abs(a[c.name] - b[c.name]))) for c in case.channels}
-
-
-def _motion_errors(case, a, b):
-    """Max abs difference of every body's origin, angle, velocity, omega and joint force."""
-    out = {}
-    for body in case.bodies:
-        n = body.name
-        out[f"{n}.origin"] = np.max(np.abs(a.origin[n] - b.origin[n]))
-        out[f"{n}.angle"] = np.max(np.abs(a.angle[n] - b.angle[n]))
-        out[f"{n}.velocity"] = np.max(np.abs(a.velocity[n] - b.velocity[n]))
-        out[f"{n}.omega"] = np.max(np.abs(a.omega[n] - b.omega[n]))
-    for j in case.joints:
-        out[f"{j.name}.force"] = np.max(np.abs(a.joint_force[j.name] - b.joint_force[j.name]))
-    return out
+    return ec.run("dart", case, settings)
 
 
 @pytest.fixture(scope="module")
 def reference():
     """natcoord's solution of the two closed loops (computed once)."""
-    return {name: _natcoord(_case(name)) for name in ("slider_crank", "four_bar")}
+    return {name: ec.natcoord(ec.case(name)) for name in ("slider_crank", "four_bar")}
 
 
 # ------------------------------------------------------------------------------ reaction sign
 
 def test_hanging_rod_pivot_pushes_up_with_mg():
-    case = _hanging_rod()
+    case = ec.hanging_rod()
     run = _run(case)
     table = evaluate_channels(case, run.motion)
     np.testing.assert_allclose(table["O_y"], 2.0 * G, rtol=0, atol=1e-10)  # measured 0
@@ -98,8 +60,8 @@ def test_hanging_rod_pivot_pushes_up_with_mg():
 
 def test_hanging_rod_joint_listed_child_first_flips_the_reaction():
     """bodies = [rod, ground]: the reaction is then the force on the ground, -m g."""
-    case = _hanging_rod()
-    case = dataclasses.replace(case, joints=(_reversed(case.joint("O")),))
+    case = ec.hanging_rod()
+    case = dataclasses.replace(case, joints=(ec.reversed_joint(case.joint("O")),))
     table = evaluate_channels(case, _run(case).motion)
     np.testing.assert_allclose(table["O_y"], -2.0 * G, rtol=0, atol=1e-10)
     np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
@@ -120,9 +82,9 @@ BOUNDS = {
 
 @pytest.mark.parametrize("name", sorted(BOUNDS))
 def test_closed_loop_matches_natcoord(name, reference):
-    case = _case(name)
+    case = ec.case(name)
     run = _run(case)
-    err = _channel_errors(case, run, reference[name])
+    err = ec.channel_errors(case, run, reference[name])
     bad = {c.name: err[c.name] for c in case.channels if not err[c.name] <= BOUNDS[name][c.kind]}
     assert not bad, f"{name}: channels beyond their bound: {bad}"
     assert run.n_steps == 20001
@@ -135,9 +97,9 @@ def test_closed_loop_matches_natcoord(name, reference):
 @pytest.mark.parametrize("name", sorted(BOUNDS))
 def test_first_order_in_dt(name, reference):
     """Semi-implicit Euler: halving dt halves the angle and the reaction errors."""
-    case = _case(name)
-    coarse = _channel_errors(case, _run(case, {"dt": 2e-4}), reference[name])
-    fine = _channel_errors(case, _run(case, {"dt": 1e-4}), reference[name])
+    case = ec.case(name)
+    coarse = ec.channel_errors(case, _run(case, {"dt": 2e-4}), reference[name])
+    fine = ec.channel_errors(case, _run(case, {"dt": 1e-4}), reference[name])
     ratio = coarse["theta"] / fine["theta"]
     assert 1.8 < ratio < 2.2, ratio  # measured 2.00 / 2.00 (order 1.00)
     reactions = [c.name for c in case.channels if c.kind == "reaction"]
@@ -146,7 +108,7 @@ def test_first_order_in_dt(name, reference):
 
 
 def test_slider_crank_cuts_the_loop_at_a_revolute_and_says_so():
-    case = dataclasses.replace(_case("slider_crank"), duration=0.01)
+    case = dataclasses.replace(ec.case("slider_crank"), duration=0.01)
     notes = " | ".join(_run(case).notes)
     assert "loops cut at B" in notes
     assert "particle 'slider'" in notes and "angle is reported as 0" in notes
@@ -154,12 +116,12 @@ def test_slider_crank_cuts_the_loop_at_a_revolute_and_says_so():
 
 def test_four_bar_spinning_with_every_joint_reversed():
     """Initial velocity conversion and both reaction signs (tree, loop via Newton-Euler)."""
-    case = dataclasses.replace(_case("four_bar"), duration=0.3, velocity={"theta": 3.0})
-    flipped = dataclasses.replace(case, joints=tuple(_reversed(j) for j in case.joints))
+    case = dataclasses.replace(ec.case("four_bar"), duration=0.3, velocity={"theta": 3.0})
+    flipped = dataclasses.replace(case, joints=tuple(ec.reversed_joint(j) for j in case.joints))
     runs = {}
     for c in (case, flipped):
         runs[c is flipped] = run = _run(c)
-        err = _motion_errors(c, run.motion, _natcoord(c).motion)
+        err = ec.motion_errors(c, run.motion, ec.natcoord(c).motion)
         # measured: poses 1.1e-4, velocities 5.7e-4, forces 8.5e-3 N (D; peak ~300 N)
         assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 2e-4, err
         assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 1e-3
@@ -172,8 +134,8 @@ def test_four_bar_spinning_with_every_joint_reversed():
 def test_moving_start_reactions_at_t0():
     """A loop constraint's first two steps are transients (about 10 N on D_y here); the t = 0
     reactions are extrapolated from steps 2 and 3."""
-    case = dataclasses.replace(_case("four_bar"), duration=0.1, velocity={"theta": 3.0})
-    a = evaluate_channels(case, _natcoord(case).motion)
+    case = dataclasses.replace(ec.case("four_bar"), duration=0.1, velocity={"theta": 3.0})
+    a = evaluate_channels(case, ec.natcoord(case).motion)
     b = evaluate_channels(case, _run(case).motion)
     for ch in ("O_x", "O_y", "D_x", "D_y"):
         assert abs(a[ch][0] - b[ch][0]) < 0.02, ch  # measured <= 8.1e-3 N (D_y)
@@ -183,7 +145,7 @@ def test_moving_start_reactions_at_t0():
 
 def _open_chain():
     """slider_crank without its slide: crank, rod and the particle hanging at B, moving."""
-    case = _case("slider_crank")
+    case = ec.case("slider_crank")
     return dataclasses.replace(
         case, duration=0.3, joints=case.joints[:3],
         channels=(Channel("theta", "angle", body="crank"), Channel("phi", "angle", body="rod")),
@@ -192,7 +154,7 @@ def _open_chain():
 
 def test_open_chain_with_a_particle():
     case = _open_chain()
-    err = _motion_errors(case, _run(case).motion, _natcoord(case).motion)
+    err = ec.motion_errors(case, _run(case).motion, ec.natcoord(case).motion)
     # measured: poses 2.0e-4, velocities 6.5e-4, forces 5.0e-3 N
     assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 3e-4, err
     assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 1e-3, err
@@ -212,7 +174,7 @@ def test_free_bodies_fly_in_the_plane():
         fix={"theta": 0.785398, "phi": 0.3, "xA": 0.7, "yA": 0.7, "xB": 1.0, "yB": 2.0},
         velocity={"theta": 1.0, "phi": -2.0, "xA": 0.5, "yA": 1.0, "xB": -1.0, "yB": 3.0})
     run = _run(case)
-    err = _motion_errors(case, run.motion, _natcoord(case).motion)
+    err = ec.motion_errors(case, run.motion, ec.natcoord(case).motion)
     # measured: poses 1.8e-4 (free flight: semi-implicit Euler is off by g t dt / 2, exact in
     # velocity), velocities 1.8e-4, force at O 1.2e-3 N
     assert max(v for k, v in err.items() if not k.endswith(".force")) < 3e-4, err
@@ -227,8 +189,8 @@ def test_slide_on_a_turning_body(tmp_path, flip):
     """Prismatic tree joint with its axis in a turning body's frame (either orientation)."""
     case = load_case(DATA / "slot.toml")
     if flip:
-        case = dataclasses.replace(case, joints=(case.joints[0], _reversed(case.joints[1])))
-    err = _motion_errors(case, _run(case).motion, _natcoord(case).motion)
+        case = dataclasses.replace(case, joints=(case.joints[0], ec.reversed_joint(case.joints[1])))
+    err = ec.motion_errors(case, _run(case).motion, ec.natcoord(case).motion)
     # measured: poses 2.2e-4, velocities 4.9e-4, forces 8.6e-4 N
     assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 3.5e-4, err
     assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 8e-4, err
@@ -238,13 +200,13 @@ def test_slide_on_a_turning_body(tmp_path, flip):
 # ------------------------------------------------------------------------------ refusals, failures
 
 def test_three_dimensional_case_is_unsupported():
-    case = dataclasses.replace(_hanging_rod(), dimension=3)
+    case = dataclasses.replace(ec.hanging_rod(), dimension=3)
     with pytest.raises(Unsupported, match="2-D"):
         adapter("dart").run(case, {}, {})
 
 
 def test_loop_of_prismatic_joints_is_unsupported():
-    case = _case("slider_crank")
+    case = ec.case("slider_crank")
     slide = case.joint("slide")
     case = dataclasses.replace(case, joints=case.joints + (
         dataclasses.replace(slide, name="slide2"),))
@@ -255,7 +217,7 @@ def test_loop_of_prismatic_joints_is_unsupported():
 def test_divergence_raises():
     """DART's RevoluteJointConstraint blows up at a high error-reduction parameter; DART
     itself only warns and substitutes identities, the adapter must fail."""
-    case = dataclasses.replace(_case("four_bar"), duration=0.1)
+    case = dataclasses.replace(ec.case("four_bar"), duration=0.1)
     with pytest.raises(RuntimeError, match="DART diverged"):
         _run(case, {"loop_constraint": "revolute", "erp": 1.0})
 
@@ -265,13 +227,13 @@ def test_error_reduction_parameter_is_restored():
 
     jc = dartpy.constraint.DynamicJointConstraint
     before = jc.getErrorReductionParameter()
-    _run(dataclasses.replace(_case("four_bar"), duration=0.01), {"erp": 0.5})
+    _run(dataclasses.replace(ec.case("four_bar"), duration=0.01), {"erp": 0.5})
     assert jc.getErrorReductionParameter() == before
 
 
 def test_step_must_divide_the_output_interval():
     with pytest.raises(ValueError, match="divide"):
-        _run(_hanging_rod(), {"dt": 3e-3})
+        _run(ec.hanging_rod(), {"dt": 3e-3})
 
 
 def test_version_and_lazy_import():

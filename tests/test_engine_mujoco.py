@@ -22,11 +22,11 @@ import pytest
 
 from natcoord.casefile import load_case
 from natcoord.engines import adapter
-from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.mechanism import Channel, Joint
+from natcoord.mechanism import Channel
 from natcoord.result import evaluate_channels
 
+from . import engine_checks as ec
 from .conftest import DATA
 
 pytest.importorskip("mujoco")
@@ -34,43 +34,17 @@ pytest.importorskip("mujoco")
 pytestmark = pytest.mark.engines
 
 ROOT = Path(__file__).resolve().parents[1]
-G = 9.81
+G = ec.G
 
 
 def _run(case, settings=None):
-    return adapter("mujoco").run(case, initial_body_states(case), settings or {})
-
-
-def _natcoord(case):
-    return adapter("natcoord").run(case, initial_body_states(case), {})
-
-
-def _hanging_rod():
-    return load_case(ROOT / "tests" / "data" / "hanging_rod.toml")
-
-
-def _reversed(j: Joint) -> Joint:
-    return dataclasses.replace(j, bodies=j.bodies[::-1], points=j.points[::-1])
-
-
-def _motion_errors(case, a, b):
-    """Max abs difference of every body's origin, angle, velocity, omega and joint force."""
-    out = {}
-    for body in case.bodies:
-        n = body.name
-        out[f"{n}.origin"] = np.max(np.abs(a.origin[n] - b.origin[n]))
-        out[f"{n}.angle"] = np.max(np.abs(a.angle[n] - b.angle[n]))
-        out[f"{n}.velocity"] = np.max(np.abs(a.velocity[n] - b.velocity[n]))
-        out[f"{n}.omega"] = np.max(np.abs(a.omega[n] - b.omega[n]))
-    for j in case.joints:
-        out[f"{j.name}.force"] = np.max(np.abs(a.joint_force[j.name] - b.joint_force[j.name]))
-    return out
+    return ec.run("mujoco", case, settings)
 
 
 # ------------------------------------------------------------------------------ reaction sign
 
 def test_hanging_rod_pivot_pushes_up_with_mg():
-    case = _hanging_rod()
+    case = ec.hanging_rod()
     run = _run(case)
     table = evaluate_channels(case, run.motion)
     np.testing.assert_allclose(table["O_y"], 2.0 * G, rtol=0, atol=1e-10)  # measured 0
@@ -82,8 +56,8 @@ def test_hanging_rod_pivot_pushes_up_with_mg():
 
 def test_hanging_rod_joint_listed_child_first_flips_the_reaction():
     """bodies = [rod, ground]: the reaction is then the force on the ground, -m g."""
-    case = _hanging_rod()
-    case = dataclasses.replace(case, joints=(_reversed(case.joint("O")),))
+    case = ec.hanging_rod()
+    case = dataclasses.replace(case, joints=(ec.reversed_joint(case.joint("O")),))
     table = evaluate_channels(case, _run(case).motion)
     np.testing.assert_allclose(table["O_y"], -2.0 * G, rtol=0, atol=1e-10)
     np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
@@ -104,7 +78,7 @@ BOUNDS = {
 @pytest.mark.parametrize("name", sorted(BOUNDS))
 def test_closed_loop_matches_natcoord(name):
     case = load_case(ROOT / "cases" / f"{name}.toml")
-    ref = evaluate_channels(case, _natcoord(case).motion)
+    ref = evaluate_channels(case, ec.natcoord(case).motion)
     run = _run(case)
     table = evaluate_channels(case, run.motion)
     assert list(table.columns) == list(ref.columns)
@@ -131,9 +105,9 @@ def test_four_bar_spinning_with_every_joint_reversed():
     """Initial velocity conversion and both reaction signs (tree and connect), body by body."""
     case = load_case(ROOT / "cases" / "four_bar.toml")
     case = dataclasses.replace(case, duration=0.3, velocity={"theta": 2.0})
-    flipped = dataclasses.replace(case, joints=tuple(_reversed(j) for j in case.joints))
+    flipped = dataclasses.replace(case, joints=tuple(ec.reversed_joint(j) for j in case.joints))
     for c in (case, flipped):
-        err = _motion_errors(c, _run(c).motion, _natcoord(c).motion)
+        err = ec.motion_errors(c, _run(c).motion, ec.natcoord(c).motion)
         # measured: poses 7.4e-10, velocities 3.5e-9, forces 1.4e-3 (D at t = 0)
         assert max(v for k, v in err.items() if not k.endswith(".force")) < 2e-8, err
         assert max(v for k, v in err.items() if k.endswith(".force")) < 5e-3, err
@@ -157,7 +131,7 @@ def _open_chain():
 def test_particle_welded_at_its_revolute_is_exact():
     case = _open_chain()
     run = _run(case)
-    err = _motion_errors(case, run.motion, _natcoord(case).motion)
+    err = ec.motion_errors(case, run.motion, ec.natcoord(case).motion)
     assert max(err.values()) < 1e-11, err  # measured 1.3e-13
     assert any("particle slider welded" in n for n in run.notes)
 
@@ -175,7 +149,7 @@ def test_floating_bodies_slide_and_turn_in_the_plane():
         fix={"theta": 0.785398, "phi": 0.3, "xA": 0.7, "yA": 0.7, "xB": 1.0, "yB": 2.0},
         velocity={"theta": 1.0, "phi": -2.0, "xA": 0.5, "yA": 1.0, "xB": -1.0, "yB": 3.0})
     run = _run(case)
-    err = _motion_errors(case, run.motion, _natcoord(case).motion)
+    err = ec.motion_errors(case, run.motion, ec.natcoord(case).motion)
     assert max(err.values()) < 1e-11, err  # measured 2.9e-13
     assert any("body rod is not joined to the ground" in n for n in run.notes)
 
@@ -184,7 +158,7 @@ def test_floating_bodies_slide_and_turn_in_the_plane():
 
 def test_slide_on_a_rotating_body_is_exact(tmp_path):
     case = load_case(DATA / "slot.toml")
-    err = _motion_errors(case, _run(case).motion, _natcoord(case).motion)
+    err = ec.motion_errors(case, _run(case).motion, ec.natcoord(case).motion)
     assert max(err.values()) < 1e-11, err  # measured 5.9e-15
 
 
@@ -227,7 +201,7 @@ def test_open_loop_is_a_failure_not_a_result():
 
 def test_step_must_divide_the_output_interval():
     with pytest.raises(ValueError, match="divide"):
-        _run(_hanging_rod(), {"dt": 3e-3})
+        _run(ec.hanging_rod(), {"dt": 3e-3})
 
 
 def test_version_and_lazy_import():
