@@ -78,7 +78,8 @@ class _Reader:
         if not isinstance(v, str) or not v:
             self.fail(_join(path, key), f"must be a non-empty string, got {v!r}")
         if choices and v not in choices:
-            self.fail(_join(path, key), f"unknown value {v!r}; expected one of {', '.join(choices)}")
+            self.fail(_join(path, key),
+                      f"unknown value {v!r}; expected one of {', '.join(choices)}")
         return v
 
     def quantity(self, value, field: str, dimension: str, *, positive=False) -> float:
@@ -288,7 +289,8 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
     p = f"joints[{i}] ({name})"
     jtype = r.string(j, "type", p, choices=JOINT_TYPES)
     bodies = r.get(j, "bodies", p)
-    if not (isinstance(bodies, list) and len(bodies) == 2 and all(isinstance(x, str) for x in bodies)):
+    if not (isinstance(bodies, list) and len(bodies) == 2
+            and all(isinstance(x, str) for x in bodies)):
         r.fail(f"{p}.bodies", f"must be two body names, got {bodies!r}")
     if bodies[0] == bodies[1]:
         r.fail(f"{p}.bodies", f"a joint needs two different bodies, got {bodies!r}")
@@ -298,7 +300,7 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
     pts = r.get(j, "points", p)
     if not (isinstance(pts, list) and len(pts) == 2 and all(isinstance(x, str) for x in pts)):
         r.fail(f"{p}.points", f"must be two point names (one on each body), got {pts!r}")
-    for b, pt in zip(bodies, pts):
+    for b, pt in zip(bodies, pts, strict=True):
         if pt not in points_of[b]:
             r.fail(f"{p}.points", f"body {b!r} has no point {pt!r}; it has "
                    f"{', '.join(points_of[b]) or 'none'}")

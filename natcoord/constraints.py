@@ -105,9 +105,8 @@ class ConstraintBuilder:
         j = np.concatenate(self.j) if self.j else np.zeros(0, np.int64)
         v = np.concatenate(self.v) if self.v else np.zeros(0)
         keep = v != 0.0
-        return QuadraticConstraints.from_triplets(self.n, self.m, k[keep], i[keep], j[keep],
-                                                  v[keep], tuple(self.labels),
-                                                  np.array(self.scale, dtype=int))
+        return QuadraticConstraints(self.n, self.m, k[keep], i[keep], j[keep], v[keep],
+                                    tuple(self.labels), np.array(self.scale, dtype=int))
 
 
 @dataclass(frozen=True)
@@ -121,7 +120,6 @@ class QuadraticConstraints:
     v : (nnz,) float         value of H_k[i, j]
     labels : tuple[str]      one human-readable name per row
     length_dim : (m,) int    length dimension of each row (0, 1, 2), for unit scaling
-    jac_slot : (nnz,) int    slot of (k, i) in the flat Jacobian for the rows with i < n
     """
 
     n: int
@@ -132,10 +130,6 @@ class QuadraticConstraints:
     v: np.ndarray
     labels: tuple[str, ...]
     length_dim: np.ndarray
-
-    @classmethod
-    def from_triplets(cls, n, m, k, i, j, v, labels, length_dim):
-        return cls(n, m, k, i, j, v, labels, length_dim)
 
     def _qh(self, q: np.ndarray, last: float = 1.0) -> np.ndarray:
         return np.append(q, last)

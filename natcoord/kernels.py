@@ -197,6 +197,16 @@ def _acc(kk, ii, jj, vv, Minv, Q0, T, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, cn
 
 
 @njit(cache=True)
+def _sub_matvec(A, w, x):
+    """x -= A @ w (the mass-weighted correction M^-1 Phi_q^T w of a projection)."""
+    for a in range(A.shape[0]):
+        s = 0.0
+        for r in range(A.shape[1]):
+            s += A[a, r] * w[r]
+        x[a] -= s
+
+
+@njit(cache=True)
 def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
     """Newton projection of q on Phi = 0 (simplified: one factorization), then qd on
     Phi_q qd = 0, both M-orthogonal. Returns a status code."""
@@ -232,11 +242,7 @@ def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
             cnt[C_FACT] += 1
             factored = True
         _chol_solve(L, w_m)
-        for a in range(n):
-            s = 0.0
-            for r in range(m):
-                s += MiJt[a, r] * w_m[r]
-            q[a] -= s
+        _sub_matvec(MiJt, w_m, q)
         cnt[C_NEWTON] += 1
         _phi(kk, ii, jj, vv, m, q, w_m)
     if factored:
@@ -253,11 +259,7 @@ def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
             return ERR_SINGULAR
         cnt[C_FACT] += 1
         _chol_solve(L, w_m)
-        for a in range(n):
-            s = 0.0
-            for r in range(m):
-                s += MiJt[a, r] * w_m[r]
-            qd[a] -= s
+        _sub_matvec(MiJt, w_m, qd)
     cnt[C_PROJ] += 1
     return OK
 

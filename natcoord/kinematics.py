@@ -83,7 +83,8 @@ def assemble(model: Model, q0: np.ndarray, fix: dict[str, float], *, tol: float 
     bad = np.argsort(-np.abs(phi))[:3]
     worst = ", ".join(f"{con.labels[k]} ({phi[k]:.3g})" for k in bad if abs(phi[k]) > tol)
     raise AssemblyError(f"case {model.case.name!r} does not assemble from its initial pose "
-                        f"after {max_iter} Newton iterations; violated: {worst or 'fixed channels'}")
+                        f"after {max_iter} Newton iterations; "
+                        f"violated: {worst or 'fixed channels'}")
 
 
 def solve_velocity(model: Model, q: np.ndarray, velocity: dict[str, float],

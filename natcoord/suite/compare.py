@@ -31,7 +31,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         ref = reference[ch.name].to_numpy() if ch.name in reference else None
         val = table[ch.name].to_numpy()
         tol = spec.tolerance_for(ch)
-        determined = ch.name not in case_undetermined(case)
+        determined = True  # redundant reactions get False once derived from N = ker Phi_q^T
         entry = {"kind": ch.kind, "unit": ch.unit, "max_abs": None, "max_rel": None,
                  "tolerance": tol, "pass": None, "determined": determined, "note": ""}
         if ref is None:
@@ -54,7 +54,3 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         return out, "not-gated", "no tolerance written for this engine in the case file"
     return out, "pass", ""
 
-
-def case_undetermined(case: Case) -> set[str]:
-    """Channels whose values are undetermined (redundant reactions): shown, never gated."""
-    return set(getattr(case, "undetermined", ()) or ())
