@@ -20,6 +20,7 @@ from .mechanism import (
     DRIVER_TYPES,
     GROUND,
     JOINT_TYPES,
+    PLANES,
     Body,
     Case,
     Channel,
@@ -28,6 +29,8 @@ from .mechanism import (
     Force,
     Joint,
     Pose,
+    Rod,
+    Spring,
 )
 
 # unit -> (factor to SI, dimension)
@@ -42,11 +45,13 @@ UNITS = {
     "rad/s^2": (1.0, "angular acceleration"), "deg/s^2": (math.pi / 180, "angular acceleration"),
     "N": (1.0, "force"), "N m": (1.0, "torque"), "Nm": (1.0, "torque"),
     "kg m^2": (1.0, "inertia"), "J": (1.0, "energy"),
+    "N/m": (1.0, "stiffness"), "N s/m": (1.0, "damping"),
+    "N m/rad": (1.0, "torsional stiffness"),
 }
 KNOWN_ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
-            "drivers"}
+            "drivers", "rods", "springs", "reactions"}
 
 
 class _Reader:
@@ -151,8 +156,13 @@ def load_case(path: str | Path) -> Case:
     if name != path.stem:
         r.fail("name", f"{name!r} must equal the file name {path.stem!r}")
     dim = r.get(data, "dimension", "")
-    if dim != 2:
-        r.fail("dimension", f"must be 2 (3-D cases come with the 3-D joints), got {dim!r}")
+    if dim not in (2, 3) or isinstance(dim, bool):
+        r.fail("dimension", f"must be 2 or 3, got {dim!r}")
+    init = r.table(data, "initial", "", required=dim == 2)
+    reference_frame = "pose" not in init
+    if dim == 3 and not reference_frame:
+        r.fail("initial.pose", "3-D cases give every body point as its world position at "
+               "t = 0; remove [initial.pose]")
     gravity = r.vector(r.get(data, "gravity", ""), "gravity", dim, "acceleration")
     duration = r.number(data, "duration", "", "time", positive=True)
     output_dt = r.number(data, "output_dt", "", "time", positive=True)
@@ -165,6 +175,13 @@ def load_case(path: str | Path) -> Case:
         ground[pname] = r.vector(value, f"ground.points.{pname}", dim, "length")
 
     bodies = tuple(_body(r, b, i, dim) for i, b in enumerate(_array(r, data, "bodies")))
+    if reference_frame:  # a body point shared with the ground must be where the ground's is
+        for i, b in enumerate(bodies):
+            for pn, x in b.points.items():
+                if pn in ground and np.linalg.norm(x - ground[pn]) > 1e-9:
+                    r.fail(f"bodies[{i}] ({b.name}).points.{pn}",
+                           f"is {x.tolist()}, but ground point {pn} is at "
+                           f"{ground[pn].tolist()}")
     names = [b.name for b in bodies]
     for i, n in enumerate(names):
         if n == GROUND:
@@ -173,20 +190,24 @@ def load_case(path: str | Path) -> Case:
             r.fail(f"bodies[{i}].name", f"duplicate body name {n!r}")
     points_of = {b.name: b.points for b in bodies} | {GROUND: ground}
 
-    joints = tuple(_joint(r, j, i, dim, points_of) for i, j in enumerate(_array(r, data, "joints")))
+    joints = tuple(_joint(r, j, i, dim, points_of)
+                   for i, j in enumerate(_array(r, data, "joints", required=False)))
     jnames = [j.name for j in joints]
     for i, n in enumerate(jnames):
         if jnames.index(n) != i:
             r.fail(f"joints[{i}].name", f"duplicate joint name {n!r}")
 
-    forces = []
-    for i, f in enumerate(_array(r, data, "forces", required=False)):
-        p = f"forces[{i}]"
-        ftype = r.string(f, "type", p, choices=("torque",))
-        body = r.string(f, "body", p)
-        if body not in names:
-            r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(names)}")
-        forces.append(Force(ftype, body, r.number(f, "value", p, "torque")))
+    forces = tuple(_force(r, f, i, dim, points_of)
+                   for i, f in enumerate(_array(r, data, "forces", required=False)))
+    links = {}
+    for key in ("rods", "springs"):
+        for i, x in enumerate(_array(r, data, key, required=False)):
+            link = _link(r, x, f"{key}[{i}]", key, dim, points_of, reference_frame)
+            if link.name in links or link.name in names:
+                r.fail(f"{key}[{i}].name", f"duplicate name {link.name!r}")
+            links[link.name] = link
+    rods = tuple(x for x in links.values() if isinstance(x, Rod))
+    springs = tuple(x for x in links.values() if isinstance(x, Spring))
 
     drivers = tuple(_driver(r, d, i, names, points_of)
                     for i, d in enumerate(_array(r, data, "drivers", required=False)))
@@ -194,10 +215,10 @@ def load_case(path: str | Path) -> Case:
     for i, n in enumerate(dnames):
         if dnames.index(n) != i:
             r.fail(f"drivers[{i}].name", f"duplicate driver name {n!r}")
-    channels = _channels(r, r.table(data, "channels", ""), names, points_of, joints, dnames)
-    init = r.table(data, "initial", "")
+    channels = _channels(r, r.table(data, "channels", ""), names, points_of, joints, dnames,
+                         dim, tuple(links))
     guess = {}
-    for bname, pose in r.table(init, "pose", "initial").items():
+    for bname, pose in r.table(init, "pose", "initial", required=False).items():
         p = f"initial.pose.{bname}"
         if bname not in names:
             r.fail(p, f"unknown body {bname!r}; bodies are {', '.join(names)}")
@@ -206,7 +227,9 @@ def load_case(path: str | Path) -> Case:
         guess[bname] = Pose(r.vector(r.get(pose, "origin", p), f"{p}.origin", dim, "length"),
                             r.number(pose, "angle", p, "angle", required=False, default=0.0))
     missing = [n for n in names if n not in guess]
-    if missing:
+    if reference_frame:
+        guess = {n: Pose(np.zeros(dim), 0.0) for n in names}
+    elif missing:
         r.fail("initial.pose", f"no initial pose for body {missing[0]!r}")
     fix = _channel_values(r, init, "fix", channels, ("angle", "position"))
     velocity = _channel_values(r, init, "velocity", channels, ("angle", "position"))
@@ -229,19 +252,103 @@ def load_case(path: str | Path) -> Case:
             unsupported=r.string(spec, "unsupported", p, required=False, default=""),
         )
     tags = tuple(r.get(data, "tags", "", required=False, default=[]))
+    reactions = _reactions(r, r.table(data, "reactions", "", required=False), links, names)
     case = Case(name=name, description=r.string(data, "description", ""), file=str(path),
                 dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
-                ground=ground, bodies=bodies, joints=joints, forces=tuple(forces),
+                ground=ground, bodies=bodies, joints=joints, forces=forces,
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
-                tags=tags, drivers=drivers)
+                tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
+                reference_frame=reference_frame)
     return case
+
+
+def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:
+    p = f"forces[{i}]"
+    ftype = r.string(f, "type", p, choices=("torque", "force"))
+    body = r.string(f, "body", p)
+    if body not in points_of or body == GROUND:
+        r.fail(f"{p}.body", f"unknown body {body!r}; bodies are "
+               f"{', '.join(b for b in points_of if b != GROUND)}")
+    if ftype == "torque":
+        value = (r.number(f, "value", p, "torque") if dim == 2 else
+                 r.vector(r.get(f, "value", p), f"{p}.value", 3, "torque"))
+        return Force(ftype, body, value)
+    point = r.string(f, "point", p)
+    if point not in points_of[body]:
+        r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
+    return Force(ftype, body, r.vector(r.get(f, "value", p), f"{p}.value", dim, "force"), point)
+
+
+def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
+          reference_frame: bool) -> Rod | Spring:
+    """A ``[[rods]]`` or ``[[springs]]`` entry: two body points, length at t = 0."""
+    name = r.string(x, "name", p)
+    p = f"{p} ({name})"
+    allowed = {"name", "ends"} | ({"stiffness", "damping"} if key == "springs" else set())
+    unknown = sorted(set(x) - allowed)
+    if unknown:
+        r.fail(f"{p}.{unknown[0]}", f"unknown field; expected {', '.join(sorted(allowed))}")
+    if not reference_frame:
+        r.fail(p, f"{key} need body points given as world positions at t = 0 "
+               "(a case without [initial.pose])")
+    ends = r.get(x, "ends", p)
+    if not (isinstance(ends, list) and len(ends) == 2 and all(
+            isinstance(e, list) and len(e) == 2 and all(isinstance(s, str) for s in e)
+            for e in ends)):
+        r.fail(f"{p}.ends", f"must be [[body, point], [body, point]], got {ends!r}")
+    xs = []
+    for body, point in ends:
+        if body not in points_of:
+            r.fail(f"{p}.ends", f"unknown body {body!r}; bodies are {', '.join(points_of)}")
+        if point not in points_of[body]:
+            r.fail(f"{p}.ends", f"body {body!r} has no point {point!r}")
+        xs.append(points_of[body][point])
+    if ends[0][0] == ends[1][0]:
+        r.fail(f"{p}.ends", "both ends are on the same body")
+    length = float(np.linalg.norm(xs[1] - xs[0]))
+    if length < 1e-9:
+        r.fail(f"{p}.ends", "the two ends coincide at t = 0")
+    ends_t = ((ends[0][0], ends[0][1]), (ends[1][0], ends[1][1]))
+    if key == "rods":
+        return Rod(name, ends_t, length)
+    k = r.number(x, "stiffness", p, "stiffness", positive=True)
+    c = r.number(x, "damping", p, "damping", required=False, default=0.0)
+    if c < 0:
+        r.fail(f"{p}.damping", f"must be >= 0, got {c}")
+    return Spring(name, ends_t, k, c, length)
+
+
+def _reactions(r: _Reader, table: dict, links: dict, bodies) -> dict[str, dict]:
+    """``[reactions.<method>]``: natcoord's reaction methods; ``stiffness`` weights rows."""
+    out = {}
+    for method, spec in table.items():
+        p = f"reactions.{method}"
+        if not isinstance(spec, dict):
+            r.fail(p, "must be a table")
+        unknown = sorted(set(spec) - {"stiffness"})
+        if unknown:
+            r.fail(f"{p}.{unknown[0]}", "unknown field; expected stiffness")
+        stiffness = {}
+        for name, value in r.table(spec, "stiffness", p, required=False).items():
+            f = f"{p}.stiffness.{name}"
+            if name in links:
+                stiffness[name] = r.quantity(value, f, "stiffness", positive=True)
+            elif name in bodies:
+                try:
+                    stiffness[name] = r.quantity(value, f, "torsional stiffness", positive=True)
+                except CaseError:
+                    stiffness[name] = r.quantity(value, f, "stiffness", positive=True)
+            else:
+                r.fail(f, f"neither a rod, a spring nor a body: {name!r}")
+        out[method] = {"stiffness": stiffness}
+    return out
 
 
 def _kind_dim(key: str, channels) -> str:
     kind = key if key in CHANNEL_KINDS else next(c.kind for c in channels if c.name == key)
     return {"angle": "angle", "position": "length", "velocity": "velocity",
             "reaction": "force", "energy": "energy", "acceleration": "acceleration",
-            "driver": "torque"}[kind]
+            "driver": "torque", "axial": "force", "combination": "force"}[kind]
 
 
 def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
@@ -264,23 +371,52 @@ def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
     need = 1 if kind == "particle" else 2
     if len(points) < need:
         r.fail(f"{p}.points", f"a {kind} needs at least {need} named point(s)")
+    ends = None
     if kind == "particle":
         if len(points) != 1:
             r.fail(f"{p}.points", "a particle has exactly one point")
-        com, inertia = next(iter(points.values())), 0.0
+        com, inertia = next(iter(points.values())), 0.0 if dim == 2 else np.zeros((3, 3))
     else:
-        a, c = list(points.values())[:2]
-        length = float(np.linalg.norm(c - a))
-        if length < 1e-9:
+        if np.linalg.norm(list(points.values())[1] - list(points.values())[0]) < 1e-9:
             r.fail(f"{p}.points", "the first two points coincide; they define the body's axis")
         if kind == "uniform_rod":
-            com, inertia = (a + c) / 2, mass * length**2 / 12
+            ends = tuple(r.get(b, "ends", p, required=False, default=list(points)[:2]))
+            if len(ends) != 2 or any(e not in points for e in ends):
+                r.fail(f"{p}.ends", f"must name two of the body's points, got {list(ends)!r}")
+            a, c = points[ends[0]], points[ends[1]]
+            length = float(np.linalg.norm(c - a))
+            if length < 1e-9:
+                r.fail(f"{p}.ends", "the two ends coincide")
+            com = (a + c) / 2
+            if dim == 2:
+                inertia = mass * length**2 / 12
+            else:
+                e = (c - a) / length
+                inertia = mass * length**2 / 12 * (np.eye(3) - np.outer(e, e))
         else:
             com = r.vector(r.get(b, "com", p), f"{p}.com", dim, "length")
-            inertia = r.number(b, "inertia", p, "inertia")
-            if inertia < 0:
-                r.fail(f"{p}.inertia", f"must be >= 0, got {inertia}")
-    return Body(name, kind, mass, points, com, inertia)
+            inertia = _inertia(r, r.get(b, "inertia", p), f"{p}.inertia", dim)
+    return Body(name, kind, mass, points, com, inertia, ends)
+
+
+def _inertia(r: _Reader, value, field: str, dim: int):
+    """2-D: a moment (kg m^2, >= 0); 3-D: a symmetric positive semi-definite 3x3 tensor."""
+    if dim == 2:
+        x = r.quantity(value, field, "inertia")
+        if x < 0:
+            r.fail(field, f"must be >= 0, got {x}")
+        return x
+    if not (isinstance(value, list) and len(value) == 3):
+        r.fail(field, f"must be a 3x3 tensor [[..], [..], [..]] (kg m^2), got {value!r}")
+    J = np.array([r.vector(row, f"{field}[{k}]", 3, "inertia") for k, row in enumerate(value)])
+    if np.abs(J - J.T).max() > 1e-12 * max(1.0, np.abs(J).max()):
+        r.fail(field, "must be symmetric")
+    ev = np.linalg.eigvalsh(J)
+    if ev[0] < -1e-12 * max(1.0, ev[-1]):
+        r.fail(field, f"must be positive semi-definite (eigenvalues {ev.round(6).tolist()})")
+    if ev[0] + ev[1] < ev[2] - 1e-9 * max(1.0, ev[-1]):
+        r.fail(field, "violates the triangle inequality of principal moments")
+    return J
 
 
 def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
@@ -304,8 +440,12 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
         if pt not in points_of[b]:
             r.fail(f"{p}.points", f"body {b!r} has no point {pt!r}; it has "
                    f"{', '.join(points_of[b]) or 'none'}")
+    if (jtype == "spherical") != (dim == 3) and jtype != "revolute":
+        r.fail(f"{p}.type", f"{jtype!r} joints are not available in {dim}-D case files")
+    if jtype == "revolute" and dim == 2 and "axis" in j:
+        r.fail(f"{p}.axis", "a 2-D revolute turns about z; remove the axis")
     axis = None
-    if jtype == "prismatic":
+    if jtype == "prismatic" or (jtype == "revolute" and dim == 3):
         axis = r.vector(r.get(j, "axis", p), f"{p}.axis", dim, "length")
         norm = np.linalg.norm(axis)
         if norm < 1e-12:
@@ -342,15 +482,18 @@ def _driver(r: _Reader, d: dict, i: int, bodies, points_of) -> Driver:
     return Driver(name, dtype, body, v0, rate, accel, point, axis)
 
 
-def _channels(r, table: dict, bodies, points_of, joints, drivers=()) -> tuple[Channel, ...]:
+def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 2,
+              links=()) -> tuple[Channel, ...]:
     out = []
     jnames = [j.name for j in joints]
+    axes = ("x", "y", "z")[:dim]
     for name, c in table.items():
         p = f"channels.{name}"
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
-        body = point = joint = axis = driver = None
+        body = point = joint = axis = driver = rod = points = None
+        plane, of = "xy", ()
         if kind in ("angle", "position", "velocity", "acceleration"):
             body = r.string(c, "body", p)
             if body not in bodies:
@@ -359,12 +502,21 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=()) -> tuple[Ch
             point = r.string(c, "point", p)
             if point not in points_of[body]:
                 r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
-            axis = r.string(c, "axis", p, choices=("x", "y"))
+            axis = r.string(c, "axis", p, choices=axes)
+        if kind == "angle":
+            pts = r.get(c, "points", p, required=dim == 3)
+            if pts is not None:
+                if not (isinstance(pts, list) and len(pts) == 2
+                        and all(x in points_of[body] for x in pts)):
+                    r.fail(f"{p}.points", f"must name two points of body {body!r}, got {pts!r}")
+                points = (pts[0], pts[1])
+            plane = r.string(c, "plane", p, required=False, default="xy",
+                             choices=tuple(PLANES) if dim == 3 else ("xy",))
         if kind == "reaction":
             joint = r.string(c, "joint", p)
             if joint not in jnames:
                 r.fail(f"{p}.joint", f"unknown joint {joint!r}; joints are {', '.join(jnames)}")
-            axis = r.string(c, "axis", p, choices=("x", "y", "normal"))
+            axis = r.string(c, "axis", p, choices=(*axes, "normal"))
             jt = joints[jnames.index(joint)]
             if axis == "normal" and jt.type != "prismatic":
                 r.fail(f"{p}.axis", f"'normal' needs a prismatic joint; {joint!r} is {jt.type}")
@@ -373,7 +525,25 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=()) -> tuple[Ch
             if driver not in drivers:
                 r.fail(f"{p}.driver", f"unknown driver {driver!r}; drivers are "
                        f"{', '.join(drivers) or 'none'}")
-        out.append(Channel(name, kind, body, point, joint, axis, driver))
+        if kind == "axial":
+            rod = r.string(c, "rod", p)
+            if rod not in links:
+                r.fail(f"{p}.rod", f"unknown rod or spring {rod!r}; they are "
+                       f"{', '.join(links) or 'none'}")
+        if kind == "combination":
+            terms = r.table(c, "of", p)
+            known = {x.name: x for x in out}
+            for t, coef in terms.items():
+                if t not in known or known[t].kind not in ("reaction", "axial"):
+                    r.fail(f"{p}.of.{t}", "must name a reaction or axial channel defined "
+                           "above this one")
+                if isinstance(coef, bool) or not isinstance(coef, (int, float)):
+                    r.fail(f"{p}.of.{t}", f"must be a number, got {coef!r}")
+            if not terms:
+                r.fail(f"{p}.of", "must not be empty")
+            of = tuple((t, float(v)) for t, v in terms.items())
+        out.append(Channel(name, kind, body, point, joint, axis, driver, rod, points, plane,
+                           of))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)
@@ -382,7 +552,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=()) -> tuple[Ch
 def _channel_values(r, init: dict, key: str, channels, kinds) -> dict[str, float]:
     by_name = {c.name: c for c in channels}
     out = {}
-    for name, value in r.table(init, key, "initial").items():
+    for name, value in r.table(init, key, "initial", required=False).items():
         p = f"initial.{key}.{name}"
         if name not in by_name:
             r.fail(p, f"unknown channel {name!r}; channels are {', '.join(by_name)}")

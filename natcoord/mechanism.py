@@ -9,6 +9,9 @@ Conventions
 * A body frame is attached to each body; named points are given in that frame.
 * 2-D: a pose is ``(x, y, angle)``; the angle of a body is the angle of its frame's x axis
   from world +x, counter-clockwise positive.
+* Reference-frame cases (``Case.reference_frame``: the file has no ``[initial.pose]``; every
+  3-D case): body points are world positions at t = 0 and every body frame coincides with
+  the world frame at t = 0.
 * A joint joins ``bodies[0]`` and ``bodies[1]`` at ``points[0]`` (on the first) and
   ``points[1]`` (on the second). Its reaction is the force the joint applies to the second
   body, in world axes (DESIGN.md, Sec. 2).
@@ -23,10 +26,11 @@ import numpy as np
 GROUND = "ground"
 
 BODY_KINDS = ("uniform_rod", "particle", "rigid")
-JOINT_TYPES = ("revolute", "prismatic")
-FORCE_TYPES = ("torque",)
+JOINT_TYPES = ("revolute", "prismatic", "spherical")
+FORCE_TYPES = ("torque", "force")
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
-                 "driver")
+                 "driver", "axial", "combination")
+PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 
 
@@ -44,8 +48,11 @@ class Body:
         are the body's basic points in natural coordinates (one for a particle).
     com : ndarray (d,)
         Centre of mass in the body frame, m.
-    inertia : float
-        2-D: moment of inertia about the centre of mass, kg m^2.
+    inertia : float or ndarray (3, 3)
+        About the centre of mass, kg m^2: 2-D a scalar; 3-D the tensor in body axes (a
+        slender rod's is singular: nothing about its own axis).
+    ends : tuple[str, str] or None
+        uniform_rod: the points its mass lies between (default its first two points).
     """
 
     name: str
@@ -53,7 +60,8 @@ class Body:
     mass: float
     points: dict[str, np.ndarray]
     com: np.ndarray
-    inertia: float
+    inertia: float | np.ndarray
+    ends: tuple[str, str] | None = None
 
 
 @dataclass(frozen=True)
@@ -63,12 +71,13 @@ class Joint:
     Attributes
     ----------
     name : str
-    type : {"revolute", "prismatic"}
+    type : {"revolute", "prismatic", "spherical"}
     bodies : tuple[str, str]
     points : tuple[str, str]
         The joint point on each body.
     axis : ndarray (d,) or None
-        Prismatic: sliding direction in the first body's frame (unit vector).
+        Prismatic: sliding direction in the first body's frame; 3-D revolute: the rotation
+        axis in the first body's frame (unit vector).
     """
 
     name: str
@@ -79,21 +88,50 @@ class Joint:
 
 
 @dataclass(frozen=True)
+class Rod:
+    """A massless rod between two body points (``ground`` allowed): revolute ends in 2-D,
+    spherical ends in 3-D. ``length`` (m) is the distance at t = 0; its output is the axial
+    force, tension positive."""
+
+    name: str
+    ends: tuple[tuple[str, str], tuple[str, str]]
+    length: float
+
+
+@dataclass(frozen=True)
+class Spring:
+    """A linear spring-damper between two body points: tension
+    ``stiffness (l - length) + damping dl/dt`` (N/m, N s/m, m; rest length at t = 0)."""
+
+    name: str
+    ends: tuple[tuple[str, str], tuple[str, str]]
+    stiffness: float
+    damping: float
+    length: float
+
+
+@dataclass(frozen=True)
 class Force:
-    """An applied load. ``torque``: constant moment ``value`` (N m) on ``body``."""
+    """A constant applied load on ``body``. ``torque``: moment ``value`` (N m; a scalar in
+    2-D, (3,) world axes in 3-D). ``force``: force ``value`` (d,) N, world axes, applied at
+    the body point ``point``."""
 
     type: str
     body: str
-    value: float
+    value: float | np.ndarray
+    point: str | None = None
 
 
 @dataclass(frozen=True)
 class Channel:
     """A named output: what to measure and in which component.
 
-    kind ``angle`` (body), ``position``/``velocity``/``acceleration`` (body, point, axis
-    x|y|z), ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational, J),
-    ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate).
+    kind ``angle`` (body; with ``points = (p, q)`` the angle of r_q - r_p in ``plane``, from
+    its first axis towards its second), ``position``/``velocity``/``acceleration`` (body,
+    point, axis x|y|z), ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic +
+    gravitational, J), ``driver`` (the effort a driver applies: N m for an angle driver, N
+    for a coordinate), ``axial`` (tension of rod or spring ``rod``, N), ``combination``
+    (``sum(c * channel)`` over ``of``, in the unit of its terms).
     """
 
     name: str
@@ -103,11 +141,16 @@ class Channel:
     joint: str | None = None
     axis: str | None = None
     driver: str | None = None
+    rod: str | None = None
+    points: tuple[str, str] | None = None
+    plane: str = "xy"
+    of: tuple[tuple[str, float], ...] = ()
 
     @property
     def unit(self) -> str:
         return {"angle": "rad", "position": "m", "velocity": "m/s", "reaction": "N",
-                "energy": "J", "acceleration": "m/s^2", "driver": "N m"}[self.kind]
+                "energy": "J", "acceleration": "m/s^2", "driver": "N m", "axial": "N",
+                "combination": "N"}[self.kind]
 
 
 @dataclass(frozen=True)
@@ -155,7 +198,12 @@ class Pose:
 
 @dataclass(frozen=True)
 class Case:
-    """A mechanism plus its scenario, as read from one case file."""
+    """A mechanism plus its scenario, as read from one case file.
+
+    ``reactions``: natcoord's reaction methods, name -> options (``stiffness``: rod, spring
+    or body name -> N/m or N m/rad, for a weighted minimum norm); the first method gives
+    natcoord's channel values. ``reference_frame``: see the module docstring.
+    """
 
     name: str
     description: str
@@ -175,6 +223,10 @@ class Case:
     engines: dict[str, EngineSpec]
     tags: tuple[str, ...] = ()
     drivers: tuple[Driver, ...] = ()
+    rods: tuple[Rod, ...] = ()
+    springs: tuple[Spring, ...] = ()
+    reactions: dict[str, dict] = field(default_factory=dict)
+    reference_frame: bool = False
 
     @property
     def times(self) -> np.ndarray:

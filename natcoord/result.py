@@ -8,7 +8,7 @@ from enum import StrEnum
 import numpy as np
 import pandas as pd
 
-from .mechanism import Case
+from .mechanism import GROUND, PLANES, Case
 
 
 class Status(StrEnum):
@@ -28,11 +28,13 @@ class Motion:
     ----------
     t : (T,) sample times, s
     origin : body -> (T, d) world position of the body frame origin, m
-    angle : body -> (T,) angle of the body frame x axis from world +x, rad (2-D)
+    angle : body -> (T,) angle of the body frame x axis from world +x, rad (2-D only)
     velocity : body -> (T, d) world velocity of the body frame origin, m/s
-    omega : body -> (T,) angular velocity, rad/s (2-D)
+    omega : body -> (T,) angular velocity, rad/s (2-D); (T, 3) world axes (3-D)
     joint_force : joint -> (T, d) force the joint applies to its *second* body, world
         axes, N. A joint an engine cannot report is absent; its channels become NaN.
+    rotation : body -> (T, 3, 3) body-to-world rotation (3-D only)
+    rod_force : rod or spring -> (T,) axial force, tension positive, N
     """
 
     t: np.ndarray
@@ -47,6 +49,12 @@ class Motion:
     acceleration: dict[str, np.ndarray] = field(default_factory=dict)
     alpha: dict[str, np.ndarray] = field(default_factory=dict)
     driver_effort: dict[str, np.ndarray] = field(default_factory=dict)
+    rotation: dict[str, np.ndarray] = field(default_factory=dict)
+    rod_force: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def R(self, body: str) -> np.ndarray:
+        """(T, d, d) body-to-world rotation."""
+        return self.rotation[body] if body in self.rotation else _rot(self.angle[body])
 
 
 def _rot(angle: np.ndarray) -> np.ndarray:
@@ -56,13 +64,19 @@ def _rot(angle: np.ndarray) -> np.ndarray:
 
 
 def point_position(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
-    """World position (T, 2) of a body-frame point (2,)."""
-    return motion.origin[body] + _rot(motion.angle[body]) @ point
+    """World position (T, d) of a body-frame point (d,)."""
+    if body == GROUND:
+        return np.broadcast_to(point, (len(motion.t), len(point)))
+    return motion.origin[body] + motion.R(body) @ point
 
 
 def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
-    """World velocity (T, 2) of a body-frame point (2,): v_O + omega x (R p)."""
-    rp = _rot(motion.angle[body]) @ point
+    """World velocity (T, d) of a body-frame point (d,): v_O + omega x (R p)."""
+    if body == GROUND:
+        return np.zeros((len(motion.t), len(point)))
+    rp = motion.R(body) @ point
+    if case.dimension == 3:
+        return motion.velocity[body] + np.cross(motion.omega[body], rp)
     w = motion.omega[body][:, None]
     return motion.velocity[body] + w * np.stack([-rp[:, 1], rp[:, 0]], -1)
 
@@ -82,17 +96,37 @@ def energy(case: Case, motion: Motion) -> np.ndarray:
     for b in case.bodies:
         vg = point_velocity(case, motion, b.name, b.com)
         rg = point_position(case, motion, b.name, b.com)
-        e += 0.5 * b.mass * np.sum(vg**2, axis=1) + 0.5 * b.inertia * motion.omega[b.name] ** 2
+        w = motion.omega[b.name]
+        if case.dimension == 3:  # 1/2 w^T R I R^T w, I in body axes
+            wb = np.einsum("tji,tj->ti", motion.R(b.name), w)
+            rot = 0.5 * np.einsum("ti,ij,tj->t", wb, b.inertia, wb)
+        else:
+            rot = 0.5 * b.inertia * w**2
+        e += 0.5 * b.mass * np.sum(vg**2, axis=1) + rot
         e -= b.mass * rg @ case.gravity
+    for s in case.springs:  # elastic energy
+        pa, pb = (point_position(case, motion, body, _point(case, body, p))
+                  for body, p in s.ends)
+        e += 0.5 * s.stiffness * (np.linalg.norm(pb - pa, axis=1) - s.length) ** 2
     return e
+
+
+def _point(case: Case, body: str, point: str) -> np.ndarray:
+    return case.ground[point] if body == GROUND else case.body(body).points[point]
 
 
 def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
     """The case's output channels from a neutral motion: column ``t`` then one per channel."""
     cols: dict[str, np.ndarray] = {"t": motion.t}
-    axis_index = {"x": 0, "y": 1}
+    axis_index = {"x": 0, "y": 1, "z": 2}
     for ch in case.channels:
-        if ch.kind == "angle":
+        if ch.kind == "angle" and ch.points is not None:
+            pts = case.body(ch.body).points
+            d = (point_position(case, motion, ch.body, pts[ch.points[1]])
+                 - point_position(case, motion, ch.body, pts[ch.points[0]]))
+            i, j = PLANES[ch.plane]
+            v = np.unwrap(np.arctan2(d[:, j], d[:, i]))
+        elif ch.kind == "angle":
             v = np.unwrap(motion.angle[ch.body])
         elif ch.kind == "position":
             p = case.body(ch.body).points[ch.point]
@@ -107,6 +141,10 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
             v = motion.driver_effort.get(ch.driver, np.full_like(motion.t, np.nan))
         elif ch.kind == "energy":
             v = energy(case, motion)
+        elif ch.kind == "axial":
+            v = motion.rod_force.get(ch.rod, np.full_like(motion.t, np.nan))
+        elif ch.kind == "combination":
+            v = sum(c * cols[name] for name, c in ch.of)
         else:  # reaction
             f = motion.joint_force.get(ch.joint)
             if f is None:

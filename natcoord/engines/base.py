@@ -27,13 +27,16 @@ from ..result import Motion
 
 @dataclass(frozen=True)
 class BodyState:
-    """Assembled state of one body frame: origin (2,) m, angle rad, velocity (2,) m/s,
-    omega rad/s."""
+    """Assembled state of one body frame: origin (d,) m, angle rad (2-D), velocity (d,) m/s
+    of the frame origin, omega rad/s (2-D) or (3,) world axes (3-D), rotation (3, 3)
+    body-to-world (3-D). In a reference-frame case every frame is the world frame at t = 0
+    (origin 0, angle 0, identity rotation)."""
 
     origin: np.ndarray
     angle: float
     velocity: np.ndarray
-    omega: float
+    omega: float | np.ndarray
+    rotation: np.ndarray | None = None
 
 
 @dataclass
@@ -47,12 +50,25 @@ class EngineRun:
     settings: dict = field(default_factory=dict)
     counters: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    methods: dict[str, Motion] = field(default_factory=dict)  # natcoord: one per reaction
+    # method of the case (the primary motion is the first)
 
 
 def initial_body_states(case: Case) -> dict[str, BodyState]:
     """Assemble the case with natcoord's kinematics and return every body's frame state."""
     from ..kinematics import initial_state
     from ..model import build_model
+
+    if case.reference_frame:
+        from .. import casemodel
+
+        cm = casemodel.build(case, case.engine("natcoord").settings.get("coordinates",
+                                                                          "joints"))
+        s = casemodel.initial_state(cm)
+        o, a, R, v, w = casemodel.frames(cm, s.q[None], s.qd[None])
+        return {b: BodyState(o[b][0], float(a[b][0]) if b in a else 0.0, v[b][0],
+                             float(w[b][0]) if case.dimension == 2 else w[b][0],
+                             R[b][0] if b in R else None) for b in o}
 
     model = build_model(case)
     s = initial_state(model)

@@ -29,7 +29,7 @@ from .base import EngineRun, merged
 NAME = "natcoord"
 PACKAGE = "natcoord"
 DEFAULTS = {"formulation": "index1", "method": "dop853", "rtol": 1e-12, "atol": 1e-14,
-            "h": None}
+            "h": None, "coordinates": "joints"}
 
 
 def version() -> str:
@@ -37,11 +37,14 @@ def version() -> str:
 
 
 def run(case: Case, init, settings: dict) -> EngineRun:
-    s = merged(DEFAULTS, settings)
+    s = {k: v for k, v in merged(DEFAULTS, settings).items()
+         if k not in ("reference", "reference_check")}  # used by `natcoord reference update`
     unknown = sorted(set(s) - set(DEFAULTS) - set(DEFAULT_OPTIONS))
     if unknown:
         raise ValueError(f"natcoord settings: unknown key {unknown[0]!r}; keys are "
                          f"{', '.join([*DEFAULTS, *DEFAULT_OPTIONS])}")
+    if case.reference_frame:
+        return _run_reference_frame(case, s)
     t0 = time.perf_counter()
     model = build_model(case)
     state = initial_state(model)
@@ -82,3 +85,32 @@ def motion_of(model, sol) -> Motion:
     efforts = {d.name: d.effort(sol.lam[:, m0 + k], sol.q, sol.t)
                for k, d in enumerate(getattr(model, "drivers", ()))}
     return Motion(sol.t, origin, angle, velocity, omega, forces, acc, alpha, efforts)
+
+
+def _run_reference_frame(case: Case, s: dict) -> EngineRun:
+    """Reference-frame cases (3-D, rods, springs): :mod:`natcoord.casemodel`, every
+    reaction method of the case, and the channels N = ker Phi_q^T leaves undetermined."""
+    from .. import casemodel
+
+    t0 = time.perf_counter()
+    cm = casemodel.build(case, s["coordinates"])
+    state = casemodel.initial_state(cm)
+    build = time.perf_counter() - t0
+    options = {k: v for k, v in s.items() if k in DEFAULT_OPTIONS}
+    method = s["method"]
+    if s["formulation"] == "index3" and method == DEFAULTS["method"]:
+        method = "trapezoidal"
+    sol = integrate(cm.model, state, case.times, formulation=s["formulation"], method=method,
+                    rtol=s["rtol"], atol=s["atol"], h=s["h"], **options)
+    lams = casemodel.reactions_by_method(cm, sol)
+    motions = {name: casemodel.motion(cm, sol, lam) for name, lam in lams.items()}
+    first = next(iter(lams))
+    diag = casemodel.diagnostics(cm, sol.q[0])
+    counters = sol.counters | diag | {
+        "undetermined": casemodel.undetermined(cm, sol, lams[first]),
+        "reaction_methods": list(lams), "coordinates": s["coordinates"]}
+    notes = [f"natural coordinates ({s['coordinates']}): {diag['n']} coordinates, "
+             f"{diag['m']} constraints of rank {diag['rank']}: {diag['dof']} DOF, "
+             f"{diag['redundant']} redundant; channel values by the {first} reactions"]
+    return EngineRun(motions[first], build, sol.wall_time_s, sol.counters["steps"], s,
+                     counters, notes, motions)

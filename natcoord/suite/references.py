@@ -24,6 +24,10 @@ from .io import read_json, write_csv, write_json
 
 REFERENCE_SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
 CHECK_SETTINGS = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
+MODEL_SETTINGS = ("coordinates",)  # settings that choose the model, kept in the reference
+# A case may replace both with ``[engines.natcoord.settings] reference = {...}`` and
+# ``reference_check = {...}`` (five_bar: fixed steps through its singular positions, where
+# an adaptive step-size control stalls).
 
 
 def load_reference(case: str, directory: Path) -> pd.DataFrame | None:
@@ -39,8 +43,11 @@ def load_provenance(case: str, directory: Path) -> dict | None:
 def update_reference(case: Case, directory: Path) -> dict:
     """Recompute and store the reference of one case; returns its provenance."""
     init = initial_body_states(case)
-    best = natcoord_run(case, init, REFERENCE_SETTINGS)
-    check = natcoord_run(case, init, CHECK_SETTINGS)
+    own = case.engine("natcoord").settings
+    model_settings = {k: v for k, v in own.items() if k in MODEL_SETTINGS}
+    best = natcoord_run(case, init, model_settings | own.get("reference", REFERENCE_SETTINGS))
+    check = natcoord_run(case, init, model_settings | own.get("reference_check",
+                                                              CHECK_SETTINGS))
     table = evaluate_channels(case, best.motion)
     check_table = evaluate_channels(case, check.motion)
     estimate = {c.name: float(np.nanmax(np.abs(table[c.name] - check_table[c.name])))
@@ -48,8 +55,10 @@ def update_reference(case: Case, directory: Path) -> dict:
     provenance = {
         "case": case.name,
         "case_file": Path(case.file).name,
-        "method": "natcoord index-1 Lagrange (Eq. (6)), DOP853 between samples, "
-                  "least-squares projection of q and qd at every sample",
+        "method": "natcoord index-1 Lagrange (Eq. (6)), least-squares projection of q and "
+                  f"qd, {best.settings['method']} "
+                  + (f"h {best.settings['h']} s" if best.settings.get("h") else
+                     f"rtol {best.settings['rtol']}"),
         "settings": best.settings,
         "estimated_error": estimate,
         "estimated_error_method": "max |reference - run at rtol 1e-10| per channel "
