@@ -159,6 +159,22 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
     return pd.DataFrame(cols)
 
 
+FORCE_KINDS = ("reaction", "axial", "combination")
+
+
+def methods_table(case: Case, run) -> pd.DataFrame:
+    """Force channels of every reaction method of a run (``run.methods``: method ->
+    Motion): column ``t`` then ``<channel>@<method>``."""
+    cols: dict[str, np.ndarray] = {}
+    for method, motion in run.methods.items():
+        table = evaluate_channels(case, motion)
+        cols.setdefault("t", table["t"].to_numpy())
+        for ch in case.channels:
+            if ch.kind in FORCE_KINDS:
+                cols[f"{ch.name}@{method}"] = table[ch.name].to_numpy()
+    return pd.DataFrame(cols)
+
+
 def normal_direction(case: Case, motion: Motion, joint: str) -> np.ndarray:
     """(T, 2) unit normal of a prismatic joint: its axis turned +90 deg, in world axes."""
     j = case.joint(joint)
@@ -189,6 +205,7 @@ class Result:
     settings: dict = field(default_factory=dict)
     counters: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    methods: pd.DataFrame | None = None  # natcoord: force channels per reaction method
 
     @property
     def us_per_step(self) -> float:

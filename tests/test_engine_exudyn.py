@@ -252,9 +252,14 @@ def test_unsupported_and_bad_step():
     init = initial_body_states(case)
     ex = adapter("exudyn")
     with pytest.raises(Unsupported):
-        ex.run(dataclasses.replace(case, dimension=3), init, {})
+        ex.run(dataclasses.replace(case, dimension=4), init, {})
     with pytest.raises(ValueError):
         ex.run(case, init, {"dt": 3e-3})
+    c3 = _case(str(CASES / "four_bar_3d.toml"))
+    slide = dataclasses.replace(c3.joints[0], type="prismatic")
+    with pytest.raises(Unsupported, match="prismatic"):
+        ex.run(dataclasses.replace(c3, joints=(slide, *c3.joints[1:])),
+               initial_body_states(c3), {})
 
 
 def test_solver_failure_raises():
@@ -289,3 +294,120 @@ def test_version_and_lazy_import():
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, check=True)
     assert out.stdout.strip() == "exudyn"
+
+
+# ---- the paper's redundant cases (3-D, massless rods, spring-dampers) ----------------------
+# Each case file's [engines.exudyn] block holds the settings and the gated tolerances (the
+# measured errors against natcoord, about x2); undetermined reactions are not gated.
+NEW = ("five_bar", "four_bar_3d", "parallelogram_3d", "parallelogram_3d_flexible")
+
+
+@cache
+def _natcoord_run(name: str):
+    case = _case(str(CASES / f"{name}.toml"))
+    return adapter("natcoord").run(case, initial_body_states(case),
+                                   case.engine("natcoord").settings)
+
+
+@cache
+def _exudyn_case(name: str, **extra):
+    case = _case(str(CASES / f"{name}.toml"))
+    run = adapter("exudyn").run(case, initial_body_states(case),
+                                {**case.engine("exudyn").settings, **extra})
+    return case, run, evaluate_channels(case, run.motion)
+
+
+@pytest.mark.parametrize("name", NEW[:3])
+def test_redundant_cases_match_natcoord(name):
+    case, run, table = _exudyn_case(name)
+    ref = evaluate_channels(case, _natcoord_run(name).motion)
+    spec = case.engine("exudyn")
+    gated = {ch.name: spec.tolerance_for(ch) for ch in case.channels
+             if spec.tolerance_for(ch) is not None}
+    assert gated, "the case needs an [engines.exudyn] tolerance block"
+    err = {c: float(np.max(np.abs(table[c] - ref[c]))) for c in gated}
+    over = {c: (e, gated[c]) for c, e in err.items() if not e <= gated[c]}
+    assert not over, f"{name}: error > tolerance: {over}"
+    assert run.counters["steps"] == run.n_steps
+
+
+def test_five_bar_angle_and_determined_forces():
+    case, run, table = _exudyn_case("five_bar")
+    ref = evaluate_channels(case, _natcoord_run("five_bar").motion)
+    phi = np.degrees(table["phi"])
+    assert phi.max() == pytest.approx(96.73, abs=0.01)  # the paper's published angles
+    assert phi.iloc[-1] == pytest.approx(-330.97, abs=0.01)
+    # the issue's bound for accurate engines; measured 7.9e-5 rad at h 1e-3
+    assert np.max(np.abs(table["phi"] - ref["phi"])) < 1e-3
+    # the redundant split is Exudyn's own (it loads N56 only), the moment about 2 is not
+    assert np.max(np.abs(table["N34"])) < 1e-6 < np.max(np.abs(ref["N34"]))
+    away = np.abs(np.sin(ref["phi"])) > 0.2  # off the singular positions 0, -180 deg
+    rel = np.abs(table["N34_2N56"] - ref["N34_2N56"])[away] / np.max(np.abs(ref["N34_2N56"]))
+    assert rel.max() < 1e-4  # measured 1.3e-5 of the 1.03e4 N peak
+    # pivots: force on the rod, world axes; y components are determined. Past the start-up
+    # transient of the multipliers (0.60 N at t = 0.015 s) they agree to 0.06 N (peak 1132 N)
+    for j in ("R1_y", "R2_y"):
+        assert np.max(np.abs(table[j] - ref[j])[table["t"] > 0.1]) < 0.12, j
+
+
+def test_five_bar_second_order():
+    path = str(CASES / "five_bar.toml")
+    ref = _reference_phi()
+    e = [np.max(np.abs(_exudyn(path, dt=h, newton_rtol=1e-8)[1]["phi"] - ref))
+         for h in (1e-3, 5e-4)]
+    assert 3.5 < e[0] / e[1] < 4.5, e  # measured 7.9e-5 -> 2.0e-5 rad
+
+
+@cache
+def _reference_phi():
+    case = _case(str(CASES / "five_bar.toml"))
+    return evaluate_channels(case, _natcoord_run("five_bar").motion)["phi"]
+
+
+def test_four_bar_3d_axial_inertia_has_no_effect():
+    case, run, table = _exudyn_case("four_bar_3d")
+    assert any("axial inertia" in n for n in run.notes)
+    _, _, t4 = _exudyn_case("four_bar_3d", axial_inertia=1e-4)
+    for c in ("theta", "yC", "zC"):
+        assert np.max(np.abs(t4[c] - table[c])) < 1e-8, c
+    # reactions: differences at the modified-Newton tolerance (measured 1.8e-4 N of 176 N,
+    # a hundredth of the error against natcoord)
+    for c in ("O_y", "O_z", "D_y", "D_z"):
+        assert np.max(np.abs(t4[c] - table[c])) < 1e-3, c
+    # out-of-plane reactions: undetermined; Exudyn's pivoting leaves them at 0
+    assert np.max(np.abs(table[["O_x", "D_x"]].to_numpy())) < 1e-5
+    # rotations stay rotations about X
+    R = run.motion.rotation["crank"]
+    assert np.allclose(R[:, :, 0], [1.0, 0.0, 0.0], atol=1e-9)
+    assert np.allclose(R @ R.transpose(0, 2, 1), np.eye(3), atol=1e-9)
+
+
+def test_parallelogram_flexible_matches_weighted_rigid():
+    """The issue's check: natcoord's weighted min-norm rod forces (rigid rods, Eq. (115))
+    equal an engine's flexible model within 1% after the transient."""
+    case, run, table = _exudyn_case("parallelogram_3d_flexible")
+    weighted = _natcoord_run("parallelogram_3d").methods["weighted"].rod_force
+    late = table["t"].to_numpy() >= 0.1  # spring transient: c / k ~ 6 ms
+    worst = 0.0
+    for rod in ("A1", "C2", "E3", "G4", "K5", "M6"):
+        w, f = weighted[rod][late], table[rod].to_numpy()[late]
+        rel = np.max(np.abs(f - w)) / np.max(np.abs(w))
+        worst = max(worst, rel)
+        assert rel < 0.01, (rod, rel)
+    assert worst < 5e-4  # measured 1.3e-4 (M6)
+    # and the flexible plate moves as the rigid model (measured 2.9e-6 m)
+    rigid = evaluate_channels(_case(str(CASES / "parallelogram_3d.toml")),
+                              _natcoord_run("parallelogram_3d").motion)
+    for c in ("xc", "yc", "zc"):
+        assert np.max(np.abs(table[c] - rigid[c])) < 2e-5, c
+
+
+def test_parallelogram_rigid_rods_split_and_signs():
+    case, run, table = _exudyn_case("parallelogram_3d")
+    # the 10 N pull along +x: K-5 in tension, M-6 in compression, 10 / cos(atan(0.5)) N
+    assert np.allclose(table["K5"], 5 * np.sqrt(5), atol=1e-5)
+    assert np.allclose(table["M6"], -5 * np.sqrt(5), atol=1e-5)
+    # the four parallel rods carry the weight between them (whatever Exudyn's split)
+    four = table[["A1", "C2", "E3", "G4"]].sum(axis=1).to_numpy()
+    ref = evaluate_channels(case, _natcoord_run("parallelogram_3d").motion)
+    assert np.allclose(four, ref[["A1", "C2", "E3", "G4"]].sum(axis=1), atol=1e-3)

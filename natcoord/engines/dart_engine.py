@@ -41,7 +41,6 @@ Modelling, in short (every choice is also written into ``EngineRun.notes``):
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
 
@@ -49,8 +48,8 @@ import numpy as np
 
 from ..errors import Unsupported
 from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
-from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
+from .dart_3d import ROD_NOTE, LightRod, make_motion
 
 NAME = "dart"
 PACKAGE = "dartpy"
@@ -61,6 +60,8 @@ DEFAULTS = {
     "max_error_reduction_velocity": 10.0,  # m/s, DART's default cap on the correction
     "particle_radius_of_gyration": 1e-3,  # m: a particle's tiny rotational inertia
     "max_drift": 1e-2,  # m: loop-joint gap above which the run counts as diverged
+    "rod_mass": 1e-5,  # kg: a massless rod's light-body substitute (dart_3d.LightRod)
+    "axial_inertia": 1e-3,  # 3-D slender rod: inertia about its axis / transverse inertia
 }
 
 
@@ -123,8 +124,9 @@ def _inertia_tensor(case: Case, body, r_gyr: float) -> tuple[np.ndarray, str | N
         return i * np.eye(3), f"{i:.3g} kg m^2"
     izz = float(body.inertia)
     if body.kind == "uniform_rod":
-        pts = list(body.points.values())
-        e = np.append((pts[1] - pts[0]) / np.linalg.norm(pts[1] - pts[0]), 0.0)
+        ends = getattr(body, "ends", None) or list(body.points)[:2]
+        d = body.points[ends[1]] - body.points[ends[0]]
+        e = np.append(d / np.linalg.norm(d), 0.0)
         # thin rod: I_zz about every axis normal to the rod, ~0 along it
         return izz * (np.eye(3) - (1.0 - 1e-6) * np.outer(e, e)), None
     note = None
@@ -139,8 +141,15 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     import dartpy as dart
 
     s = merged(DEFAULTS, settings)
-    if case.dimension != 2:
-        raise Unsupported("the DART adapter models planar (2-D) cases only")
+    if s["loop_constraint"] not in ("ball", "revolute"):
+        raise ValueError(f"loop_constraint must be 'ball' or 'revolute', got "
+                         f"{s['loop_constraint']!r}")
+    if case.dimension == 3:
+        from .dart_3d import run_3d
+
+        return run_3d(case, init, s)
+    if getattr(case, "springs", ()):
+        raise Unsupported("spring-dampers in 2-D cases are not modelled by the DART adapter")
     if getattr(case, "drivers", ()):
         raise Unsupported("drivers (prescribed motions) are not modelled by the DART adapter")
     for f in case.forces:
@@ -152,9 +161,6 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     for j in case.joints:
         if j.type not in ("revolute", "prismatic"):
             raise Unsupported(f"joint type {j.type!r} of joint {j.name!r}")
-    if s["loop_constraint"] not in ("ball", "revolute"):
-        raise ValueError(f"loop_constraint must be 'ball' or 'revolute', got "
-                         f"{s['loop_constraint']!r}")
     dt = float(s["dt"])
     k = steps_per_sample(case, dt)
     notes: list[str] = []
@@ -229,7 +235,14 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         nodes[b.name] = node
         notes.append(f"body {b.name!r} is not joined to the ground by the tree: free in the "
                      "plane (DART planar joint)")
+    rods = [LightRod(r, case) for r in getattr(case, "rods", ())]
+    for r in rods:
+        r.build(dart, skel, nodes, float(s["rod_mass"]), 1e-6, planar=True)
+    if rods:
+        notes.append(ROD_NOTE.format(names=", ".join(r.name for r in rods), m=s["rod_mass"],
+                                     joint="revolute"))
     _set_initial_state(case, oriented, joints, init)
+    _set_rod_rates(rods, init)
     _check_assembly(case, nodes, init)
 
     world = dart.simulation.World()
@@ -237,6 +250,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     world.setTimeStep(dt)
     world.addSkeleton(skel)
     solver = world.getConstraintSolver()
+    for r in rods:
+        solver.addConstraint(r.constraint(dart, nodes))
     for j in loops:
         a, b = j.bodies
         on = (b, j.points[1]) if b != GROUND else (a, j.points[0])
@@ -257,9 +272,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
 
     # loop-joint force: Newton-Euler of a body that only this loop joint closes
     loop_count: dict[str, int] = {}
-    for j in loops:
-        for x in j.bodies:
-            loop_count[x] = loop_count.get(x, 0) + 1
+    for x in [b for j in loops for b in j.bodies] + [r.ends[1][0] for r in rods]:
+        loop_count[x] = loop_count.get(x, 0) + 1
     loop_body: dict[str, tuple[str, int]] = {}
     for j in loops:
         for x, sg in ((j.bodies[1], 1), (j.bodies[0], -1)):
@@ -283,15 +297,32 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     try:
         out, wall, n_steps, counters = _simulate(
             case, world, skel, nodes, joints, sign, children, loops, loop_body,
-            torques, gravity, k, float(s["max_drift"]))
+            torques, gravity, k, float(s["max_drift"]), rods)
     finally:
         JC.setErrorReductionParameter(saved[0])
         JC.setMaxErrorReductionVelocity(saved[1])
     notes.append(f"semi-implicit Euler (DART's only integrator, first order), dt {dt:g} s; "
                  "reactions and accelerations are those of the step starting at each sample "
                  "time" + (", at t = 0 extrapolated from steps 2 and 3 (the first two steps "
-                           "of a loop constraint are transients)" if loops and k >= 4 else ""))
+                           "of a loop constraint are transients)"
+                           if (loops or rods) and k >= 4 else ""))
     return EngineRun(out, build, wall, n_steps, s, counters, notes)
+
+
+def _set_rod_rates(rods, init) -> None:
+    """Light rods start moving with the ends natcoord assembled (reference-frame cases)."""
+    def state(body):
+        if body == GROUND:
+            return np.zeros(3), np.zeros(3), np.zeros(3)
+        b = init[body]
+        return (_v3(b.origin), _v3(b.velocity), np.array([0.0, 0.0, float(b.omega)]))
+
+    def vel_of(body, p):
+        o, v, w = state(body)
+        return v + np.cross(w, p - o)
+
+    for r in rods:
+        r.set_rate(lambda b: state(b)[2], vel_of, planar=True)
 
 
 def _world_point(nodes, case: Case, body: str, point: str) -> np.ndarray:
@@ -355,7 +386,7 @@ def _check_assembly(case: Case, nodes, init, tol: float = 1e-7) -> None:
 
 
 def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body,
-              torques, gravity, k, max_drift):
+              torques, gravity, k, max_drift, rods=()):
     import dartpy as dart
 
     W = dart.dynamics.Frame.World()
@@ -372,6 +403,7 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
     acc = {n: np.zeros((T, 2)) for n in names}
     alpha = {n: np.zeros(T) for n in names}
     mass = {n: nodes[n].getMass() for n in names}
+    rod_force = {r.name: np.zeros(T) for r in rods}
     drift = 0.0
 
     clock = {"wall": 0.0, "steps": 0}
@@ -409,7 +441,12 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             f = mass[b] * (a - gravity[:2]) - Fp[b]
             for c in children.get(b, []):
                 f = f + Fp[c]
+            for r in rods:
+                if r.ends[0][0] == b:
+                    f = f + np.asarray(r.joint.getWrenchToParentBodyNode(W))[3:5]
             out[name] = sg * f
+        for r in rods:
+            out["rod:" + r.name] = r.tension(W, gravity)
         skel.setPositions(q1)
         skel.setVelocities(qd1)
         return out
@@ -419,7 +456,7 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
     # error-reduction term that supplies it later is still zero) and step 1 overshoots by
     # about half that; from step 2 on they settle. So the t = 0 reactions are extrapolated
     # linearly from steps 2 and 3 (exact at rest to O(dt^2)).
-    extrapolate0 = bool(loops) and k >= 4
+    extrapolate0 = bool(loops or rods) and k >= 4
     for i in range(T):
         # state at the sample time
         q, qd = skel.getPositions(), skel.getVelocities()
@@ -442,6 +479,8 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             gap = np.linalg.norm(_world_point(nodes, case, j.bodies[0], j.points[0])
                                  - _world_point(nodes, case, j.bodies[1], j.points[1]))
             drift = max(drift, gap)
+        for r in rods:
+            drift = max(drift, r.gap(nodes))
         if drift > max_drift or not np.isfinite(drift):
             raise RuntimeError(f"DART diverged: loop joint gap {drift:.3g} m exceeds "
                                f"{max_drift:g} m by t = {times[i]:.4g} s")
@@ -455,18 +494,18 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             done = 4
         for name in force:
             force[name][i] = f[name]
+        for r in rods:
+            rod_force[r.name][i] = f["rod:" + r.name]
         for n in names:
             acc[n][i], alpha[n][i] = f["acc:" + n], f["alpha:" + n][0]
         if i + 1 < T:
             steps(k - done)
     for n in names:
         angle[n] = np.unwrap(angle[n])
-    for name, f in force.items():
+    for name, f in list(force.items()) + list(rod_force.items()):
         if not np.all(np.isfinite(f)):
-            raise RuntimeError(f"DART returned a non-finite reaction at joint {name!r}")
+            raise RuntimeError(f"DART returned a non-finite force at {name!r}")
     counters = {"steps": clock["steps"], "loop_drift_max_m": float(drift)}
-    extra = {}
-    if "acceleration" in {f.name for f in dataclasses.fields(Motion)}:
-        extra = {"acceleration": acc, "alpha": alpha}
-    motion = Motion(times.copy(), origin, angle, vel, omega, force, **extra)
+    motion = make_motion(times.copy(), origin, angle, vel, omega, force, acceleration=acc,
+                         alpha=alpha, rod_force=rod_force)
     return motion, clock["wall"], clock["steps"], counters

@@ -16,6 +16,15 @@ Conventions handled here (measured with exudyn 1.13.6, see tests/test_engine_exu
 * A particle that takes part in a prismatic joint needs an orientation marker: it becomes a
   2-D rigid node whose rotation is locked to zero by a ``CoordinateConstraint`` (the locked
   rotation carries no kinetic energy and no reaction force).
+* Massless rods are ``ObjectConnectorDistance`` (exact, no substitute): its scalar ``Force``
+  output is the axial force, tension positive, whatever the marker order.
+* Spring-dampers are ``ObjectConnectorSpringDamper``: its ``Force`` output is the vector
+  ``tension * u``, u the unit vector from marker 0 to marker 1 (the ``Displacement``
+  output), so the tension is ``Force . u``.
+* Redundant constraints (rods closing a loop here, every 3-D case): the Jacobian is
+  singular, so the linear solver is ``EigenDense`` with ``ignoreSingularJacobian`` (the
+  split of the redundant multipliers is whatever its pivoting picks).
+* 3-D cases are built by :mod:`.exudyn_3d`.
 """
 
 from __future__ import annotations
@@ -39,6 +48,9 @@ DEFAULTS = {
     "newton_atol": 1e-10,           # Newton absolute tolerance (Exudyn default 1e-10)
     "modified_newton": False,       # full Newton: ~2 iterations a step, faster here than
                                     # Exudyn's default modified Newton (~7 iterations)
+    "linear_solver": "auto",        # auto: EigenDense + ignoreSingularJacobian when the
+                                    # constraints may be redundant (rods, 3-D), else
+                                    # Exudyn's default; or "default" | "singular"
 }
 
 J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg rotation
@@ -60,17 +72,9 @@ def _v3(v) -> list[float]:
 
 
 def _check(case: Case, s: dict) -> None:
-    if case.dimension != 2:
-        raise Unsupported(f"the Exudyn adapter models 2-D cases only; {case.name} is "
-                          f"{case.dimension}-D")
-    for j in case.joints:
-        if j.type not in ("revolute", "prismatic"):
-            raise Unsupported(f"joint {j.name}: type {j.type!r} is not modelled")
-    for f in case.forces:
-        if f.type != "torque":
-            raise Unsupported(f"force on {f.body}: type {f.type!r} is not modelled")
-        if f.body != GROUND and case.body(f.body).kind == "particle":
-            raise Unsupported(f"torque on particle {f.body}: a particle has no rotation")
+    if case.dimension not in (2, 3):
+        raise Unsupported(f"{case.name} is {case.dimension}-D: the Exudyn adapter models "
+                          "2-D and 3-D cases")
     drivers = getattr(case, "drivers", ())
     if drivers:
         raise Unsupported(f"driver(s) {', '.join(d.name for d in drivers)}: prescribed "
@@ -78,6 +82,19 @@ def _check(case: Case, s: dict) -> None:
     if s["solver"] != "generalized_alpha":
         raise Unsupported(f"solver {s['solver']!r}: only 'generalized_alpha' (index 3) is "
                           "offered; the index-2 trapezoidal variants drift by ~h^2")
+    if s["linear_solver"] not in ("auto", "default", "singular"):
+        raise ValueError(f"linear_solver {s['linear_solver']!r}: 'auto', 'default' or "
+                         "'singular'")
+    if case.dimension == 3:
+        return  # checked by exudyn_3d
+    for j in case.joints:
+        if j.type not in ("revolute", "prismatic"):
+            raise Unsupported(f"joint {j.name}: type {j.type!r} is not modelled in 2-D")
+    for f in case.forces:
+        if f.type not in ("torque", "force"):
+            raise Unsupported(f"force on {f.body}: type {f.type!r} is not modelled")
+        if f.type == "torque" and f.body != GROUND and case.body(f.body).kind == "particle":
+            raise Unsupported(f"torque on particle {f.body}: a particle has no rotation")
 
 
 def _failure(mbs, case: Case, n_steps: int, h: float, what: str) -> str:
@@ -97,14 +114,109 @@ def _failure(mbs, case: Case, n_steps: int, h: float, what: str) -> str:
     return msg
 
 
+def singular_solver(case: Case, s: dict) -> bool:
+    """Whether to use EigenDense with ignoreSingularJacobian (redundant constraints)."""
+    if s["linear_solver"] == "auto":
+        return case.dimension == 3 or bool(case.rods)
+    return s["linear_solver"] == "singular"
+
+
+def solve(exu, mbs, case: Case, s: dict, n_steps: int, h: float):
+    """Generalized-alpha over the case's duration with fixed steps; returns (wall time, solver).
+    Raises RuntimeError with where and why it failed."""
+    sim = exu.SimulationSettings()
+    ti = sim.timeIntegration
+    ti.startTime, ti.endTime, ti.numberOfSteps = 0.0, float(case.times[-1]), n_steps
+    ti.adaptiveStep = False
+    ti.automaticStepSize = False
+    ti.verboseMode = 0
+    ti.generalizedAlpha.spectralRadius = float(s["spectral_radius"])
+    ti.generalizedAlpha.useIndex2Constraints = False
+    ti.generalizedAlpha.useNewmark = False
+    ti.generalizedAlpha.computeInitialAccelerations = True
+    ti.newton.relativeTolerance = float(s["newton_rtol"])
+    ti.newton.absoluteTolerance = float(s["newton_atol"])
+    ti.newton.useModifiedNewton = bool(s["modified_newton"])
+    if singular_solver(case, s):
+        sim.linearSolver.solverType = exu.LinearSolverType.EigenDense
+        sim.linearSolver.ignoreSingularJacobian = True
+    sim.solution.file.write = False
+    sim.solution.sensors.writePeriod = case.output_dt
+    sim.show.computationTime = False
+    sim.show.statistics = False
+
+    quiet = exu.config.printToConsole
+    exu.config.printToConsole = False
+    try:
+        t1 = time.perf_counter()
+        try:
+            ok = mbs.SolveDynamic(sim, storeSolver=True, showHints=False,
+                                  showCausingItems=False)
+        except Exception as e:  # Exudyn raises when Newton fails, on a singular Jacobian, ...
+            raise RuntimeError(_failure(mbs, case, n_steps, h, str(e))) from e
+        wall = time.perf_counter() - t1
+    finally:
+        exu.config.printToConsole = quiet
+    if not ok:
+        raise RuntimeError(_failure(mbs, case, n_steps, h, "SolveDynamic returned False"))
+    return wall, mbs.sys["dynamicSolver"]
+
+
+def stored(mbs, case: Case, sn: int) -> np.ndarray:
+    """A sensor's stored values at the case's sample times, (T, k) without the time column."""
+    d = np.asarray(mbs.GetSensorStoredData(sn), float)
+    n = len(case.times)
+    if d.shape[0] != n or not np.allclose(d[:, 0], case.times, atol=1e-9):
+        raise RuntimeError(f"exudyn: sensor samples at {d[:, 0].tolist()[:5]}... do not "
+                           f"match the case times ({n} samples)")
+    return d[:, 1:]
+
+
+def connectors(ei, mbs, case: Case, marker, sensor, notes: list[str]) -> dict:
+    """Massless rods (ObjectConnectorDistance) and spring-dampers (ObjectConnectorSpringDamper)
+    between position markers; returns name -> function(stored) giving the tension (T,)."""
+    import exudyn as exu
+
+    OV = exu.OutputVariableType
+    out = {}
+    for r in case.rods:
+        (a, pa), (b, pb) = r.ends
+        co = mbs.AddObject(ei.ObjectConnectorDistance(
+            markerNumbers=[marker(a, pa), marker(b, pb)], distance=float(r.length)))
+        sf = sensor(kind=ei.SensorObject, objectNumber=co, outputVariableType=OV.Force)
+        out[r.name] = (lambda get, sf=sf: get(sf)[:, 0])
+    for sp in case.springs:
+        (a, pa), (b, pb) = sp.ends
+        co = mbs.AddObject(ei.ObjectConnectorSpringDamper(
+            markerNumbers=[marker(a, pa), marker(b, pb)], referenceLength=float(sp.length),
+            stiffness=float(sp.stiffness), damping=float(sp.damping)))
+        sf = sensor(kind=ei.SensorObject, objectNumber=co, outputVariableType=OV.Force)
+        sd = sensor(kind=ei.SensorObject, objectNumber=co, outputVariableType=OV.Displacement)
+
+        def tension(get, sf=sf, sd=sd):
+            d = get(sd)
+            return np.sum(get(sf) * d, axis=1) / np.linalg.norm(d, axis=1)
+        out[sp.name] = tension
+    if case.rods:
+        notes.append("massless rods: ObjectConnectorDistance (exact); axial force = its Force "
+                     "output (tension positive)")
+    if case.springs:
+        notes.append("spring-dampers: ObjectConnectorSpringDamper (rest length = distance at "
+                     "t = 0); tension = Force output . unit Displacement")
+    return out
+
+
 def run(case: Case, init, settings: dict) -> EngineRun:
     s = merged(DEFAULTS, settings)
     _check(case, s)
+    if case.dimension == 3:
+        from .exudyn_3d import run3d
+
+        return run3d(case, init, s)
     h = float(s["dt"])
     k = steps_per_sample(case, h)
     n_samples = len(case.times)
     n_steps = k * (n_samples - 1)
-    t_end = float(case.times[-1])
 
     import exudyn as exu
     from exudyn import itemInterface as ei
@@ -118,6 +230,9 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         "revolute joints: ObjectJointRevolute2D; reaction = -Force output (Force is the "
         "force on the first marker's body)",
     ]
+    if singular_solver(case, s):
+        notes.append("linear solver EigenDense with ignoreSingularJacobian (redundant "
+                     "constraints)")
 
     t0 = time.perf_counter()
     SC = exu.SystemContainer()
@@ -162,19 +277,24 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         notes.append(f"particle(s) {', '.join(locked)} in a prismatic joint: rigid 2-D node "
                      "with rotation locked to 0 (a prismatic joint needs orientation markers)")
 
-    for f in case.forces:
-        if f.body == GROUND:
-            continue
-        mr = mbs.AddMarker(ei.MarkerBodyRigid(bodyNumber=objs[f.body]))
-        mbs.AddLoad(ei.LoadTorqueVector(markerNumber=mr, loadVector=[0.0, 0.0, float(f.value)]))
-
-    def marker(body: str, point: str, rigid: bool):
+    def marker(body: str, point: str, rigid: bool = False):
         kind = ei.MarkerBodyRigid if rigid else ei.MarkerBodyPosition
         if body == GROUND:
             return mbs.AddMarker(kind(bodyNumber=ground, localPosition=_v3(case.ground[point])))
         b = case.body(body)
         return mbs.AddMarker(kind(bodyNumber=objs[body],
                                   localPosition=_v3(b.points[point] - b.com)))
+
+    for f in case.forces:
+        if f.body == GROUND:
+            continue
+        if f.type == "torque":
+            mr = mbs.AddMarker(ei.MarkerBodyRigid(bodyNumber=objs[f.body]))
+            mbs.AddLoad(ei.LoadTorqueVector(markerNumber=mr,
+                                            loadVector=[0.0, 0.0, float(f.value)]))
+        else:  # world force at a body point
+            mbs.AddLoad(ei.LoadForceVector(markerNumber=marker(f.body, f.point),
+                                           loadVector=_v3(f.value)))
 
     def angle0(body: str) -> float:
         if body == GROUND or case.body(body).kind == "particle":
@@ -209,6 +329,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     def sensor(**kw):
         return mbs.AddSensor(kw.pop("kind")(storeInternal=True, writeToFile=False, **kw))
 
+    tensions = connectors(ei, mbs, case, marker, sensor, notes)
+
     sens = {}
     for b in case.bodies:
         n = nodes[b.name]
@@ -237,57 +359,22 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     for j in case.joints:
         if j.type == "prismatic":
             ae_index[j.name] = int(mbs.systemData.GetObjectLTGAE(joint_objs[j.name])[0])
-    sim = exu.SimulationSettings()
-    ti = sim.timeIntegration
-    ti.startTime, ti.endTime, ti.numberOfSteps = 0.0, t_end, n_steps
-    ti.adaptiveStep = False
-    ti.automaticStepSize = False
-    ti.verboseMode = 0
-    ti.generalizedAlpha.spectralRadius = float(s["spectral_radius"])
-    ti.generalizedAlpha.useIndex2Constraints = False
-    ti.generalizedAlpha.useNewmark = False
-    ti.generalizedAlpha.computeInitialAccelerations = True
-    ti.newton.relativeTolerance = float(s["newton_rtol"])
-    ti.newton.absoluteTolerance = float(s["newton_atol"])
-    ti.newton.useModifiedNewton = bool(s["modified_newton"])
-    sim.solution.file.write = False
-    sim.solution.sensors.writePeriod = case.output_dt
-    sim.show.computationTime = False
-    sim.show.statistics = False
     build = time.perf_counter() - t0
 
-    quiet = exu.config.printToConsole
-    exu.config.printToConsole = False
-    try:
-        t1 = time.perf_counter()
-        try:
-            ok = mbs.SolveDynamic(sim, storeSolver=True, showHints=False,
-                                  showCausingItems=False)
-        except Exception as e:  # Exudyn raises when Newton fails, on a singular Jacobian, ...
-            raise RuntimeError(_failure(mbs, case, n_steps, h, str(e))) from e
-        wall = time.perf_counter() - t1
-    finally:
-        exu.config.printToConsole = quiet
-    solver = mbs.sys["dynamicSolver"]
-    if not ok:
-        raise RuntimeError(_failure(mbs, case, n_steps, h, "SolveDynamic returned False"))
+    wall, solver = solve(exu, mbs, case, s, n_steps, h)
 
-    def stored(sn: int) -> np.ndarray:
-        d = np.asarray(mbs.GetSensorStoredData(sn), float)
-        if d.shape[0] != n_samples or not np.allclose(d[:, 0], case.times, atol=1e-9):
-            raise RuntimeError(f"exudyn: sensor samples at {d[:, 0].tolist()[:5]}... do not "
-                               f"match the case times ({n_samples} samples)")
-        return d[:, 1:]
+    def get(sn: int) -> np.ndarray:
+        return stored(mbs, case, sn)
 
     origin, angle, velocity, omega = {}, {}, {}, {}
     z = np.zeros(n_samples)
     for b in case.bodies:
         ss = sens[b.name]
-        pc, vc = stored(ss[0])[:, :2], stored(ss[1])[:, :2]
+        pc, vc = get(ss[0])[:, :2], get(ss[1])[:, :2]
         if b.kind == "particle":
             phi, w = z.copy(), z.copy()
         else:
-            phi, w = stored(ss[2])[:, 2], stored(ss[3])[:, 2]
+            phi, w = get(ss[2])[:, 2], get(ss[3])[:, 2]
         c, si = np.cos(phi), np.sin(phi)
         rc = np.stack([c * b.com[0] - si * b.com[1], si * b.com[0] + c * b.com[1]], -1)
         origin[b.name] = pc - rc
@@ -296,21 +383,22 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     forces = {}
     for j in case.joints:
         if j.type == "revolute":
-            forces[j.name] = force_sign[j.name] * stored(jsens[j.name])[:, :2]
+            forces[j.name] = force_sign[j.name] * get(jsens[j.name])[:, :2]
         else:  # force on the second body = sign * lambda_0 * (normal of the first body)
-            lam = stored(jsens[j.name])[:, 0]
+            lam = get(jsens[j.name])[:, 0]
             a = j.bodies[0]
             phi = angle[a] if a != GROUND else z
             u = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
             c, si = np.cos(phi), np.sin(phi)
             n = np.stack([-(si * u[0] + c * u[1]), c * u[0] - si * u[1]], -1)
             forces[j.name] = force_sign[j.name] * lam[:, None] * n
+    rod_force = {name: f(get) for name, f in tensions.items()}
 
-    for arr in (*origin.values(), *angle.values(), *forces.values()):
+    for arr in (*origin.values(), *angle.values(), *forces.values(), *rod_force.values()):
         if not np.all(np.isfinite(arr)):
             raise RuntimeError(f"exudyn: non-finite output on {case.name}")
     it = solver.it
     counters = {"steps": n_steps, "newton_iterations": int(it.newtonStepsCount),
                 "jacobians": int(it.newtonJacobiCount)}
-    motion = Motion(case.times.copy(), origin, angle, velocity, omega, forces)
-    return EngineRun(motion, build, wall, n_steps, s, counters, notes)
+    m = Motion(case.times.copy(), origin, angle, velocity, omega, forces, rod_force=rod_force)
+    return EngineRun(m, build, wall, n_steps, s, counters, notes)

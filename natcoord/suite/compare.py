@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 import pandas as pd
 
@@ -9,14 +11,17 @@ from ..mechanism import Case
 
 
 def channel_errors(case: Case, engine: str, table: pd.DataFrame,
-                   reference: pd.DataFrame | None) -> tuple[dict, str, str]:
+                   reference: pd.DataFrame | None,
+                   undetermined: Collection[str] = ()) -> tuple[dict, str, str]:
     """Per-channel errors and the verdict of one engine run.
 
     Returns ``(channels, verdict, reason)``; ``channels[name]`` holds kind, unit,
     ``max_abs`` (max |engine - reference| over the reference's samples), ``max_rel``
     (``max_abs`` over the reference channel's range), ``tolerance`` and ``pass`` (None when
     not gated: no tolerance, channel undetermined, or not reported by the engine).
-    Verdict: ``pass``, ``fail``, ``no-reference`` or ``not-gated``.
+    ``undetermined``: channels a self-equilibrating set of the redundant constraints
+    changes (from N = ker Phi_q^T, stored with the reference): never gated, whatever the
+    case file's tolerances say. Verdict: ``pass``, ``fail``, ``no-reference`` or ``not-gated``.
     """
     spec = case.engine(engine)
     out: dict[str, dict] = {}
@@ -31,7 +36,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         ref = reference[ch.name].to_numpy() if ch.name in reference else None
         val = table[ch.name].to_numpy()
         tol = spec.tolerance_for(ch)
-        determined = True  # redundant reactions get False once derived from N = ker Phi_q^T
+        determined = ch.name not in undetermined
         entry = {"kind": ch.kind, "unit": ch.unit, "max_abs": None, "max_rel": None,
                  "tolerance": tol, "pass": None, "determined": determined, "note": ""}
         if ref is None:
@@ -43,7 +48,9 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
             max_abs = float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
             span = float(np.ptp(ref)) or float(np.max(np.abs(ref))) or 1.0
             entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
-            if tol is not None and determined:
+            if not determined:
+                entry["note"] = "undetermined (redundant constraints): shown, not gated"
+            elif tol is not None:
                 entry["pass"] = bool(max_abs <= tol)
                 gated += 1
                 failed += not entry["pass"]

@@ -19,7 +19,7 @@ from .. import __version__
 from ..engines.base import initial_body_states
 from ..engines.natcoord_engine import run as natcoord_run
 from ..mechanism import Case
-from ..result import evaluate_channels
+from ..result import evaluate_channels, methods_table
 from .io import read_json, write_csv, write_json
 
 REFERENCE_SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
@@ -64,10 +64,15 @@ def update_reference(case: Case, directory: Path) -> dict:
         "estimated_error_method": "max |reference - run at rtol 1e-10| per channel "
                                   "(an upper bound of the reference's own error)",
         "counters": best.counters,
+        "undetermined": best.counters.get("undetermined", []),
+        "undetermined_method": "channels that lambda + s N c changes (N = ker Phi_q^T at "
+                               "every sample, c a random unit vector): never gated",
         "versions": {"natcoord": __version__, "numpy": np.__version__,
                      "python": platform.python_version()},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
     write_csv(Path(directory) / f"{case.name}.csv", table)
+    if best.methods:
+        write_csv(Path(directory) / f"{case.name}.methods.csv", methods_table(case, best))
     write_json(Path(directory) / f"{case.name}.json", provenance)
     return provenance

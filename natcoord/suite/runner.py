@@ -24,7 +24,7 @@ from .. import __version__
 from ..mechanism import Case
 from .compare import channel_errors
 from .io import read_json, write_json
-from .references import load_reference
+from .references import load_provenance, load_reference
 
 DEFAULT_TIMEOUT_S = 600.0
 
@@ -85,8 +85,10 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
     csv = out / "results" / case.name / f"{record['engine']}.csv"
     if record["status"] != "ok" or not csv.exists():
         return {**record, "channels": {}, "verdict": "n/a"}
+    provenance = load_provenance(case.name, references) or {}
     channels, verdict, why = channel_errors(case, record["engine"], pd.read_csv(csv),
-                                            load_reference(case.name, references))
+                                            load_reference(case.name, references),
+                                            provenance.get("undetermined", ()))
     return {**record, "channels": channels, "verdict": verdict, "verdict_reason": why}
 
 

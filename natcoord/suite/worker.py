@@ -26,7 +26,7 @@ from ..casefile import load_case  # noqa: E402
 from ..engines import adapter  # noqa: E402
 from ..engines.base import initial_body_states  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..result import Result, Status, evaluate_channels  # noqa: E402
+from ..result import FORCE_KINDS, Result, Status, evaluate_channels, methods_table  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
 
@@ -73,7 +73,9 @@ def run_one(case_file: str, engine: str, settings_override: dict | None = None) 
     res.build_time_s, res.wall_time_s, res.n_steps = (run.build_time_s, run.wall_time_s,
                                                        run.n_steps)
     res.settings, res.counters, res.notes = run.settings, run.counters, run.notes
-    motion_cols = [c.name for c in case.channels if c.kind != "reaction"]
+    if run.methods:
+        res.methods = methods_table(case, run)
+    motion_cols = [c.name for c in case.channels if c.kind not in FORCE_KINDS]
     bad = [c for c in motion_cols if not np.all(np.isfinite(res.table[c]))]
     if bad:
         res.status = Status.FAILED
@@ -95,6 +97,8 @@ def main(argv=None) -> int:
     folder = Path(a.out_dir) / "results" / res.case
     if res.table is not None:
         write_csv(folder / f"{res.engine}.csv", res.table)
+    if res.methods is not None:
+        write_csv(folder / f"{res.engine}.methods.csv", res.methods)
     write_json(folder / f"{res.engine}.json", record_of(res, case.duration))
     return 0
 
