@@ -347,3 +347,25 @@ if __name__ == "__main__":  # python tests/test_report.py DIR: build a sample pa
     if CHROMIUM.exists():
         _screenshot(page, root / "screenshot.png", root / "profile")
         print(root / "screenshot.png")
+
+
+def test_redundant_case_section_from_a_real_run(tmp_path):
+    """five_bar run in natcoord and Exudyn (real engines): the report explains the redundant
+    constraint (rank, DOF, N), marks determined / undetermined force channels, puts
+    natcoord's reaction methods beside each engine, and shows the published angles."""
+    from natcoord.casefile import load_case
+    from natcoord.suite.runner import run_suite
+
+    from .conftest import CASES, REFERENCES
+
+    case = load_case(CASES / "five_bar.toml")
+    run_suite([case], ["natcoord", "exudyn"], tmp_path, references=REFERENCES)
+    html = write_report(tmp_path, REFERENCES).read_text()
+    assert "Redundant constraints: what is determined" in html
+    assert "rank Φ<sub>q</sub> = 7 · 1 DOF · 1 redundant" in html
+    assert "Self-equilibrating set 1" in html and "<code>N56</code>" in html
+    for method in ("min_norm", "unit_invariant", "weighted_KL1_KT1000", "weighted_KL1000_KT1"):
+        assert f"natcoord<br>{method}" in html
+    assert html.count("determined: gated") == 3  # N34_2N56, R1_y, R2_y
+    assert html.count("undetermined: shown only") == 4  # N34, N56, R1_x, R2_x
+    assert "Published values" in html and "García de Jalón" in html and "-330.97" in html

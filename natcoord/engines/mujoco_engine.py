@@ -1,7 +1,11 @@
 """MuJoCo as an engine: a kinematic tree of hinge/slide joints plus soft `connect` equalities.
 
-Planar (2-D) cases only. The model is MuJoCo's 3-D model confined to the x-y plane: tree
-joints are hinges about z or slides along an in-plane axis, so nothing leaves the plane.
+This module builds planar (2-D) cases: MuJoCo's 3-D model confined to the x-y plane, tree
+joints hinges about z or slides along an in-plane axis, so nothing leaves the plane. 3-D
+cases, and the massless rods, spring-dampers and applied loads of both, are built by
+:mod:`natcoord.engines.mujoco_3d` (rods: tendon-length equalities; measured against a light
+body with two connects on five_bar: angle error 3.7e-5 rad against 3.1e-3 rad for a 1e-3 kg
+light rod, whose loops open past 0.1 mm when it is made lighter).
 
 Modelling choices (each one that applies is repeated in ``EngineRun.notes``):
 
@@ -26,6 +30,8 @@ Reactions (force the joint applies to its second body, world axes):
   the child, world axes), times :func:`natcoord.mechanism.tree_orientation`;
 * ``connect`` joints: ``efc_force`` of the equality's rows is the force on ``site1``'s body;
   the second body receives minus that.
+* with rods or springs, tree reactions exclude their forces on the child's subtree
+  (``cfrc_int`` carries them: ``cfrc_ext`` has no tendon forces).
 
 Both are evaluated at the stored state (``mj_forward`` then ``mj_rnePostConstraint``), not read
 from the step that produced the state.
@@ -44,6 +50,7 @@ from ..errors import Unsupported
 from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
+from .mujoco_3d import TendonForces, applied_loads, run_3d, subtree_bodies, tendons_mjcf
 
 NAME = "mujoco"
 PACKAGE = "mujoco"
@@ -58,7 +65,8 @@ DEFAULTS = {
     "solref_damping": 1.0,  # damping ratio
     "solimp": [0.9999, 0.9999, 0.001, 0.5, 2.0],
     "particle_inertia": 1e-6,  # kg m^2, about every axis
-    "max_loop_drift": 1e-4,  # m: a soft loop opened wider than this is a failed run
+    "max_loop_drift": 1e-4,  # m: a soft loop or rod opened wider than this is a failed run
+    "zero_inertia": 1e-6,  # 3-D: added along a zero principal axis, x the largest moment
 }
 
 
@@ -127,9 +135,6 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
     s = merged(DEFAULTS, settings)
     if case.dimension != 2:
         raise Unsupported(f"the MuJoCo adapter models 2-D cases only (dimension {case.dimension})")
-    for f in case.forces:
-        if f.type != "torque":
-            raise Unsupported(f"force type {f.type!r}")
     if getattr(case, "drivers", ()):
         raise Unsupported("prescribed motions (drivers): MuJoCo has no rheonomic constraint, "
                           "and a stiff servo would be an approximation")
@@ -166,8 +171,10 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
     lines: list[str] = []
     particles_welded, particles_slide = [], []
 
-    # sites for loop joints, by body
-    sites: dict[str, list[str]] = {}
+    # sites for loop joints and rod ends, by body
+    ten = tendons_mjcf(case, solref, solimp)
+    notes += ten.notes
+    sites: dict[str, list[str]] = {k: list(v) for k, v in ten.sites.items()}
     for j in loops:
         for k in (0, 1):
             b, p = j.bodies[k], j.points[k]
@@ -280,7 +287,8 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
         *[f"    {site}" for site in sites.get(GROUND, [])],
         *lines,
         "  </worldbody>",
-        *(["  <equality>", *eq, "  </equality>"] if eq else []),
+        *(["  <tendon>", *ten.tendon, "  </tendon>"] if ten.tendon else []),
+        *(["  <equality>", *eq, *ten.equality, "  </equality>"] if eq or ten.equality else []),
         "</mujoco>",
     ])
 
@@ -334,6 +342,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     k = steps_per_sample(case, dt)
     if float(s["solref_steps"]) < 2.0:
         raise ValueError("solref_steps below 2 is clamped by MuJoCo's refsafe; use >= 2")
+    if case.dimension == 3:
+        return run_3d(case, init, s, _check)
 
     t0 = time.perf_counter()
     built = build_mjcf(case, init, s)
@@ -345,6 +355,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         raise RuntimeError(f"internal: {len(built.qvel)} initial velocities for nv = {m.nv}")
     d.qpos[:] = m.qpos0  # the XML places every body at its assembled pose
     d.qvel[:] = built.qvel
+    d.xfrc_applied[:] = applied_loads(mujoco, m, case)
 
     bodies = [b for b in case.bodies]
     bid = {b.name: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b.name) for b in bodies}
@@ -352,6 +363,9 @@ def run(case: Case, init, settings: dict) -> EngineRun:
             for j in built.loops}
     tree_sign = {cj.name: (child, tree_orientation(cj, parent))
                  for child, (parent, cj) in built.parent.items()}
+    subtree = subtree_bodies(built.parent)
+    ten = TendonForces(mujoco, m, case)
+    rod_force = {r.name: np.zeros(len(case.times)) for r in ten.rods + ten.springs}
 
     times = case.times
     T = len(times)
@@ -384,8 +398,16 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                 angle[b.name][i] = math.atan2(R[1, 0], R[0, 0])
                 velocity[b.name][i] = vel6[3:5]
                 omega[b.name][i] = w
+        tension, dr = ten.tensions(d)
+        drift = max(drift, dr)
+        for r, v in tension.items():
+            rod_force[r][i] = v
+        on_body = ten.body_forces(d, tension)  # cfrc_int carries them: take them out
         for name, (child, sign) in tree_sign.items():
-            forces[name][i] = sign * d.cfrc_int[bid[child], 3:5]
+            f = d.cfrc_int[bid[child], 3:5].copy()
+            for b in subtree[child]:
+                f -= on_body.get(b, np.zeros(3))[:2]
+            forces[name][i] = sign * f
         if built.loops:
             eq_rows = np.flatnonzero(d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY)
             for j in built.loops:
@@ -415,7 +437,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
 
     for b in bodies:
         angle[b.name] = np.unwrap(angle[b.name])
-    motion = Motion(np.asarray(times, float), origin, angle, velocity, omega, forces)
+    motion = Motion(np.asarray(times, float), origin, angle, velocity, omega, forces,
+                    rod_force=rod_force)
     counters = {"steps": n_steps, "nv": int(m.nv), "loop_drift_m": drift,
                 "max_solver_iterations": max_iter}
     notes = list(built.notes)

@@ -1,5 +1,8 @@
 """Pinocchio as an engine: a kinematic tree of planar joints, loops closed by rigid constraints.
 
+3-D cases and cases with massless rods or spring-dampers (all reference-frame cases) are
+built by :mod:`natcoord.engines.pinocchio_3d`; this module keeps the planar joint cases.
+
 Model
 -----
 * Tree: :func:`natcoord.mechanism.spanning_tree`. A loop-closing *prismatic* joint cannot be a
@@ -52,6 +55,11 @@ DEFAULTS = {
     "baumgarte_kd": 0.0,
     "max_drift": 1e-3,  # m: a loop opening more than this is reported as divergence
     "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
+    # 3-D, rods and springs (pinocchio_3d):
+    "rod_mass": 1e-6,  # kg: mass of the light body that stands for a massless rod
+    "method": "rk4",  # rk4 | radau (scipy Radau IIA on aba: stiff springs, no loops)
+    "rtol": 1e-8,  # Radau tolerances
+    "atol": 1e-10,
 }
 
 
@@ -117,6 +125,29 @@ def _tree_of(case: Case):
     return tree, loops, notes
 
 
+def _depth_first(tree):
+    """Tree joints reordered depth-first: Pinocchio's algorithms (crba, Jacobians) assume
+    the joints of every subtree contiguous, which breadth-first order breaks as soon as the
+    tree branches below its root (wrong mass matrix, no error)."""
+    seen, edge = {GROUND}, {}
+    for j in tree:
+        a, b = j.bodies
+        edge[j.name] = (a, b) if a in seen else (b, a)
+        seen.add(edge[j.name][1])
+    kids: dict[str, list] = {}
+    for j in tree:
+        kids.setdefault(edge[j.name][0], []).append(j)
+    order = []
+
+    def visit(body):
+        for j in kids.get(body, ()):
+            order.append(j)
+            visit(edge[j.name][1])
+
+    visit(GROUND)
+    return order
+
+
 def _inertia(pin, body, X, s) -> object:
     """Spatial inertia of a natcoord body expressed in its joint frame (X: body frame there)."""
     if body.kind == "particle":
@@ -147,6 +178,7 @@ def build(case: Case, init, s: dict) -> _Built:
         if case.body(f.body).kind == "particle":
             raise Unsupported(f"torque on particle {f.body!r}")
     tree, loops, notes = _tree_of(case)
+    tree = _depth_first(tree)
     points = {b.name: b.points for b in case.bodies} | {GROUND: case.ground}
     angle0 = {n: st.angle for n, st in init.items()} | {GROUND: 0.0}
     omega0 = {n: st.omega for n, st in init.items()} | {GROUND: 0.0}
@@ -249,6 +281,10 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     import pinocchio as pin
 
     s = merged(DEFAULTS, settings)
+    if case.dimension == 3 or case.rods or case.springs:
+        from . import pinocchio_3d
+
+        return pinocchio_3d.run(case, init, s)
     dt = float(s["dt"])
     k = steps_per_sample(case, dt)
     t0 = time.perf_counter()

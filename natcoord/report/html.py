@@ -30,6 +30,9 @@ import plotly.offline
 from markupsafe import Markup
 from plotly.subplots import make_subplots
 
+from . import redundant
+from .redundant import FORCE_KINDS
+
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 ENGINE_COLORS = {
     "natcoord": "#1f77b4",
@@ -616,7 +619,7 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
                 "html": Markup(channel_figure(n, m["unit"], ref, plots_runs, colors,
                                               not m["determined"])),
             }
-            (reactions if m["kind"] == "reaction" else trajectories).append(fig)
+            (reactions if m["kind"] in FORCE_KINDS else trajectories).append(fig)
 
         notes = [(str(r.get("engine")), [str(x) for x in r.get("notes") or []])
                  for r in crecs if r.get("notes")]
@@ -638,7 +641,10 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
         speed_rows = [_speed_row(r, runs.get(str(r.get("engine"))), base) for r in crecs]
         speed_groups.append({"case": case, "anchor": case_anchor, "rows": speed_rows})
 
+        redundancy = redundant.section(case, crecs, runs, ref, ref_meta, results_dir, references,
+                                       colors, fmt_num)
         cases.append({
+            "redundancy": redundancy,
             "name": case,
             "anchor": case_anchor,
             "description": description,
