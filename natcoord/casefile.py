@@ -51,7 +51,7 @@ UNITS = {
 KNOWN_ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
-            "drivers", "rods", "springs", "reactions"}
+            "drivers", "rods", "springs", "reactions", "comparison"}
 
 
 class _Reader:
@@ -253,13 +253,37 @@ def load_case(path: str | Path) -> Case:
         )
     tags = tuple(r.get(data, "tags", "", required=False, default=[]))
     reactions = _reactions(r, r.table(data, "reactions", "", required=False), links, names)
+    comparison = _comparison(r, r.table(data, "comparison", "", required=False), channels)
     case = Case(name=name, description=r.string(data, "description", ""), file=str(path),
                 dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
                 ground=ground, bodies=bodies, joints=joints, forces=forces,
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
-                reference_frame=reference_frame)
+                reference_frame=reference_frame, comparison=comparison)
     return case
+
+
+def _comparison(r: _Reader, table: dict, channels) -> dict:
+    """``[comparison] singular = {channel, angles, within}``: force channels are not compared
+    on samples where the reference's angle ``channel`` is within ``within`` of one of
+    ``angles`` (modulo 360 deg): singular positions, where rigid-body forces diverge."""
+    unknown = sorted(set(table) - {"singular"})
+    if unknown:
+        r.fail(f"comparison.{unknown[0]}", "unknown field; expected singular")
+    if "singular" not in table:
+        return {}
+    p = "comparison.singular"
+    spec = r.table(table, "singular", "comparison")
+    ch = r.string(spec, "channel", p)
+    if ch not in {c.name for c in channels if c.kind == "angle"}:
+        r.fail(f"{p}.channel", f"must name an angle channel, got {ch!r}")
+    angles = r.get(spec, "angles", p)
+    if not isinstance(angles, list) or not angles:
+        r.fail(f"{p}.angles", "must be a non-empty list of angles")
+    return {"singular": {
+        "channel": ch,
+        "angles": [r.quantity(a, f"{p}.angles[{k}]", "angle") for k, a in enumerate(angles)],
+        "within": r.number(spec, "within", p, "angle", positive=True)}}
 
 
 def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:

@@ -203,6 +203,8 @@ class Case:
     ``reactions``: natcoord's reaction methods, name -> options (``stiffness``: rod, spring
     or body name -> N/m or N m/rad, for a weighted minimum norm); the first method gives
     natcoord's channel values. ``reference_frame``: see the module docstring.
+    ``comparison``: ``{"singular": {channel, angles (rad), within (rad)}}``, samples where
+    force channels are not compared (see :func:`natcoord.suite.compare.channel_errors`).
     """
 
     name: str
@@ -227,6 +229,7 @@ class Case:
     springs: tuple[Spring, ...] = ()
     reactions: dict[str, dict] = field(default_factory=dict)
     reference_frame: bool = False
+    comparison: dict = field(default_factory=dict)
 
     @property
     def times(self) -> np.ndarray:

@@ -177,3 +177,24 @@ def test_an_undetermined_channel_is_never_gated():
         chans, _, _ = channel_errors(c, "natcoord", r, r, und)
         assert all(chans[u]["pass"] is None for u in und)
         assert isinstance(pd.DataFrame(chans), pd.DataFrame)
+
+
+def test_force_channels_skip_only_the_samples_at_singular_positions():
+    """five_bar: forces are compared everywhere except within 1 deg of phi = 0, -180 deg,
+    where rigid-body reactions diverge; the angle is compared on every sample."""
+    case = _case("five_bar")
+    ref = load_reference("five_bar", REFERENCES)
+    near = np.abs(np.angle(np.exp(1j * ref["phi"].to_numpy()))) < np.radians(1.0)
+    near |= np.abs(np.angle(np.exp(1j * (ref["phi"].to_numpy() + np.pi)))) < np.radians(1.0)
+    assert 0 < near.sum() < 10
+    table = ref.copy()
+    table.loc[near, "N34_2N56"] += 1e6  # wrong only at the singular samples: not compared
+    chans, _, _ = channel_errors(case, "natcoord", table, ref, ())
+    assert chans["N34_2N56"]["pass"] is True and "not compared" in chans["N34_2N56"]["note"]
+    table.loc[~near, "N34_2N56"] += 1.0  # wrong elsewhere: fails
+    chans, verdict, _ = channel_errors(case, "natcoord", table, ref, ())
+    assert chans["N34_2N56"]["pass"] is False and verdict == "fail"
+    table = ref.copy()
+    table.loc[near, "phi"] += 1e-3  # the motion is compared on every sample
+    chans, _, _ = channel_errors(case, "natcoord", table, ref, ())
+    assert chans["phi"]["pass"] is False

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 
 from ..mechanism import Case
+from ..result import FORCE_KINDS
 
 
 def channel_errors(case: Case, engine: str, table: pd.DataFrame,
@@ -32,6 +33,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         return out, "no-reference", ("reference sample times differ from this run's; "
                                      "the reference is stale: run `natcoord reference update`")
     gated = failed = 0
+    keep, why_skip = _comparable(case, reference)
     for ch in case.channels:
         ref = reference[ch.name].to_numpy() if ch.name in reference else None
         val = table[ch.name].to_numpy()
@@ -45,11 +47,15 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
             entry["note"] = "not reported by this engine"
         else:
             err = np.abs(val - ref)
+            if ch.kind in FORCE_KINDS and not keep.all():
+                err = err[keep]
+                entry["note"] = why_skip
             max_abs = float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
             span = float(np.ptp(ref)) or float(np.max(np.abs(ref))) or 1.0
             entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
             if not determined:
                 entry["note"] = "undetermined (redundant constraints): shown, not gated"
+                # (an undetermined channel is never gated, whatever the tolerances say)
             elif tol is not None:
                 entry["pass"] = bool(max_abs <= tol)
                 gated += 1
@@ -61,3 +67,20 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         return out, "not-gated", "no tolerance written for this engine in the case file"
     return out, "pass", ""
 
+
+
+def _comparable(case: Case, reference: pd.DataFrame) -> tuple[np.ndarray, str]:
+    """Samples (T,) on which force channels are compared, and why some are not: near the
+    case's singular positions (``[comparison] singular``) rigid-body reactions diverge
+    (the paper, Section 3.6.1), so a finite error there says nothing about an engine."""
+    spec = case.comparison.get("singular")
+    keep = np.ones(len(reference), bool)
+    if not spec or spec["channel"] not in reference:
+        return keep, ""
+    phi = reference[spec["channel"]].to_numpy()
+    for a in spec["angles"]:
+        d = np.angle(np.exp(1j * (phi - a)))  # wrapped to (-pi, pi]
+        keep &= np.abs(d) > spec["within"]
+    n = int((~keep).sum())
+    return keep, (f"{n} sample(s) within {np.degrees(spec['within']):.3g} deg of a singular "
+                  f"position of {spec['channel']} not compared (forces diverge there)")
