@@ -59,3 +59,17 @@ def motion_errors(c: Case, a, b) -> dict[str, float]:
         out[f"{j.name}.force"] = float(np.max(np.abs(a.joint_force[j.name]
                                                      - b.joint_force[j.name])))
     return out
+
+
+def case_from_text(tmp_path, text: str, name: str) -> Case:
+    """A case file's ``text`` written to ``tmp_path/<name>.toml`` and loaded."""
+    path = tmp_path / f"{name}.toml"
+    path.write_text(text, encoding="utf-8")
+    return load_case(path)
+
+
+def channel_mismatches(c: Case, a, b, bound: dict[str, float], default: float) -> list[str]:
+    """The channels of tables ``a`` and ``b`` whose max difference exceeds the bound of their
+    kind (``default`` for kinds not in ``bound``), as "name: error"."""
+    return [f"{ch.name}: {np.max(np.abs(a[ch.name] - b[ch.name])):.3g}" for ch in c.channels
+            if not np.max(np.abs(a[ch.name] - b[ch.name])) <= bound.get(ch.kind, default)]

@@ -229,16 +229,12 @@ energy = { kind = "energy" }
 
 @pytest.mark.parametrize("name, text", [("rod_bob", ROD_BOB), ("rail_pendulum", RAIL_PENDULUM)])
 def test_open_chains_match_natcoord(tmp_path, name, text):
-    path = tmp_path / f"{name}.toml"
-    path.write_text(text, encoding="utf-8")
-    case = load_case(path)
+    case = ec.case_from_text(tmp_path, text, name)
     init = initial_body_states(case)
     a = evaluate_channels(case, adapter("natcoord").run(case, init, {}).motion)
     run = adapter("pinocchio").run(case, init, {})
     b = evaluate_channels(case, run.motion)
-    bound = {"reaction": 2e-9}
-    bad = [f"{c.name}: {np.max(np.abs(a[c.name] - b[c.name])):.3g}" for c in case.channels
-           if not np.max(np.abs(a[c.name] - b[c.name])) <= bound.get(c.kind, 1e-10)]
+    bad = ec.channel_mismatches(case, a, b, {"reaction": 2e-9}, 1e-10)
     assert not bad, f"{name}: " + "; ".join(bad)
     assert ("particle" in " ".join(run.notes)) == (name == "rod_bob")
 
@@ -479,12 +475,9 @@ energy = { kind = "energy" }
 
 
 def test_branched_tree_is_built_depth_first(tmp_path):
-    path = tmp_path / "branched.toml"
-    path.write_text(BRANCHED, encoding="utf-8")
-    case = load_case(path)
+    case = ec.case_from_text(tmp_path, BRANCHED, "branched")
     init = initial_body_states(case)
     a = evaluate_channels(case, adapter("natcoord").run(case, init, {}).motion)
     b = evaluate_channels(case, adapter("pinocchio").run(case, init, {}).motion)
-    bad = [f"{c.name}: {np.max(np.abs(a[c.name] - b[c.name])):.3g}" for c in case.channels
-           if not np.max(np.abs(a[c.name] - b[c.name])) <= 1e-8]
+    bad = ec.channel_mismatches(case, a, b, {}, 1e-8)
     assert not bad, "; ".join(bad)

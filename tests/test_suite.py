@@ -148,3 +148,26 @@ def test_time_limit_kills_a_slow_engine(tmp_path):
                         timeout_s=0.5)
     rec = summary["records"][0]
     assert rec["status"] == "failed" and "timed out after 0.5 s" in rec["reason"]
+
+
+def test_work_precision_reports_each_natcoord_formulation_apart():
+    """time_to_accuracy keeps one row per formulation (the cheapest point at or below each
+    target), and the natcoord sweep covers index1 (adaptive and fixed step), maggi, index3."""
+    from natcoord.suite import bench
+
+    assert {bench.variant(s) for s in bench.SWEEPS["natcoord"]} == {
+        "index1 dop853", "index1 rk4", "maggi dopri5", "index3 trapezoidal"}
+    pts = [
+        {"case": "c", "engine": "natcoord", "variant": "index1 dop853", "error": 5e-7,
+         "wall_time_s": 2.0},
+        {"case": "c", "engine": "natcoord", "variant": "index1 dop853", "error": 5e-10,
+         "wall_time_s": 3.0},
+        {"case": "c", "engine": "natcoord", "variant": "index3 trapezoidal", "error": 2e-6,
+         "wall_time_s": 1.0},
+        {"case": "c", "engine": "mujoco", "variant": "", "error": 9e-7, "wall_time_s": 40.0},
+    ]
+    rows = {r["engine"]: r for r in bench.time_to_accuracy(pts)}
+    assert rows["natcoord (index1 dop853)"]["time_to_1e-06"] == 2.0
+    assert rows["natcoord (index1 dop853)"]["time_to_1e-09"] == 3.0
+    assert rows["natcoord (index3 trapezoidal)"]["time_to_1e-06"] is None
+    assert rows["mujoco"]["time_to_1e-06"] == 40.0 and rows["mujoco"]["time_to_1e-09"] is None

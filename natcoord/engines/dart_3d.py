@@ -144,6 +144,103 @@ ROD_NOTE = ("massless rod(s) {names}: light uniform rods of {m:g} kg (DART has n
             "projected on the rod plus half its inertial load")
 
 
+# ---- shared by the 2-D adapter (dart_engine) and the 3-D one below -----------------------
+def loop_bodies(loops, rods, notes: list) -> dict[str, tuple[str, int]]:
+    """Loop joint -> (body only it closes, sign): its force by that body's Newton-Euler
+    balance (rod ends count as closing); notes the joints without one."""
+    closing: dict[str, int] = {}
+    for x in [b for j in loops for b in j.bodies] + [r.ends[1][0] for r in rods]:
+        closing[x] = closing.get(x, 0) + 1
+    loop_body: dict[str, tuple[str, int]] = {}
+    for j in loops:
+        for x, sg in ((j.bodies[1], 1), (j.bodies[0], -1)):
+            if x != GROUND and closing[x] == 1:
+                loop_body[j.name] = (x, sg)
+                break
+        else:
+            notes.append(f"loop joint {j.name!r}: no body closed by it alone; its force is "
+                         "not reported")
+    if loop_body:
+        notes.append("loop-joint force(s) " + ", ".join(loop_body) + " from the Newton-Euler "
+                     "balance of the body (DART does not expose constraint impulses)")
+    return loop_body
+
+
+def simulate_with_erp(dart, s: dict, notes: list, dt: float, extrapolated: bool, simulate):
+    """``simulate()`` with the settings' error reduction on every joint constraint (restored
+    afterwards), and the integrator's note."""
+    JC = dart.constraint.DynamicJointConstraint  # statics of Ball/Weld/RevoluteJointConstraint
+    saved = (JC.getErrorReductionParameter(), JC.getMaxErrorReductionVelocity())
+    JC.setErrorReductionParameter(float(s["erp"]))
+    JC.setMaxErrorReductionVelocity(float(s["max_error_reduction_velocity"]))
+    try:
+        result = simulate()
+    finally:
+        JC.setErrorReductionParameter(saved[0])
+        JC.setMaxErrorReductionVelocity(saved[1])
+    notes.append(f"semi-implicit Euler (DART's only integrator, first order), dt {dt:g} s; "
+                 "reactions and accelerations are those of the step starting at each sample "
+                 "time" + (", at t = 0 extrapolated from steps 2 and 3 (the first two steps "
+                           "of a loop constraint are transients)" if extrapolated else ""))
+    return result
+
+
+def stepper(world, before_step):
+    """``steps(n)``: n world steps, ``before_step()`` ahead of each; wall time and count in
+    the returned clock."""
+    clock = {"wall": 0.0, "steps": 0}
+
+    def steps(n):
+        t0 = time.perf_counter()
+        for _ in range(n):
+            before_step()
+            world.step()
+        clock["wall"] += time.perf_counter() - t0
+        clock["steps"] += n
+
+    return steps, clock
+
+
+def step_and_read(skel, steps, read) -> dict:
+    """One step; ``read()`` of the reactions it carries, at the state it started from
+    (accelerations stay (v1 - v0) / dt as DART left them); then on from the step's end."""
+    q, qd = skel.getPositions(), skel.getVelocities()
+    steps(1)
+    q1, qd1 = skel.getPositions(), skel.getVelocities()
+    skel.setPositions(q)
+    skel.setVelocities(qd)
+    out = read()
+    skel.setPositions(q1)
+    skel.setVelocities(qd1)
+    return out
+
+
+def check_state(skel, world, t: float) -> None:
+    q, qd = skel.getPositions(), skel.getVelocities()
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
+        raise RuntimeError(f"DART diverged: NaN/inf state at t = {t:.4g} s "
+                           f"(dt {world.getTimeStep():g} s)")
+
+
+def check_drift(drift: float, max_drift: float, t: float) -> None:
+    if drift > max_drift or not np.isfinite(drift):
+        raise RuntimeError(f"DART diverged: loop joint gap {drift:.3g} m exceeds "
+                           f"{max_drift:g} m by t = {t:.4g} s")
+
+
+def sample_reactions(read, extrapolate: bool) -> tuple[dict, int]:
+    """The reactions at a sample and the steps taken: with loops and a moving start, the
+    first two steps' reactions are off by O(1) (step 0 enforces the loop at velocity level
+    only, step 1 overshoots by about half that), so at t = 0 (``extrapolate``) they are
+    extrapolated linearly from steps 2 and 3 (exact at rest to O(dt^2))."""
+    f = read()
+    if not extrapolate:
+        return f, 1
+    read()
+    f2, f3 = read(), read()
+    return {name: 3 * f2[name] - 2 * f3[name] for name in f}, 4
+
+
 # ---- 3-D ----------------------------------------------------------------------------------
 def _planar_revolutes(case: Case) -> bool:
     axes = [np.asarray(j.axis, float) for j in case.joints if j.type == "revolute"]
@@ -260,44 +357,17 @@ def run_3d(case: Case, init, s: dict) -> EngineRun:
         notes.append(f"loop joint(s) {', '.join(j.name for j in rev_loops)}: DART "
                      f"RevoluteJointConstraint, error-reduction parameter {s['erp']}")
 
-    # loop-joint force by Newton-Euler of a body only that joint closes (rod ends count)
-    closing: dict[str, int] = {}
-    for x in [b for j in loops for b in j.bodies] + [r.ends[1][0] for r in rods]:
-        closing[x] = closing.get(x, 0) + 1
-    loop_body = {}
-    for j in loops:
-        for x, sg in ((j.bodies[1], 1), (j.bodies[0], -1)):
-            if x != GROUND and closing[x] == 1:
-                loop_body[j.name] = (x, sg)
-                break
-        else:
-            notes.append(f"loop joint {j.name!r}: no body closed by it alone; its force is "
-                         "not reported")
-    if loop_body:
-        notes.append("loop-joint force(s) " + ", ".join(loop_body) + " from the Newton-Euler "
-                     "balance of the body (DART does not expose constraint impulses)")
+    loop_body = loop_bodies(loops, rods, notes)
     loads = _loads(case, nodes)
     if case.springs:
         notes.append("spring-dampers " + ", ".join(sp.name for sp in case.springs) + ": "
                      "external forces from the state at the start of each step (explicit)")
     build = time.perf_counter() - t0
 
-    JC = dart.constraint.DynamicJointConstraint
-    saved = (JC.getErrorReductionParameter(), JC.getMaxErrorReductionVelocity())
-    JC.setErrorReductionParameter(float(s["erp"]))
-    JC.setMaxErrorReductionVelocity(float(s["max_error_reduction_velocity"]))
-    try:
-        out, wall, n_steps, counters = _simulate(
+    out, wall, n_steps, counters = simulate_with_erp(
+        dart, s, notes, dt, bool(loops or rods) and k >= 4, lambda: _simulate(
             case, world, skel, nodes, joints, sign, children, loops, loop_body, rods, loads,
-            g3, k, float(s["max_drift"]))
-    finally:
-        JC.setErrorReductionParameter(saved[0])
-        JC.setMaxErrorReductionVelocity(saved[1])
-    notes.append(f"semi-implicit Euler (DART's only integrator, first order), dt {dt:g} s; "
-                 "reactions and accelerations are those of the step starting at each sample "
-                 "time" + (", at t = 0 extrapolated from steps 2 and 3 (the first two steps "
-                           "of a loop constraint are transients)"
-                           if (loops or rods) and k >= 4 else ""))
+            g3, k, float(s["max_drift"])))
     return EngineRun(out, build, wall, n_steps, s, counters, notes)
 
 
@@ -509,7 +579,7 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
                                                                  strict=True)])
                 for j in loops]
     drift = 0.0
-    clock = {"wall": 0.0, "steps": 0}
+    steps, clock = stepper(world, apply)
 
     def world_point(body, p):
         if body == GROUND:
@@ -518,20 +588,7 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
         M = node.getWorldTransform().matrix()
         return M[:3, :3] @ p + M[:3, 3]
 
-    def steps(n):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            apply()
-            world.step()
-        clock["wall"] += time.perf_counter() - t0
-        clock["steps"] += n
-
-    def step_and_read():
-        q, qd = skel.getPositions(), skel.getVelocities()
-        steps(1)
-        q1, qd1 = skel.getPositions(), skel.getVelocities()
-        skel.setPositions(q)
-        skel.setVelocities(qd)
+    def read():
         out = {}
         Fp = {n: np.asarray(nodes[n].getParentJoint().getWrenchToParentBodyNode(W))[3:]
               for n in names}
@@ -548,16 +605,11 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             out[name] = sg * f
         for r in rods:
             out[r.name] = r.tension(W, g3)
-        skel.setPositions(q1)
-        skel.setVelocities(qd1)
         return out
 
     extrapolate0 = bool(loops or rods) and k >= 4
     for i in range(T):
-        q, qd = skel.getPositions(), skel.getVelocities()
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
-            raise RuntimeError(f"DART diverged: NaN/inf state at t = {times[i]:.4g} s "
-                               f"(dt {world.getTimeStep():g} s)")
+        check_state(skel, world, times[i])
         for n in names:
             node = nodes[n]
             M = node.getWorldTransform().matrix()
@@ -568,18 +620,11 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             drift = max(drift, float(np.linalg.norm(world_point(a, pa) - world_point(b, pb))))
         for r in rods:
             drift = max(drift, r.gap(nodes))
-        if drift > max_drift or not np.isfinite(drift):
-            raise RuntimeError(f"DART diverged: loop joint gap {drift:.3g} m exceeds "
-                               f"{max_drift:g} m by t = {times[i]:.4g} s")
+        check_drift(drift, max_drift, times[i])
         for sp, tension in zip(case.springs, spring_forces(), strict=True):
             rod_force[sp.name][i] = tension
-        f = step_and_read()
-        done = 1
-        if i == 0 and extrapolate0:
-            step_and_read()
-            f2, f3 = step_and_read(), step_and_read()
-            f = {name: 3 * f2[name] - 2 * f3[name] for name in f}
-            done = 4
+        f, done = sample_reactions(lambda: step_and_read(skel, steps, read),
+                                   i == 0 and extrapolate0)
         for name in force:
             force[name][i] = f[name]
         for r in rods:

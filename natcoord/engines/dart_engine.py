@@ -49,7 +49,18 @@ import numpy as np
 from ..errors import Unsupported
 from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
 from .base import EngineRun, merged, steps_per_sample
-from .dart_3d import ROD_NOTE, LightRod, make_motion
+from .dart_3d import (
+    ROD_NOTE,
+    LightRod,
+    check_drift,
+    check_state,
+    loop_bodies,
+    make_motion,
+    sample_reactions,
+    simulate_with_erp,
+    step_and_read,
+    stepper,
+)
 
 NAME = "dart"
 PACKAGE = "dartpy"
@@ -271,41 +282,15 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                      f"{kind}JointConstraint, error-reduction parameter {s['erp']}")
 
     # loop-joint force: Newton-Euler of a body that only this loop joint closes
-    loop_count: dict[str, int] = {}
-    for x in [b for j in loops for b in j.bodies] + [r.ends[1][0] for r in rods]:
-        loop_count[x] = loop_count.get(x, 0) + 1
-    loop_body: dict[str, tuple[str, int]] = {}
-    for j in loops:
-        for x, sg in ((j.bodies[1], 1), (j.bodies[0], -1)):
-            if x != GROUND and loop_count[x] == 1:
-                loop_body[j.name] = (x, sg)
-                break
-        else:
-            notes.append(f"loop joint {j.name!r}: no body closed by it alone; its force is "
-                         "not reported")
-    if loop_body:
-        notes.append("loop-joint force(s) " + ", ".join(loop_body) + " from the Newton-Euler "
-                     "balance of the body (DART does not expose constraint impulses)")
+    loop_body = loop_bodies(loops, rods, notes)
 
     torques = [(nodes[f.body], f.value) for f in case.forces]
     build = time.perf_counter() - t0
 
-    JC = dart.constraint.DynamicJointConstraint  # statics of Ball/Weld/RevoluteJointConstraint
-    saved = (JC.getErrorReductionParameter(), JC.getMaxErrorReductionVelocity())
-    JC.setErrorReductionParameter(float(s["erp"]))
-    JC.setMaxErrorReductionVelocity(float(s["max_error_reduction_velocity"]))
-    try:
-        out, wall, n_steps, counters = _simulate(
+    out, wall, n_steps, counters = simulate_with_erp(
+        dart, s, notes, dt, bool(loops or rods) and k >= 4, lambda: _simulate(
             case, world, skel, nodes, joints, sign, children, loops, loop_body,
-            torques, gravity, k, float(s["max_drift"]), rods)
-    finally:
-        JC.setErrorReductionParameter(saved[0])
-        JC.setMaxErrorReductionVelocity(saved[1])
-    notes.append(f"semi-implicit Euler (DART's only integrator, first order), dt {dt:g} s; "
-                 "reactions and accelerations are those of the step starting at each sample "
-                 "time" + (", at t = 0 extrapolated from steps 2 and 3 (the first two steps "
-                           "of a loop constraint are transients)"
-                           if (loops or rods) and k >= 4 else ""))
+            torques, gravity, k, float(s["max_drift"]), rods))
     return EngineRun(out, build, wall, n_steps, s, counters, notes)
 
 
@@ -406,24 +391,14 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
     rod_force = {r.name: np.zeros(T) for r in rods}
     drift = 0.0
 
-    clock = {"wall": 0.0, "steps": 0}
+    def apply_torques():
+        for node, tz in torques:
+            node.setExtTorque(np.array([0.0, 0.0, tz]))
 
-    def steps(n):
-        t0 = time.perf_counter()
-        for _ in range(n):
-            for node, tz in torques:
-                node.setExtTorque(np.array([0.0, 0.0, tz]))
-            world.step()
-        clock["wall"] += time.perf_counter() - t0
-        clock["steps"] += n
+    steps, clock = stepper(world, apply_torques)
 
-    def step_and_read() -> dict[str, np.ndarray]:
-        """One step; the reactions it carries, read at the state it started from."""
-        q, qd = skel.getPositions(), skel.getVelocities()
-        steps(1)
-        q1, qd1 = skel.getPositions(), skel.getVelocities()
-        skel.setPositions(q)
-        skel.setVelocities(qd)  # accelerations stay (v1 - v0) / dt as DART left them
+    def read() -> dict[str, np.ndarray]:
+        """The reactions of the step just taken, read at the state it started from."""
         Fp = {n: np.asarray(nodes[n].getParentJoint().getWrenchToParentBodyNode(W))[3:5]
               for n in names}
         out = {name: sign[name] * Fp[joint.getChildBodyNode().getName()]
@@ -447,8 +422,6 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             out[name] = sg * f
         for r in rods:
             out["rod:" + r.name] = r.tension(W, gravity)
-        skel.setPositions(q1)
-        skel.setVelocities(qd1)
         return out
 
     # With loops and a moving start, the first two steps' reactions are off by O(1): step 0
@@ -459,10 +432,7 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
     extrapolate0 = bool(loops or rods) and k >= 4
     for i in range(T):
         # state at the sample time
-        q, qd = skel.getPositions(), skel.getVelocities()
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(qd))):
-            raise RuntimeError(f"DART diverged: NaN/inf state at t = {times[i]:.4g} s "
-                               f"(dt {world.getTimeStep():g} s)")
+        check_state(skel, world, times[i])
         for n in names:
             node = nodes[n]
             M = node.getWorldTransform().matrix()
@@ -481,17 +451,10 @@ def _simulate(case, world, skel, nodes, joints, sign, children, loops, loop_body
             drift = max(drift, gap)
         for r in rods:
             drift = max(drift, r.gap(nodes))
-        if drift > max_drift or not np.isfinite(drift):
-            raise RuntimeError(f"DART diverged: loop joint gap {drift:.3g} m exceeds "
-                               f"{max_drift:g} m by t = {times[i]:.4g} s")
+        check_drift(drift, max_drift, times[i])
         # the step that starts here carries the reactions of this instant
-        f = step_and_read()
-        done = 1
-        if i == 0 and extrapolate0:
-            step_and_read()
-            f2, f3 = step_and_read(), step_and_read()
-            f = {name: 3 * f2[name] - 2 * f3[name] for name in f}
-            done = 4
+        f, done = sample_reactions(lambda: step_and_read(skel, steps, read),
+                                   i == 0 and extrapolate0)
         for name in force:
             force[name][i] = f[name]
         for r in rods:

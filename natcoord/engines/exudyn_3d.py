@@ -26,8 +26,16 @@ import numpy as np
 from ..errors import Unsupported
 from ..mechanism import GROUND, Case
 from ..result import Motion
-from .base import EngineRun, steps_per_sample
-from .exudyn_engine import connectors, singular_solver, solve, stored
+from .base import EngineRun
+from .exudyn_engine import (
+    connectors,
+    engine_run,
+    model_notes,
+    new_system,
+    solve,
+    step_plan,
+    stored,
+)
 
 AXIAL_INERTIA = 1e-6  # uniform rods: axial inertia added, relative to the largest moment
 
@@ -64,30 +72,20 @@ def _rotation0(init, body: str) -> np.ndarray:
 
 def run3d(case: Case, init, s: dict) -> EngineRun:
     _check(case)
-    h = float(s["dt"])
-    k = steps_per_sample(case, h)
-    n_samples = len(case.times)
-    n_steps = k * (n_samples - 1)
+    h, _, _, n_steps = step_plan(case, s)
 
     import exudyn as exu
     from exudyn import itemInterface as ei
 
     OV = exu.OutputVariableType
     eps = float(s.get("axial_inertia", AXIAL_INERTIA))
-    notes = [
+    notes = model_notes(
+        case, s, h,
         "redundant absolute coordinates: one NodeRigidBodyEP (Euler parameters) + "
-        "ObjectRigidBody per body at its centre of mass; every joint is a constraint",
-        f"implicit generalized-alpha, index 3, rho_inf {s['spectral_radius']}, fixed step "
-        f"{h:g} s, Newton rtol {s['newton_rtol']:g}",
-    ]
-    if singular_solver(case, s):
-        notes.append("linear solver EigenDense with ignoreSingularJacobian (redundant "
-                     "constraints)")
+        "ObjectRigidBody per body at its centre of mass; every joint is a constraint")
 
     t0 = time.perf_counter()
-    SC = exu.SystemContainer()
-    mbs = SC.AddSystem()
-    ground = mbs.AddObject(ei.ObjectGround())
+    SC, mbs, ground = new_system(exu, ei)
     from exudyn.rigidBodyUtilities import RotationMatrix2EulerParameters
 
     nodes, objs, rot0, padded = {}, {}, {}, []
@@ -210,12 +208,7 @@ def run3d(case: Case, init, s: dict) -> EngineRun:
             f = (Ra @ joint_frame[j.name] @ f[:, :, None])[:, :, 0]
         forces[j.name] = -f
     rod_force = {name: fn(get) for name, fn in tensions.items()}
-    for arr in (*origin.values(), *rotation.values(), *forces.values(), *rod_force.values()):
-        if not np.all(np.isfinite(arr)):
-            raise RuntimeError(f"exudyn: non-finite output on {case.name}")
-    it = solver.it
-    counters = {"steps": n_steps, "newton_iterations": int(it.newtonStepsCount),
-                "jacobians": int(it.newtonJacobiCount)}
     m = Motion(case.times.copy(), origin, {}, velocity, omega, forces, rotation=rotation,
                rod_force=rod_force)
-    return EngineRun(m, build, wall, n_steps, s, counters, notes)
+    return engine_run(case, s, m, (*origin.values(), *rotation.values(), *forces.values(),
+                                   *rod_force.values()), build, wall, solver, n_steps, notes)

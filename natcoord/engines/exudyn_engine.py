@@ -114,6 +114,48 @@ def _failure(mbs, case: Case, n_steps: int, h: float, what: str) -> str:
     return msg
 
 
+def step_plan(case: Case, s: dict) -> tuple[float, int, int, int]:
+    """(step h, steps per sample, samples, steps in all)."""
+    h = float(s["dt"])
+    k = steps_per_sample(case, h)
+    n_samples = len(case.times)
+    return h, k, n_samples, k * (n_samples - 1)
+
+
+def model_notes(case: Case, s: dict, h: float, coordinates: str, *more: str) -> list[str]:
+    """The notes every adapter run starts with: its coordinates, the integrator, ``more``
+    and the linear solver if the constraints are redundant."""
+    notes = [
+        coordinates,
+        f"implicit generalized-alpha, index 3, rho_inf {s['spectral_radius']}, fixed step "
+        f"{h:g} s, Newton rtol {s['newton_rtol']:g}",
+        *more,
+    ]
+    if singular_solver(case, s):
+        notes.append("linear solver EigenDense with ignoreSingularJacobian (redundant "
+                     "constraints)")
+    return notes
+
+
+def new_system(exu, ei):
+    """(system container, its system, the ground object)."""
+    SC = exu.SystemContainer()
+    mbs = SC.AddSystem()
+    return SC, mbs, mbs.AddObject(ei.ObjectGround())
+
+
+def engine_run(case: Case, s: dict, motion: Motion, outputs, build: float, wall: float,
+               solver, n_steps: int, notes: list) -> EngineRun:
+    """The run, once every one of ``outputs`` is checked finite."""
+    for arr in outputs:
+        if not np.all(np.isfinite(arr)):
+            raise RuntimeError(f"exudyn: non-finite output on {case.name}")
+    it = solver.it
+    counters = {"steps": n_steps, "newton_iterations": int(it.newtonStepsCount),
+                "jacobians": int(it.newtonJacobiCount)}
+    return EngineRun(motion, build, wall, n_steps, s, counters, notes)
+
+
 def singular_solver(case: Case, s: dict) -> bool:
     """Whether to use EigenDense with ignoreSingularJacobian (redundant constraints)."""
     if s["linear_solver"] == "auto":
@@ -213,31 +255,21 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         from .exudyn_3d import run3d
 
         return run3d(case, init, s)
-    h = float(s["dt"])
-    k = steps_per_sample(case, h)
-    n_samples = len(case.times)
-    n_steps = k * (n_samples - 1)
+    h, k, n_samples, n_steps = step_plan(case, s)
 
     import exudyn as exu
     from exudyn import itemInterface as ei
 
     OV = exu.OutputVariableType
-    notes = [
+    notes = model_notes(
+        case, s, h,
         "redundant absolute coordinates: one NodeRigidBody2D + ObjectRigidBody2D per body at "
         "its centre of mass; every joint is a constraint (no tree)",
-        f"implicit generalized-alpha, index 3, rho_inf {s['spectral_radius']}, fixed step "
-        f"{h:g} s, Newton rtol {s['newton_rtol']:g}",
         "revolute joints: ObjectJointRevolute2D; reaction = -Force output (Force is the "
-        "force on the first marker's body)",
-    ]
-    if singular_solver(case, s):
-        notes.append("linear solver EigenDense with ignoreSingularJacobian (redundant "
-                     "constraints)")
+        "force on the first marker's body)")
 
     t0 = time.perf_counter()
-    SC = exu.SystemContainer()
-    mbs = SC.AddSystem()
-    ground = mbs.AddObject(ei.ObjectGround())
+    SC, mbs, ground = new_system(exu, ei)
 
     prismatic_bodies = {b for j in case.joints if j.type == "prismatic" for b in j.bodies}
     nodes, objs, locked = {}, {}, []
@@ -394,11 +426,6 @@ def run(case: Case, init, settings: dict) -> EngineRun:
             forces[j.name] = force_sign[j.name] * lam[:, None] * n
     rod_force = {name: f(get) for name, f in tensions.items()}
 
-    for arr in (*origin.values(), *angle.values(), *forces.values(), *rod_force.values()):
-        if not np.all(np.isfinite(arr)):
-            raise RuntimeError(f"exudyn: non-finite output on {case.name}")
-    it = solver.it
-    counters = {"steps": n_steps, "newton_iterations": int(it.newtonStepsCount),
-                "jacobians": int(it.newtonJacobiCount)}
     m = Motion(case.times.copy(), origin, angle, velocity, omega, forces, rod_force=rod_force)
-    return EngineRun(m, build, wall, n_steps, s, counters, notes)
+    return engine_run(case, s, m, (*origin.values(), *angle.values(), *forces.values(),
+                                   *rod_force.values()), build, wall, solver, n_steps, notes)

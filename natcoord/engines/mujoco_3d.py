@@ -319,10 +319,20 @@ def build_mjcf_3d(case: Case, init: dict, s: dict) -> Built3:
         notes.append(f"connect equality (3 rows) for loop {j.type} joint {j.name} (site1 on "
                      f"{j.bodies[0]}, site2 on {j.bodies[1]}), solref {_fmt(*solref)}, "
                      f"solimp {solimp}")
-    xml = "\n".join([
+    xml = mjcf_document(case, s, dt, _pad3(case.gravity), sites, lines, ten.tendon, eq)
+    return Built3(xml, loops, parent, qvel, notes, solref)
+
+
+# ------------------------------------------------- shared by mujoco_engine (2-D) and run_3d
+
+def mjcf_document(case: Case, s: dict, dt: float, gravity, sites: dict, lines: list,
+                  tendon: list, equality: list) -> str:
+    """The MJCF model: options from the settings, the bodies' ``lines``, tendons and
+    equalities."""
+    return "\n".join([
         f"<mujoco model={quoteattr(case.name)}>",
         '  <compiler angle="radian" inertiafromgeom="false" balanceinertia="false"/>',
-        f'  <option timestep="{dt!r}" gravity="{_fmt(*_pad3(case.gravity))}" '
+        f'  <option timestep="{dt!r}" gravity="{_fmt(*gravity)}" '
         f'integrator="{s["integrator"]}" solver="{s["solver"]}" '
         f'tolerance="{float(s["tolerance"])!r}" iterations="{int(s["iterations"])}" '
         f'ls_iterations="{int(s["ls_iterations"])}">',
@@ -332,11 +342,81 @@ def build_mjcf_3d(case: Case, init: dict, s: dict) -> Built3:
         *[f"    {site}" for site in sites.get(GROUND, [])],
         *lines,
         "  </worldbody>",
-        *(["  <tendon>", *ten.tendon, "  </tendon>"] if ten.tendon else []),
-        *(["  <equality>", *eq, "  </equality>"] if eq else []),
+        *(["  <tendon>", *tendon, "  </tendon>"] if tendon else []),
+        *(["  <equality>", *equality, "  </equality>"] if equality else []),
         "</mujoco>",
     ])
-    return Built3(xml, loops, parent, qvel, notes, solref)
+
+
+def load_model(mujoco, case: Case, build_mjcf):
+    """(built, model, data, build time): ``build_mjcf()`` compiled, started at the built
+    velocities with the case's constant loads applied."""
+    t0 = time.perf_counter()
+    built = build_mjcf()
+    m = mujoco.MjModel.from_xml_string(built.xml)
+    d = mujoco.MjData(m)
+    build = time.perf_counter() - t0
+    if len(built.qvel) != m.nv:
+        raise RuntimeError(f"internal: {len(built.qvel)} initial velocities for nv = {m.nv}")
+    d.qpos[:] = m.qpos0  # the XML places every body at its assembled pose
+    d.qvel[:] = built.qvel
+    d.xfrc_applied[:] = applied_loads(mujoco, m, case)
+    return built, m, d, build
+
+
+def forward(mujoco, m, d) -> int:
+    """Positions, velocities, constraint and interaction forces at the current state; the
+    solver's iteration count."""
+    mujoco.mj_forward(m, d)
+    mujoco.mj_rnePostConstraint(m, d)
+    return int(d.solver_niter[0])
+
+
+def tree_force(d, body: int, subtree: list, on_body: dict, dim: int) -> np.ndarray:
+    """Force through a tree joint from ``cfrc_int`` less the rods' and springs' forces on the
+    child's subtree (``cfrc_int`` carries them)."""
+    f = d.cfrc_int[body, 3:3 + dim].copy()
+    for b in subtree:
+        f -= on_body.get(b, np.zeros(3))[:dim]
+    return f
+
+
+def connect_forces(mujoco, d, loops, eqid: dict, dim: int) -> tuple[dict, float]:
+    """Each loop's connect-equality force on its first body (``efc_force`` acts on site1's
+    body; the second gets minus it) and the largest constraint violation."""
+    out, drift = {}, 0.0
+    if loops:
+        eq_rows = np.flatnonzero(d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY)
+        for j in loops:
+            rows = eq_rows[d.efc_id[eq_rows] == eqid[j.name]]
+            out[j.name] = -d.efc_force[rows[:dim]]
+            drift = max(drift, float(np.max(np.abs(d.efc_pos[rows]))))
+    return out, drift
+
+
+def step_samples(mujoco, m, d, T: int, k: int, at_sample) -> tuple[float, int]:
+    """Samples 1 .. T-1, ``k`` steps apart, ``at_sample(i)`` after each; (wall time of the
+    steps, number of steps)."""
+    wall = 0.0
+    n_steps = 0
+    for i in range(1, T):
+        w0 = time.perf_counter()
+        for _ in range(k):
+            mujoco.mj_step(m, d)
+        wall += time.perf_counter() - w0
+        n_steps += k
+        at_sample(i)
+    return wall, n_steps
+
+
+def engine_run(motion, built, m, s: dict, dt: float, build: float, wall: float, n_steps: int,
+               drift: float, max_iter: int) -> EngineRun:
+    counters = {"steps": n_steps, "nv": int(m.nv), "loop_drift_m": drift,
+                "max_solver_iterations": max_iter}
+    notes = list(built.notes)
+    notes.append(f"integrator {s['integrator']}, solver {s['solver']}, tolerance "
+                 f"{s['tolerance']}, contacts disabled, dt {dt} s")
+    return EngineRun(motion, build, wall, n_steps, s, counters, notes)
 
 
 # -------------------------------------------------------------------------------- 3-D run
@@ -347,16 +427,7 @@ def run_3d(case: Case, init, s: dict, check) -> EngineRun:
 
     dt = float(s["dt"])
     k = steps_per_sample(case, dt)
-    t0 = time.perf_counter()
-    built = build_mjcf_3d(case, init, s)
-    m = mujoco.MjModel.from_xml_string(built.xml)
-    d = mujoco.MjData(m)
-    build = time.perf_counter() - t0
-    if len(built.qvel) != m.nv:
-        raise RuntimeError(f"internal: {len(built.qvel)} initial velocities for nv = {m.nv}")
-    d.qpos[:] = m.qpos0
-    d.qvel[:] = built.qvel
-    d.xfrc_applied[:] = applied_loads(mujoco, m, case)
+    built, m, d, build = load_model(mujoco, case, lambda: build_mjcf_3d(case, init, s))
 
     names = [b.name for b in case.bodies]
     bid = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n) for n in names}
@@ -381,9 +452,7 @@ def run_3d(case: Case, init, s: dict, check) -> EngineRun:
 
     def sample(i):
         nonlocal drift, max_iter
-        mujoco.mj_forward(m, d)
-        mujoco.mj_rnePostConstraint(m, d)
-        max_iter = max(max_iter, int(d.solver_niter[0]))
+        max_iter = max(max_iter, forward(mujoco, m, d))
         for n in names:
             j = bid[n]
             mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_XBODY, j, vel6, 0)
@@ -397,16 +466,11 @@ def run_3d(case: Case, init, s: dict, check) -> EngineRun:
             rod_force[r][i] = v
         on_body = ten.body_forces(d, tension)
         for name, (child, sign) in tree.items():
-            f = d.cfrc_int[bid[child], 3:].copy()
-            for b in subtree[child]:
-                f -= on_body.get(b, 0.0)
-            forces[name][i] = sign * f
-        if built.loops:
-            rows = np.flatnonzero(d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY)
-            for j in built.loops:
-                r = rows[d.efc_id[rows] == eqid[j.name]]
-                forces[j.name][i] = -d.efc_force[r[:3]]
-                drift = max(drift, float(np.max(np.abs(d.efc_pos[r]))))
+            forces[name][i] = sign * tree_force(d, bid[child], subtree[child], on_body, 3)
+        loop_f, dr = connect_forces(mujoco, d, built.loops, eqid, 3)
+        drift = max(drift, dr)
+        for name, f in loop_f.items():
+            forces[name][i] = f
 
     sample(0)
     check(mujoco, m, d, 0.0)
@@ -419,25 +483,16 @@ def run_3d(case: Case, init, s: dict, check) -> EngineRun:
         if err > 1e-9:
             raise RuntimeError(f"internal: MuJoCo's initial state of body {n} differs from the "
                                f"assembled one by {err:.3g}")
-    wall = 0.0
-    n_steps = 0
-    for i in range(1, T):
-        w0 = time.perf_counter()
-        for _ in range(k):
-            mujoco.mj_step(m, d)
-        wall += time.perf_counter() - w0
-        n_steps += k
+
+    def at_sample(i):
         check(mujoco, m, d, times[i])
         sample(i)
         if drift > float(s["max_loop_drift"]):
             raise RuntimeError(f"a loop or rod opened by {drift:.3g} m by t = {times[i]:.6g} s "
                                f"(max_loop_drift {s['max_loop_drift']} m): the soft "
                                "constraints do not hold at these settings")
+
+    wall, n_steps = step_samples(mujoco, m, d, T, k, at_sample)
     motion = Motion(np.asarray(times, float), origin, {}, velocity, omega, forces,
                     rotation=rotation, rod_force=rod_force)
-    counters = {"steps": n_steps, "nv": int(m.nv), "loop_drift_m": drift,
-                "max_solver_iterations": max_iter}
-    notes = list(built.notes)
-    notes.append(f"integrator {s['integrator']}, solver {s['solver']}, tolerance "
-                 f"{s['tolerance']}, contacts disabled, dt {dt} s")
-    return EngineRun(motion, build, wall, n_steps, s, counters, notes)
+    return engine_run(motion, built, m, s, dt, build, wall, n_steps, drift, max_iter)

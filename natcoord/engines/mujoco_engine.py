@@ -41,7 +41,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from xml.sax.saxutils import quoteattr
 
 import numpy as np
@@ -50,7 +49,20 @@ from ..errors import Unsupported
 from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
-from .mujoco_3d import TendonForces, applied_loads, run_3d, subtree_bodies, tendons_mjcf
+from .mujoco_3d import (
+    TendonForces,
+    _fmt,
+    connect_forces,
+    engine_run,
+    forward,
+    load_model,
+    mjcf_document,
+    run_3d,
+    step_samples,
+    subtree_bodies,
+    tendons_mjcf,
+    tree_force,
+)
 
 NAME = "mujoco"
 PACKAGE = "mujoco"
@@ -89,10 +101,6 @@ def _rot(a: float) -> np.ndarray:
 def _cross_z(w: float, r: np.ndarray) -> np.ndarray:
     """omega (about z) x r for an in-plane r."""
     return w * np.array([-r[1], r[0]])
-
-
-def _fmt(*xs) -> str:
-    return " ".join(repr(float(x)) for x in xs)
 
 
 def _quat_z(a: float) -> str:
@@ -274,23 +282,8 @@ def build_mjcf(case: Case, init: dict, settings: dict) -> _Built:
     eq = [f'    <connect name={quoteattr(j.name)} site1="loop_{j.name}_0" '
           f'site2="loop_{j.name}_1" solref="{_fmt(*solref)}" solimp="{solimp}"/>'
           for j in loops]
-    xml = "\n".join([
-        f"<mujoco model={quoteattr(case.name)}>",
-        '  <compiler angle="radian" inertiafromgeom="false" balanceinertia="false"/>',
-        f'  <option timestep="{dt!r}" gravity="{_fmt(gx, gy, 0.0)}" '
-        f'integrator="{s["integrator"]}" solver="{s["solver"]}" '
-        f'tolerance="{float(s["tolerance"])!r}" iterations="{int(s["iterations"])}" '
-        f'ls_iterations="{int(s["ls_iterations"])}">',
-        '    <flag contact="disable"/>',
-        "  </option>",
-        "  <worldbody>",
-        *[f"    {site}" for site in sites.get(GROUND, [])],
-        *lines,
-        "  </worldbody>",
-        *(["  <tendon>", *ten.tendon, "  </tendon>"] if ten.tendon else []),
-        *(["  <equality>", *eq, *ten.equality, "  </equality>"] if eq or ten.equality else []),
-        "</mujoco>",
-    ])
+    xml = mjcf_document(case, s, dt, (gx, gy, 0.0), sites, lines, ten.tendon,
+                        eq + ten.equality)
 
     for j in loops:
         notes.append(f"connect equality for loop joint {j.name} (site1 on {j.bodies[0]}, "
@@ -345,17 +338,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     if case.dimension == 3:
         return run_3d(case, init, s, _check)
 
-    t0 = time.perf_counter()
-    built = build_mjcf(case, init, s)
-    m = mujoco.MjModel.from_xml_string(built.xml)
-    d = mujoco.MjData(m)
-    build = time.perf_counter() - t0
-
-    if len(built.qvel) != m.nv:
-        raise RuntimeError(f"internal: {len(built.qvel)} initial velocities for nv = {m.nv}")
-    d.qpos[:] = m.qpos0  # the XML places every body at its assembled pose
-    d.qvel[:] = built.qvel
-    d.xfrc_applied[:] = applied_loads(mujoco, m, case)
+    built, m, d, build = load_model(mujoco, case, lambda: build_mjcf(case, init, s))
 
     bodies = [b for b in case.bodies]
     bid = {b.name: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, b.name) for b in bodies}
@@ -380,9 +363,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
 
     def sample(i):
         nonlocal drift, max_iter
-        mujoco.mj_forward(m, d)
-        mujoco.mj_rnePostConstraint(m, d)
-        max_iter = max(max_iter, int(d.solver_niter[0]))
+        max_iter = max(max_iter, forward(mujoco, m, d))
         for b in bodies:
             j = bid[b.name]
             R = d.xmat[j].reshape(3, 3)
@@ -404,29 +385,17 @@ def run(case: Case, init, settings: dict) -> EngineRun:
             rod_force[r][i] = v
         on_body = ten.body_forces(d, tension)  # cfrc_int carries them: take them out
         for name, (child, sign) in tree_sign.items():
-            f = d.cfrc_int[bid[child], 3:5].copy()
-            for b in subtree[child]:
-                f -= on_body.get(b, np.zeros(3))[:2]
-            forces[name][i] = sign * f
-        if built.loops:
-            eq_rows = np.flatnonzero(d.efc_type == mujoco.mjtConstraint.mjCNSTR_EQUALITY)
-            for j in built.loops:
-                rows = eq_rows[d.efc_id[eq_rows] == eqid[j.name]]
-                # efc_force acts on site1's body (the joint's first); the second gets minus it
-                forces[j.name][i] = -d.efc_force[rows[:2]]
-                drift = max(drift, float(np.max(np.abs(d.efc_pos[rows]))))
+            forces[name][i] = sign * tree_force(d, bid[child], subtree[child], on_body, 2)
+        loop_f, dr = connect_forces(mujoco, d, built.loops, eqid, 2)
+        drift = max(drift, dr)
+        for name, f in loop_f.items():
+            forces[name][i] = f
 
     sample(0)
     _check(mujoco, m, d, 0.0)
     _check_start(case, init, origin, angle, velocity, omega)
-    wall = 0.0
-    n_steps = 0
-    for i in range(1, T):
-        w0 = time.perf_counter()
-        for _ in range(k):
-            mujoco.mj_step(m, d)
-        wall += time.perf_counter() - w0
-        n_steps += k
+
+    def at_sample(i):
         _check(mujoco, m, d, times[i])
         sample(i)
         _check(mujoco, m, d, times[i])
@@ -435,13 +404,9 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                                f"(max_loop_drift {s['max_loop_drift']} m): the soft "
                                "constraints do not hold at these settings")
 
+    wall, n_steps = step_samples(mujoco, m, d, T, k, at_sample)
     for b in bodies:
         angle[b.name] = np.unwrap(angle[b.name])
     motion = Motion(np.asarray(times, float), origin, angle, velocity, omega, forces,
                     rod_force=rod_force)
-    counters = {"steps": n_steps, "nv": int(m.nv), "loop_drift_m": drift,
-                "max_solver_iterations": max_iter}
-    notes = list(built.notes)
-    notes.append(f"integrator {s['integrator']}, solver {s['solver']}, tolerance "
-                 f"{s['tolerance']}, contacts disabled, dt {dt} s")
-    return EngineRun(motion, build, wall, n_steps, s, counters, notes)
+    return engine_run(motion, built, m, s, dt, build, wall, n_steps, drift, max_iter)

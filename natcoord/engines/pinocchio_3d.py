@@ -463,38 +463,46 @@ class Dynamics:
         return self.data.lambda_c if self.b.loops else np.zeros(0)
 
 
+def rk4_samples(acc, lam, step, q0, v0, nq: int, nl: int, times, k: int, dt: float,
+                context: str = ""):
+    """Classic RK4 from (q0, v0), k steps per sample, ``acc(q, v)`` the acceleration, ``lam()``
+    the constraint forces of its last call, ``step(q, dv)`` the position update: sampled
+    (Q, V, A, L) and step count. ``context`` is added to the error's dt."""
+    T, nv = len(times), len(v0)
+    Q, V, A, L = (np.empty((T, nq)), np.empty((T, nv)), np.empty((T, nv)), np.empty((T, nl)))
+    h, dt6 = dt / 2, dt / 6
+    q, v = q0.copy(), v0.copy()
+    n = 0
+    for i in range(T):
+        a1 = acc(q, v)  # the sample's own state: its lambda gives the reactions
+        Q[i], V[i], A[i], L[i] = q, v, a1, lam()
+        if not (np.isfinite(a1).all() and np.isfinite(L[i]).all()):
+            raise RuntimeError(f"pinocchio: non-finite acceleration or constraint force at "
+                               f"t = {times[i]:g} s (dt {dt:g} s{context})")
+        if i == T - 1:
+            break
+        for j in range(k):
+            if j:
+                a1 = acc(q, v)
+            v2 = v + h * a1
+            a2 = acc(step(q, h * v), v2)
+            v3_ = v + h * a2
+            a3 = acc(step(q, h * v2), v3_)
+            v4 = v + dt * a3
+            a4 = acc(step(q, dt * v3_), v4)
+            q = step(q, dt6 * (v + 2 * v2 + 2 * v3_ + v4))
+            v = v + dt6 * (a1 + 2 * a2 + 2 * a3 + a4)
+            n += 1
+    return Q, V, A, L, n
+
+
 def integrate(pin, b: Model3, dyn: Dynamics, times, k: int, dt: float):
     """Classic RK4 from (q0, v0), k steps per sample: sampled (Q, V, A, L) and step count."""
     model = b.model
     lie = model.nq != model.nv
     step = (lambda q, dv: pin.integrate(model, q, dv)) if lie else (lambda q, dv: q + dv)
-    T, nl = len(times), 3 * len(b.loops)
-    Q, V, A, L = (np.empty((T, model.nq)), np.empty((T, model.nv)), np.empty((T, model.nv)),
-                  np.empty((T, nl)))
-    h, dt6 = dt / 2, dt / 6
-    q, v = b.q0.copy(), b.v0.copy()
-    n = 0
-    for i in range(T):
-        a1 = dyn(q, v)
-        Q[i], V[i], A[i], L[i] = q, v, a1, dyn.lam
-        if not (np.isfinite(a1).all() and np.isfinite(L[i]).all()):
-            raise RuntimeError(f"pinocchio: non-finite acceleration or constraint force at "
-                               f"t = {times[i]:g} s (dt {dt:g} s)")
-        if i == T - 1:
-            break
-        for j in range(k):
-            if j:
-                a1 = dyn(q, v)
-            v2 = v + h * a1
-            a2 = dyn(step(q, h * v), v2)
-            v3_ = v + h * a2
-            a3 = dyn(step(q, h * v2), v3_)
-            v4 = v + dt * a3
-            a4 = dyn(step(q, dt * v3_), v4)
-            q = step(q, dt6 * (v + 2 * v2 + 2 * v3_ + v4))
-            v = v + dt6 * (a1 + 2 * a2 + 2 * a3 + a4)
-            n += 1
-    return Q, V, A, L, n
+    return rk4_samples(dyn, lambda: dyn.lam, step, b.q0, b.v0, model.nq, 3 * len(b.loops),
+                       times, k, dt)
 
 
 def integrate_radau(b: Model3, dyn: Dynamics, times, s: dict):

@@ -43,6 +43,7 @@ from ..errors import Unsupported
 from ..mechanism import GROUND, Case, point_loop_tree, tree_orientation
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
+from .pinocchio_3d import rk4_samples
 
 NAME = "pinocchio"
 PACKAGE = "pin"
@@ -299,9 +300,6 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     build_time = time.perf_counter() - t0
 
     times = case.times
-    T, nv, nl = len(times), model.nv, 3 * len(b.loops)
-    Q, V, A, L = (np.empty((T, nv)), np.empty((T, nv)), np.empty((T, nv)),
-                  np.empty((T, nl)))
     tau = b.tau
     iters = 0
 
@@ -311,30 +309,10 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         iters = max(iters, prox.iter)
         return a
 
-    h, dt6 = dt / 2, dt / 6
-    q, v = b.q0.copy(), b.v0.copy()
-    n_steps = 0
     t0 = time.perf_counter()
-    for i in range(T):
-        a1 = acc(q, v)  # the sample's own state: its lambda gives the reactions
-        Q[i], V[i], A[i], L[i] = q, v, a1, data.lambda_c
-        if not (np.isfinite(a1).all() and np.isfinite(L[i]).all()):
-            raise RuntimeError(f"pinocchio: non-finite acceleration or constraint force at "
-                               f"t = {times[i]:g} s (dt {dt:g} s, mu {s['mu']:g})")
-        if i == T - 1:
-            break
-        for step in range(k):
-            if step:
-                a1 = acc(q, v)
-            v2 = v + h * a1
-            a2 = acc(q + h * v, v2)
-            v3 = v + h * a2
-            a3 = acc(q + h * v2, v3)
-            v4 = v + dt * a3
-            a4 = acc(q + dt * v3, v4)
-            q = q + dt6 * (v + 2 * v2 + 2 * v3 + v4)
-            v = v + dt6 * (a1 + 2 * a2 + 2 * a3 + a4)
-            n_steps += 1
+    Q, V, A, L, n_steps = rk4_samples(acc, lambda: data.lambda_c, lambda q, dv: q + dv,
+                                      b.q0, b.v0, model.nv, 3 * len(b.loops), times, k, dt,
+                                      f", mu {s['mu']:g}")
     wall = time.perf_counter() - t0
 
     motion, drift = _motion(pin, case, b, times, Q, V, A, L)
