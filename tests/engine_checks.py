@@ -73,3 +73,13 @@ def channel_mismatches(c: Case, a, b, bound: dict[str, float], default: float) -
     kind (``default`` for kinds not in ``bound``), as "name: error"."""
     return [f"{ch.name}: {np.max(np.abs(a[ch.name] - b[ch.name])):.3g}" for ch in c.channels
             if not np.max(np.abs(a[ch.name] - b[ch.name])) <= bound.get(ch.kind, default)]
+
+
+def assert_reversed_joint_flips_the_reaction(engine: str) -> None:
+    """bodies = [rod, ground] on the hanging rod: the reaction is then the force on the
+    ground, -m g (the case convention: force on the second body named)."""
+    c = hanging_rod()
+    c = dataclasses.replace(c, joints=(reversed_joint(c.joint("O")),))
+    table = evaluate_channels(c, run(engine, c).motion)
+    np.testing.assert_allclose(table["O_y"], -2.0 * G, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
