@@ -67,7 +67,7 @@ DEFAULT_OPTIONS = {
     "project_tol": 1e-13,
     "newton_tol": 1e-13,
     "repartition_growth": 1.5,      # maggi: re-partition when max|R^d| grows this much
-    "penalty": 1e6,                 # index3: alpha h^2 / 4 = penalty * max|M|
+    "penalty": 1e4,                 # index3: alpha h^2 / 4 = penalty * max|M| (1e6+: round-off)
     "rank_tol": 1e-9,
     "compiled": True,               # index1 + dop853/dopri5 adaptive: numba loop when it fits
 }
