@@ -24,10 +24,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import reactions
+from .builder3d import Builder
 from .errors import AssemblyError
 from .kinematics import State
 from .mechanism import GROUND, PLANES, Case
-from .model3d import Builder, NaturalModel, rod_second_moment, second_moment
+from .model3d import NaturalModel, rod_second_moment, second_moment
 from .result import Motion, evaluate_channels
 
 COORDINATES = ("joints", "shared")

@@ -103,7 +103,7 @@ def integrate(model, state: State, times: np.ndarray, *, formulation: str = "ind
     compile_s = kernels.ensure_compiled() if compiled else 0.0  # not stepping time
     wall0 = time.perf_counter()
     y = form.init(t0, q0, qd0)
-    if compiled and form.mode == "schur":
+    if compiled and form.compiled_ready():
         Q[:], QD[:], QDD[:] = form.run_compiled(times, y, method, rtol, atol)
     else:
         compiled = False

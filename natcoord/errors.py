@@ -29,3 +29,8 @@ class ExistenceError(NatcoordError):
 
 class Unsupported(NatcoordError):
     """An engine cannot model part of a case; the message says which part and why."""
+
+
+class StepFailure(NatcoordError, RuntimeError):
+    """A stage of a step cannot be evaluated (e.g. a position Newton diverged because the
+    step reached too far); the adaptive loop rejects the step and retries a shorter one."""

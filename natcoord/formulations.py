@@ -32,7 +32,7 @@ import numpy as np
 import scipy.linalg
 
 from .drivers import ConstraintSystem
-from .errors import ExistenceError
+from .errors import ExistenceError, StepFailure
 
 
 @dataclass
@@ -158,10 +158,31 @@ def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray
     return np.linalg.lstsq(J.T, model.forces(t, q, qd) - model.M @ qdd, rcond=None)[0]
 
 
-def _forces_are_linear(model) -> bool:
-    """True when model.forces is Model.forces (Q = Q0 + T q), which the kernels inline."""
+def compiled_forces(model) -> tuple | None:
+    """The applied forces of ``model`` as the arrays of the compiled loop
+    (:func:`natcoord.kernels_general.pack_forces`), or None for a force model it does not
+    know. Knows ``Model.forces`` (Q0 + T q) and ``NaturalModel.forces`` (Q0, constant
+    torques on bodies, linear spring-dampers)."""
+    from .kernels_general import pack_forces
     from .model import Model
-    return type(model).forces is Model.forces
+    from .model3d import NaturalModel
+    kind = getattr(type(model), "forces", None)
+    if kind is Model.forces:
+        return pack_forces(model.Q0, model.T)
+    if kind is not NaturalModel.forces:
+        return None
+    n, d = model.n, model.dim
+    G, toff, tau = [np.zeros((0, d, n + 1))], [0], np.zeros((len(model.torques), 3))
+    for t, (body, tq) in enumerate(model.torques):
+        tq = np.atleast_1d(np.asarray(tq, float))
+        if tq.shape != ((1,) if d == 2 else (3,)):
+            return None
+        G.append(np.asarray(model.bodies[body].G, float))  # difference maps (K, d, n + 1)
+        toff.append(toff[-1] + len(G[-1]))
+        tau[t, :len(tq)] = tq
+    S = np.array([s.B - s.A for s in model.springs], float).reshape(-1, d, n + 1)
+    spr = np.array([[s.k, s.c, s.l0] for s in model.springs], float).reshape(-1, 3)
+    return pack_forces(model.Q0, None, np.concatenate(G), np.array(toff), tau, S, spr)
 
 
 def _is_spd(M: np.ndarray) -> bool:
@@ -233,22 +254,32 @@ class Index1(Formulation):
         return y[:self.n], y[self.n:]
 
     def compiled_candidate(self, method: str, h) -> bool:
-        """Whether the compiled loop may run (decided before ``init``; ``compiled_ready``
-        after it also needs the Schur mode)."""
+        """Whether the compiled loop may run (decided before ``init``): adaptive dop853 or
+        dopri5, projection, scleronomic constraints, forces :func:`compiled_forces` knows.
+        Either linear-algebra mode runs compiled (Schur, or the null-space QR form)."""
         from . import kernels
-        return (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and h is None
-                and method in self.COMPILED_METHODS and self.Minv is not None
-                and self.opt["stabilization"] == "projection" and not self.cs.rheonomic
-                and self.opt["linsolve"] in ("auto", "schur")
-                and callable(getattr(self.model, "forces", None))
-                and hasattr(self.model, "Q0") and hasattr(self.model, "T")
-                and _forces_are_linear(self.model))
+        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and h is None
+                and method in self.COMPILED_METHODS
+                and self.opt["stabilization"] == "projection" and not self.cs.rheonomic):
+            return False
+        if not hasattr(self, "_frc"):
+            self._frc = compiled_forces(self.model)
+        return self._frc is not None
+
+    def compiled_ready(self) -> bool:
+        """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
+        ``schur`` and ``qr`` have a compiled path (``integrate`` gates on this)."""
+        return self.mode in ("schur", "qr")
 
     def run_compiled(self, times, y, method, rtol, atol):
-        """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) at ``times``."""
+        """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``,
+        in the mode ``init`` chose (Schur with M^-1, or the QR null-space form with M)."""
         from . import kernels
-        return kernels.run(method, self.cs.con, self.Minv, self.model.Q0, self.model.T,
-                           times, y[:self.n], y[self.n:], rtol=rtol, atol=atol,
+        if not hasattr(self, "_frc"):
+            self._frc = compiled_forces(self.model)
+        return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
+                           Minv=self.Minv if self.mode == "schur" else None, M=self.M,
+                           rank_tol=self.opt["rank_tol"], rtol=rtol, atol=atol,
                            ptol=self.opt["project_tol"], cnt=self.cnt)
 
     def rhs(self, t, y):
@@ -342,24 +373,34 @@ class Maggi(Formulation):
         self.rows, self.dep, self.indep, _ = full_pivot_partition(J, self.opt["rank_tol"])
         self.f = len(self.indep)
         self.cnt.factorizations += 1
-        self.R0 = None
+        self.R0 = self.R_last = None
 
     def _positions(self, t, qi):
-        """Dependent coordinates by Newton on the independent rows: q (n,)."""
+        """Dependent coordinates by Newton on the independent rows: q (n,), started from
+        the last solution moved along R and the rheonomic velocity S b (steps may be long).
+
+        Raises StepFailure when Newton diverges: the step was too long.
+        """
         q = self.q.copy()
+        if self.R_last is not None:  # None right after a (re-)partition
+            q += self.R_last @ (qi - q[self.indep]) + (t - self.tq) * self.sb
         q[self.indep] = qi
-        cs, rows, dep = self.cs, self.rows, self.dep
+        cs, rows, dep, tol = self.cs, self.rows, self.dep, self.opt["newton_tol"]
+        size = max(float(np.ptp(self.q)), 1e-300)
         for _ in range(20):
             p = cs.phi(q, t)[rows]
-            if np.max(np.abs(p), initial=0.0) < self.opt["newton_tol"]:
+            if np.max(np.abs(p), initial=0.0) < tol:
                 break
             J = cs.jacobian(q, t)
-            q[dep] -= np.linalg.solve(J[np.ix_(rows, dep)], p)
+            dq = np.linalg.solve(J[np.ix_(rows, dep)], p)
+            q[dep] -= dq
             self.cnt.newton += 1
             self.cnt.factorizations += 1
+            if np.max(np.abs(dq)) < tol * 10 * max(1.0, size):  # round-off reached
+                break
         else:
-            raise RuntimeError(f"maggi: position Newton did not converge at t = {t:.6g} s "
-                               f"(max |Phi| = {np.max(np.abs(p)):.3g})")
+            raise StepFailure(f"maggi: position Newton did not converge at t = {t:.6g} s "
+                              f"(max |Phi| = {np.max(np.abs(p)):.3g})")
         self.q = q
         return q
 
@@ -375,7 +416,10 @@ class Maggi(Formulation):
         R = np.zeros((n, f))
         R[self.dep], R[self.indep] = Rd, np.eye(f)
         qd = R @ y[f:]
-        qd[self.dep] += Jd_inv @ (-pt[self.rows])  # S b, Eq. (20)
+        sb = np.zeros(n)
+        sb[self.dep] = Jd_inv @ (-pt[self.rows])  # S b, Eq. (20)
+        qd += sb
+        self.R_last, self.sb, self.tq = R, sb, t  # the next Newton's predictor
         c = self.cs.gamma(q, qd, t)[self.rows]
         Sc = np.zeros(n)
         Sc[self.dep] = Jd_inv @ c  # Eq. (22) with qdd^i = 0

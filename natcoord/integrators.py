@@ -4,16 +4,17 @@
 ``dopri5``       Dormand-Prince 5(4): adaptive (rtol, atol) or fixed step (order 5); the
                  formulation's ``post_step`` (projection, re-partitioning) runs after every
                  accepted step, so k1 is re-evaluated at the corrected state (no FSAL)
-``dop853``       Dormand-Prince 8(5,3), adaptive; on index1 with projection, a regular M and
-                 no drivers the whole run is one compiled kernel (:mod:`natcoord.kernels`):
-                 steps cross the output samples, which come from the method's continuous
-                 extension (order 7), projected. Elsewhere the Python loop below runs it.
+``dop853``       Dormand-Prince 8(5,3), adaptive; on index1 the whole run is one compiled
+                 kernel (:mod:`natcoord.kernels`) when the model allows, else the Python
+                 loop below runs it.
 ``trapezoidal``  the index-3 formulation's own implicit step (order 2), fixed step
 scipy names      (``DOP853``, ``RK45``, ``Radau``, ``LSODA``, ``BDF``): ``solve_ivp`` between
                  output samples, ``post_step`` at each sample only
 
-In this Python loop, steps are clipped to land on every output time, so no interpolation
-enters the samples; the compiled loop of :mod:`natcoord.kernels` interpolates instead.
+Adaptive steps cross the output samples (in this loop as in the compiled one): a sample
+inside a step comes from the method's continuous extension (dopri5: order 4, dop853: order
+7), projected like a step end on index1 (Maggi rebuilds its dependent coordinates). Fixed
+steps are shortened to land on every sample instead.
 """
 
 from __future__ import annotations
@@ -22,6 +23,8 @@ import math
 
 import numpy as np
 from scipy.integrate import solve_ivp
+
+from .errors import StepFailure
 
 
 class ExplicitRK:
@@ -37,13 +40,24 @@ class ExplicitRK:
     @classmethod
     def step(cls, f, t, y, h):
         """One step: (y_new, error estimate or None)."""
+        y_new, err, _ = cls.stages(f, t, y, h)
+        return y_new, err
+
+    @classmethod
+    def stages(cls, f, t, y, h):
+        """One step: (y_new, error estimate or None, stages K (s, N))."""
         s = len(cls.B)
         K = np.empty((s, len(y)))
         for i in range(s):
             K[i] = f(t + cls.C[i] * h, y + h * (cls.A[i, :i] @ K[:i]))
         y_new = y + h * (cls.B @ K)
         err = h * (cls.E @ K) if cls.E is not None else None
-        return y_new, err
+        return y_new, err, K
+
+    @classmethod
+    def dense(cls, f, t, y, y_new, h, K):
+        """Continuous extension on the step: a function x in [0, 1] -> y(t + x h)."""
+        return None
 
 
 class RK4(ExplicitRK):
@@ -67,6 +81,14 @@ class DormandPrince5(ExplicitRK):
     B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
     E = B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200,
                       187 / 2100, 1 / 40])
+    from scipy.integrate._ivp.rk import RK45 as _RK45
+    P = np.array(_RK45.P, float)  # Hairer's order-4 dense output (stage 7 = f at y_new)
+    del _RK45
+
+    @classmethod
+    def dense(cls, f, t, y, y_new, h, K):
+        Q = K.T @ cls.P
+        return lambda x: y + h * (Q @ (x ** np.arange(1, 5)))
 
 
 class DormandPrince853(ExplicitRK):
@@ -84,13 +106,31 @@ class DormandPrince853(ExplicitRK):
                 np.array(d.E3, float))
 
     @classmethod
-    def step(cls, f, t, y, h):
-        """One step: (y_new, (h E5 K, h E3 K)) for Hairer's combined error norm."""
+    def stages(cls, f, t, y, h):
+        """One step: (y_new, (h E5 K, h E3 K), K (13, N)) for Hairer's error norm."""
         A, B, C, E5, E3 = cls.TABLEAU
         K = np.empty((13, len(y)))
         for i in range(13):
             K[i] = f(t + C[i] * h, y + h * (A[i, :i] @ K[:i]))
-        return y + h * (B @ K), (h * (E5 @ K), h * (E3 @ K))
+        return y + h * (B @ K), (h * (E5 @ K), h * (E3 @ K)), K
+
+    @classmethod
+    def dense(cls, f, t, y, y_new, h, K):
+        """Order-7 continuous extension: three more stages (Hairer's CONTD8)."""
+        from scipy.integrate._ivp import dop853_coefficients as d
+        K = np.vstack([K, np.empty((3, len(y)))])
+        for s in range(13, 16):
+            K[s] = f(t + d.C[s] * h, y + h * (d.A[s, :s] @ K[:s]))
+        dy = y_new - y
+        F = np.vstack([dy, h * K[0] - dy, 2 * dy - h * (K[12] + K[0]), h * (d.D @ K)])
+
+        def at(x):
+            out = np.zeros_like(y)
+            for i, Fi in enumerate(F[::-1]):
+                out += Fi
+                out *= x if i % 2 == 0 else 1 - x
+            return y + out
+        return at
 
 
 DormandPrince853.TABLEAU = DormandPrince853._tableau()
@@ -111,7 +151,7 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
     """Advance ``y`` through ``times`` (T,), calling ``record(k, t, y)`` at every sample.
 
     Fixed step when ``h`` is given (steps of at most h that land on each sample), adaptive
-    otherwise (dopri5 and the scipy methods).
+    otherwise (dopri5, dop853 and the scipy methods).
     """
     cnt = form.cnt
     if method not in INTEGRATORS:
@@ -124,6 +164,13 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
     if method in ("rk4", "trapezoidal") and h is None:
         raise ValueError(f"{method} is a fixed-step method: give h")
     record(0, times[0], y)
+    if len(y) == 0:  # no degrees of freedom left: kinematics at every sample
+        for k in range(1, len(times)):
+            record(k, times[k], y)
+        return
+    if h is None and method not in SCIPY_METHODS:
+        _adaptive(form, INTEGRATORS[method], y, times, rtol, atol, record)
+        return
     h_adapt = None
     for k in range(1, len(times)):
         t0, t1 = float(times[k - 1]), float(times[k])
@@ -136,7 +183,7 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
             cnt.steps += len(sol.t) - 1
             h_adapt = float(sol.t[-1] - sol.t[-2]) if len(sol.t) > 1 else None
             y = form.post_step(t1, sol.y[:, -1])
-        elif h is not None:
+        else:
             nsub = max(1, math.ceil((t1 - t0) / h - 1e-9))
             hh = (t1 - t0) / nsub
             for i in range(nsub):
@@ -146,42 +193,82 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
                     RK4.step(form.rhs, t, y, hh)[0]
                 y = form.post_step(t + hh, y)
                 cnt.steps += 1
-        else:
-            y, h_adapt = _adaptive(form, INTEGRATORS[method], y, t0, t1, h_adapt, rtol, atol)
         record(k, t1, y)
 
 
-def _adaptive(form, rk, y, t0, t1, h, rtol, atol):
-    """Embedded-pair step control from t0 to t1; returns (y, last unclipped step)."""
+def _sample_projection(form):
+    """How an interpolated sample is corrected: index1 projects it like a step end (its
+    ``post_step``); Maggi's state already rebuilds the dependent coordinates, and its
+    ``post_step`` may re-partition, which a sample must not do."""
+    return form.post_step if form.name == "index1" else (lambda t, y: y)
+
+
+def _adaptive(form, rk, y, times, rtol, atol, record):
+    """Embedded-pair step control over ``times``; steps cross the samples, which come from
+    the method's continuous extension."""
     cnt, f = form.cnt, form.rhs
-    if h is None:  # Hairer's first guess from |y| and |f|
-        f0 = f(t0, y)
-        scale = atol + rtol * np.abs(y)
-        d0, d1 = _rms(y / scale), _rms(f0 / scale)
-        h = 1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1
-    t, h_last = t0, h
-    while t < t1 - 1e-14 * max(1.0, abs(t1)):
-        hh = min(h, t1 - t)
-        y_new, err = rk.step(f, t, y, hh)
+    at_sample = _sample_projection(form)
+    t, t_end, k = float(times[0]), float(times[-1]), 1
+    f0 = f(t, y)  # Hairer's first guess from |y| and |f|
+    scale = atol + rtol * np.abs(y)
+    d0, d1 = _rms(y / scale), _rms(f0 / scale)
+    h = min(1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1, t_end - t)
+    expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
+    while k < len(times):
+        hh = min(h, t_end - t)
+        try:
+            y_new, err, K = rk.stages(f, t, y, hh)
+        except StepFailure:
+            if hh < 1e-14 * max(1.0, abs(t)) * 1e4:
+                raise
+            cnt.rejected += 1
+            h = 0.25 * hh
+            continue
         scale = atol + rtol * np.maximum(np.abs(y), np.abs(y_new))
         if isinstance(err, tuple):  # DOP853: Hairer's combination of the 5th and 3rd order
             e5, e3 = float(np.sum((err[0] / scale) ** 2)), float(np.sum((err[1] / scale) ** 2))
             e = 0.0 if e5 == 0.0 and e3 == 0.0 else e5 / math.sqrt((e5 + 0.01 * e3) * len(y))
         else:
             e = _rms(err / scale)
-        if e <= 1.0:
-            t += hh
-            y = form.post_step(t, y_new)
-            cnt.steps += 1
-            if hh == h:
-                h_last = h
-            expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
-            factor = MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** expo)
-            h = hh * factor if hh == h else max(h, hh * factor)
-        else:
+        if not math.isfinite(e):
+            raise RuntimeError(f"non-finite state at t = {t:.6g} s")
+        if e > 1.0:
             cnt.rejected += 1
-            expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
             h = hh * max(MIN_FACTOR, SAFETY * e ** expo)
             if h < 1e-14 * max(1.0, abs(t)):
-                raise RuntimeError(f"step size underflow at t = {t:.6g} s")
-    return y, h_last
+                raise RuntimeError(_underflow_message(form, t, y))
+            continue
+        t1 = t_end if hh == t_end - t else t + hh
+        tol_t = 1e-13 * max(1.0, abs(t1))
+        inner = None
+        while k < len(times) and times[k] < t1 - tol_t:  # samples inside the step
+            inner = inner or rk.dense(f, t, y, y_new, hh, K)
+            record(k, float(times[k]), at_sample(float(times[k]), inner((times[k] - t) / hh)))
+            k += 1
+        t, y = t1, form.post_step(t1, y_new)
+        cnt.steps += 1
+        if k < len(times) and times[k] <= t1 + tol_t:
+            record(k, float(times[k]), y)
+            k += 1
+        h = hh * (MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** expo))
+
+
+def _underflow_message(form, t, y) -> str:
+    """Step size underflow, with the nearness of a singular position when that is why."""
+    msg = f"step size underflow at t = {t:.6g} s"
+    try:
+        q, _ = form.state(t, y)
+        s = np.linalg.svd(form.cs.jacobian(q, t), compute_uv=False)
+    except Exception:  # the message must not hide the failure
+        return msg
+    if len(s) == 0 or s[0] == 0:
+        return msg
+    tol = form.opt.get("rank_tol", 1e-9) * s[0]
+    live = s[s > tol]
+    ratio = float(live[-1] / s[0]) if len(live) else 0.0
+    if ratio < 1e-2:
+        msg += (f": the mechanism is at or near a singular position (the smallest non-zero "
+                f"singular value of Phi_q is {ratio:.1e} of the largest), where constraint "
+                "forces go through infinity and adaptive error control cannot pass; use a "
+                "fixed step (method='rk4' with h) or a looser rtol")
+    return msg

@@ -2,25 +2,33 @@
 
 One call integrates the whole run: an embedded explicit Runge-Kutta pair (Dormand-Prince
 8(5,3) ``dop853`` or 5(4) ``dopri5``) with adaptive steps that cross the output samples,
-position/velocity projection after every accepted step, and samples produced by quintic
-Hermite interpolation of q from (q, qd, qdd) at both step ends (qd from its derivative),
-projected onto Phi = 0, Phi_q qd = 0, with qdd from the equations of motion there.
+position/velocity projection after every accepted step, and samples from dop853's
+continuous extension (order 7) or, for dopri5, quintic Hermite interpolation of q from
+(q, qd, qdd) at both step ends, projected onto Phi = 0, Phi_q qd = 0, with qdd from the
+equations of motion there.
 
 Kernels take plain arrays only: the constraint triplets ``k, i, j, v`` over qh = [q, 1]
-(:class:`~natcoord.constraints.QuadraticConstraints`), the constant inverse mass matrix
-``Minv`` (n, n), the applied forces ``Q = Q0 + T q``. Scleronomic constraints of full row
-rank and a regular M only (the Schur complement ``W = Phi_q M^-1 Phi_q^T`` is factored by
-Cholesky once per evaluation); everything else runs in the Python loop.
+(:class:`~natcoord.constraints.QuadraticConstraints`), scleronomic only, and the applied
+forces packed by :func:`pack_forces` (``Q0 + T q``, torques, spring-dampers). Two linear
+algebra paths share the loop, compiled apart (the general work arrays ``wg`` or None):
+the Schur path for a regular M, constraints of full row rank and forces Q0 + T q, with the
+constant ``Minv`` (n, n) and ``W = Phi_q M^-1 Phi_q^T`` (Cholesky once per evaluation,
+M-orthogonal projections); the general path (singular M, redundant rows, torques, springs)
+with the rank-revealing QR of :mod:`natcoord.kernels_general` (null-space form of Eq. (6),
+min-norm projections), as ``Index1`` in its ``qr`` mode. Units: SI (m, s, kg, N).
 
-numba compiles once per machine (``cache=True``, a few seconds); :func:`ensure_compiled`
-does it (or loads the cache) and returns the time it took, so callers keep it out of the
-stepping time.
+numba compiles once per machine (``cache=True``; about 30 s cold, both paths, 0.3 s to load
+the cache); :func:`ensure_compiled` does it and returns the time it took, so callers keep it
+out of the stepping time.
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 import time
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -37,13 +45,41 @@ except ImportError:  # pragma: no cover - numba is a dependency, but stay import
             return args[0]
         return lambda f: f
 
-# counter slots of the ``cnt`` array
-C_STEPS, C_REJ, C_RHS, C_FACT, C_PROJ, C_NEWTON, C_PHI, C_PHID = range(8)
-N_COUNTERS = 8
-# status codes
-OK, ERR_UNDERFLOW, ERR_SINGULAR, ERR_NEWTON, ERR_MAXSTEPS, ERR_NONFINITE = range(6)
+from . import kernels_general
+from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-exported
+    C_FACT,
+    C_NEWTON,
+    C_PHI,
+    C_PHID,
+    C_PROJ,
+    C_REJ,
+    C_RHS,
+    C_STEPS,
+    ERR_MASS,
+    ERR_MAXSTEPS,
+    ERR_NEWTON,
+    ERR_NONFINITE,
+    ERR_SINGULAR,
+    ERR_UNDERFLOW,
+    N_COUNTERS,
+    OK,
+    _chol_solve,
+    _gamma,
+    _jac,
+    _phi,
+    _schur,
+    _sub_matvec,
+    acc_general,
+    as_f64,
+    forces,
+    pack_forces,
+    project_general,
+    workspace,
+)
+
 STATUS_TEXT = {ERR_UNDERFLOW: "step size underflow",
                ERR_SINGULAR: "Phi_q M^-1 Phi_q^T is singular (constraints lost rank)",
+               ERR_MASS: "M is singular on ker Phi_q (ker M and ker Phi_q meet, Eq. (37))",
                ERR_NEWTON: "position projection did not converge",
                ERR_MAXSTEPS: "too many steps",
                ERR_NONFINITE: "non-finite state"}
@@ -78,92 +114,10 @@ def _tableau_dopri5():
 TABLEAUX = {"dop853": _tableau_dop853(), "dopri5": _tableau_dopri5()}
 
 
-# ---- model pieces -----------------------------------------------------------------------
-@njit(cache=True)
-def _phi(kk, ii, jj, vv, m, q, out):
-    n = q.shape[0]
-    for r in range(m):
-        out[r] = 0.0
-    for t in range(kk.shape[0]):
-        a = q[ii[t]] if ii[t] < n else 1.0
-        b = q[jj[t]] if jj[t] < n else 1.0
-        out[kk[t]] += 0.5 * vv[t] * a * b
-
-
-@njit(cache=True)
-def _jac(kk, ii, jj, vv, q, J):
-    n = q.shape[0]
-    J[:, :] = 0.0
-    for t in range(kk.shape[0]):
-        if ii[t] < n:
-            b = q[jj[t]] if jj[t] < n else 1.0
-            J[kk[t], ii[t]] += vv[t] * b
-
-
-@njit(cache=True)
-def _gamma(kk, ii, jj, vv, qd, c):
-    """c = -qd^T H_k qd (velocity part of the acceleration constraints)."""
-    n = qd.shape[0]
-    c[:] = 0.0
-    for t in range(kk.shape[0]):
-        if ii[t] < n and jj[t] < n:
-            c[kk[t]] -= vv[t] * qd[ii[t]] * qd[jj[t]]
-
-
-@njit(cache=True)
-def _schur(J, Minv, MiJt, L):
-    """MiJt = M^-1 J^T (n, m); L = Cholesky factor of W = J MiJt (m, m). False if singular."""
-    m, n = J.shape
-    for a in range(n):
-        for r in range(m):
-            s = 0.0
-            for b in range(n):
-                s += Minv[a, b] * J[r, b]
-            MiJt[a, r] = s
-    for r in range(m):
-        for c in range(r + 1):
-            s = 0.0
-            for a in range(n):
-                s += J[r, a] * MiJt[a, c]
-            L[r, c] = s
-    # in-place Cholesky (lower)
-    scale = 0.0
-    for r in range(m):
-        scale = max(scale, abs(L[r, r]))
-    for r in range(m):
-        s = L[r, r]
-        for p in range(r):
-            s -= L[r, p] * L[r, p]
-        if not s > 1e-14 * scale:
-            return False
-        d = math.sqrt(s)
-        L[r, r] = d
-        for c in range(r + 1, m):
-            s2 = L[c, r]
-            for p in range(r):
-                s2 -= L[c, p] * L[r, p]
-            L[c, r] = s2 / d
-    return True
-
-
-@njit(cache=True)
-def _chol_solve(L, b):
-    m = b.shape[0]
-    for r in range(m):
-        s = b[r]
-        for p in range(r):
-            s -= L[r, p] * b[p]
-        b[r] = s / L[r, r]
-    for r in range(m - 1, -1, -1):
-        s = b[r]
-        for p in range(r + 1, m):
-            s -= L[p, r] * b[p]
-        b[r] = s / L[r, r]
-
-
+# ---- one evaluation: the Schur path, and the dispatch to the general one ----------------
 @njit(cache=True)
 def _acc(kk, ii, jj, vv, Minv, Q0, T, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, cnt):
-    """qdd of Eq. (6) by the Schur complement; False if W is singular."""
+    """qdd of Eq. (6) by the Schur complement, forces F in w_n; False if W is singular."""
     n = q.shape[0]
     m = J.shape[0]
     cnt[C_RHS] += 1
@@ -194,16 +148,6 @@ def _acc(kk, ii, jj, vv, Minv, Q0, T, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, cn
             s -= MiJt[a, r] * w_m[r]
         qdd[a] = s
     return True
-
-
-@njit(cache=True)
-def _sub_matvec(A, w, x):
-    """x -= A @ w (the mass-weighted correction M^-1 Phi_q^T w of a projection)."""
-    for a in range(A.shape[0]):
-        s = 0.0
-        for r in range(A.shape[1]):
-            s += A[a, r] * w[r]
-        x[a] -= s
 
 
 @njit(cache=True)
@@ -292,16 +236,20 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 
 @njit(cache=True)
-def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, ptol,
+def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, ptol,
                A, B, C, E5, E3, order, dop853, Aext, Cext, D, max_steps, Q, QD, QDD, cnt):
     """Adaptive embedded RK over ``times`` from a consistent (q0, qd0) at times[0].
 
-    Fills Q, QD, QDD (T, n) and cnt (N_COUNTERS,); returns a status code (0 = ok), with
-    the failing time in cnt[...] left to the caller via the filled samples.
+    ``wg``: None for the Schur path, else the general path's work arrays
+    (:func:`kernels_general.workspace`); ``lin`` = (Minv (n, n), M (n, n), rank_tol): Minv
+    for the Schur path, M and rank_tol for the general one; ``frc``: :func:`pack_forces`.
+    Fills Q, QD, QDD (T, n) and cnt (N_COUNTERS,); returns a status code (0 = ok).
     """
     n = q0.shape[0]
     N = 2 * n
     s_st = B.shape[0]
+    Minv, M, rank_tol = lin
+    Q0, T = frc[0], frc[1]
     J = np.zeros((m, n))
     MiJt = np.zeros((n, m))
     L = np.zeros((m, m))
@@ -325,9 +273,14 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    if not _acc(kk, ii, jj, vv, Minv, Q0, T, y[:n], y[n:], qdd, J, MiJt, L, w_m, w_m2,
-                w_n, cnt):
-        return ERR_SINGULAR
+    if wg is None:  # the Schur path (numba compiles the two paths apart)
+        if not _acc(kk, ii, jj, vv, Minv, Q0, T, y[:n], y[n:], qdd, J, MiJt, L, w_m, w_m2,
+                    w_n, cnt):
+            return ERR_SINGULAR
+    else:
+        st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, y[:n], y[n:], qdd, wg, cnt)
+        if st_code != OK:
+            return st_code
     f0[:n] = y[n:]
     f0[n:] = qdd
     Q[0] = y[:n]
@@ -365,9 +318,15 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
             if st == s_st - 1:
                 yn[:] = ys
             K[st, :n] = ys[n:]
-            if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L, w_m,
-                        w_m2, w_n, cnt):
-                return ERR_SINGULAR
+            if wg is None:  # the Schur path (numba compiles the two paths apart)
+                if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L, w_m,
+                            w_m2, w_n, cnt):
+                    return ERR_SINGULAR
+            else:
+                st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, ys[:n], ys[n:], qdd, wg,
+                                      cnt)
+                if st_code != OK:
+                    return st_code
             K[st, n:] = qdd
         # error norm
         if dop853:
@@ -418,9 +377,15 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
                             s += hh * Aext[e, p] * K[p, a]
                     ys[a] = s
                 K[st, :n] = ys[n:]
-                if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L,
-                            w_m, w_m2, w_n, cnt):
-                    return ERR_SINGULAR
+                if wg is None:  # the Schur path (numba compiles the two paths apart)
+                    if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L,
+                                w_m, w_m2, w_n, cnt):
+                        return ERR_SINGULAR
+                else:
+                    st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, ys[:n], ys[n:], qdd, wg,
+                                      cnt)
+                    if st_code != OK:
+                        return st_code
                 K[st, n:] = qdd
             for a in range(N):
                 dy = yn[a] - y[a]
@@ -432,12 +397,20 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
                     for p in range(s_st + n_ext):
                         s += D[r, p] * K[p, a]
                     Fd[3 + r, a] = hh * s
-        st_code = _project(kk, ii, jj, vv, Minv, yn[:n], yn[n:], ptol, J, MiJt, L, w_m, cnt)
+        if wg is None:
+            st_code = _project(kk, ii, jj, vv, Minv, yn[:n], yn[n:], ptol, J, MiJt, L, w_m, cnt)
+        else:
+            st_code = project_general(kk, ii, jj, vv, rank_tol, yn[:n], yn[n:], ptol, wg, cnt)
         if st_code != OK:
             return st_code
-        if not _acc(kk, ii, jj, vv, Minv, Q0, T, yn[:n], yn[n:], qdd, J, MiJt, L, w_m,
-                    w_m2, w_n, cnt):
-            return ERR_SINGULAR
+        if wg is None:  # the Schur path (numba compiles the two paths apart)
+            if not _acc(kk, ii, jj, vv, Minv, Q0, T, yn[:n], yn[n:], qdd, J, MiJt, L, w_m, w_m2,
+                        w_n, cnt):
+                return ERR_SINGULAR
+        else:
+            st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, yn[:n], yn[n:], qdd, wg, cnt)
+            if st_code != OK:
+                return st_code
         f1[:n] = yn[n:]
         f1[n:] = qdd
         nsteps += 1
@@ -463,13 +436,20 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = _project(kk, ii, jj, vv, Minv, qs, qds, ptol, J, MiJt, L, w_m,
-                                   cnt)
+                if wg is None:
+                    st_code = _project(kk, ii, jj, vv, Minv, qs, qds, ptol, J, MiJt, L, w_m, cnt)
+                else:
+                    st_code = project_general(kk, ii, jj, vv, rank_tol, qs, qds, ptol, wg, cnt)
                 if st_code != OK:
                     return st_code
-                if not _acc(kk, ii, jj, vv, Minv, Q0, T, qs, qds, qdd, J, MiJt, L, w_m,
-                            w_m2, w_n, cnt):
-                    return ERR_SINGULAR
+                if wg is None:  # the Schur path (numba compiles the two paths apart)
+                    if not _acc(kk, ii, jj, vv, Minv, Q0, T, qs, qds, qdd, J, MiJt, L, w_m, w_m2,
+                                w_n, cnt):
+                        return ERR_SINGULAR
+                else:
+                    st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, qs, qds, qdd, wg, cnt)
+                    if st_code != OK:
+                        return st_code
                 Q[k_out] = qs
                 QD[k_out] = qds
                 QDD[k_out] = qdd
@@ -483,64 +463,82 @@ def run_index1(kk, ii, jj, vv, m, Minv, Q0, T, times, q0, qd0, rtol, atol, h0, p
 
 
 # ---- compile / load once ----------------------------------------------------------------
+def _drop_stale_cache(namespace: dict, module: str) -> None:
+    """numba compiles callees into the cached code of their callers but checks only the
+    caller's file for changes: flush the cache of every compiled function of ``module``
+    (its ``namespace``) when :mod:`natcoord.kernels_general` changed since it was written."""
+    try:
+        disp = [v for v in namespace.values() if getattr(v, "_cache", None) is not None
+                and getattr(v, "py_func", None) is not None and v.py_func.__module__ == module]
+        sha = hashlib.sha1(Path(kernels_general.__file__).read_bytes()).hexdigest()
+        stamp = Path(disp[0]._cache.cache_path) / f"{module}.deps.sha1"
+        if stamp.exists() and stamp.read_text() == sha:
+            return
+        for d in disp:
+            d._cache.flush()
+        stamp.write_text(sha)
+    except (OSError, IndexError, AttributeError):  # caching only saves compile time
+        pass
+
+
+_drop_stale_cache(globals(), __name__)
 _READY = False
 COMPILE_TIME_S = 0.0
 
 
 def ensure_compiled() -> float:
-    """Compile (or load from numba's cache) the kernels by one tiny run; returns the seconds
-    this call took (0 when already done in this process)."""
+    """Compile (or load from numba's cache) the kernels by tiny runs of both paths; returns
+    the seconds this call took (0 when already done in this process)."""
     global _READY, COMPILE_TIME_S
     if _READY or not HAVE_NUMBA:
         return 0.0
     t0 = time.perf_counter()
     # a pendulum particle on a unit circle: n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2
-    kk = np.zeros(3, np.int64)
-    ii = np.array([0, 1, 2], np.int64)
-    jj = np.array([0, 1, 2], np.int64)
-    vv = np.array([1.0, 1.0, -1.0])
-    Minv = np.eye(2)
-    Q0 = np.array([0.0, -9.81])
-    T = np.zeros((2, 2))
-    times = np.linspace(0.0, 0.02, 3)
+    con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
+                          v=np.array([1.0, 1.0, -1.0]), m=1)
+    frc = pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
     for name in ("dop853", "dopri5"):
-        A, B, C, E5, E3, order, Aext, Cext, D = TABLEAUX[name]
-        Q, QD, QDD = np.zeros((3, 2)), np.zeros((3, 2)), np.zeros((3, 2))
-        cnt = np.zeros(N_COUNTERS)
-        run_index1(kk, ii, jj, vv, 1, Minv, Q0, T, times, np.array([1.0, 0.0]), np.zeros(2),
-                   1e-6, 1e-8, 0.0, 1e-13, A, B, C, E5, E3, order, name == "dop853",
-                   Aext, Cext, D, 1000000, Q, QD, QDD, cnt)
+        for Minv in (np.eye(2), None):
+            run(name, con, frc, np.linspace(0.0, 0.02, 3), np.array([1.0, 0.0]), np.zeros(2),
+                Minv=Minv, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13, cnt=None)
     _READY = True
     COMPILE_TIME_S = time.perf_counter() - t0
     return COMPILE_TIME_S
 
 
-def run(name: str, con, Minv, Q0, T, times, q0, qd0, *, rtol, atol, ptol, cnt,
-        h0: float = 0.0, max_steps: int = 10_000_000):
-    """Integrate with the compiled loop; returns (Q, QD, QDD). Raises RuntimeError."""
+def run(name: str, con, frc, times, q0, qd0, *, Minv=None, M=None, rank_tol: float = 1e-9,
+        rtol, atol, ptol, cnt, h0: float = 0.0, max_steps: int = 10_000_000):
+    """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n). Raises RuntimeError.
+
+    ``frc`` from :func:`pack_forces`. ``Minv`` (n, n) selects the Schur path (whose forces
+    are Q0 + T q: with torques or springs the general path runs); the general path needs
+    ``M`` (n, n) and ``rank_tol`` (relative, on |R_kk| / |R_00|)."""
     A, B, C, E5, E3, order, Aext, Cext, D = TABLEAUX[name]
     Tn, n = len(times), len(q0)
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
+    if Minv is not None and (len(frc[3]) > 1 or len(frc[5]) > 0):
+        Minv, M = None, np.linalg.inv(Minv) if M is None else M
+    if Minv is not None and frc[1].shape != (n, n):  # the Schur path reads T (n, n)
+        frc = (frc[0], np.zeros((n, n))) + tuple(frc[2:])
+    wg = workspace(n, int(con.m)) if Minv is None else None
+    lin = (as_f64(np.zeros((0, 0)) if Minv is None else Minv, 2),
+           as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
     status = run_index1(np.ascontiguousarray(con.k, np.int64),
                         np.ascontiguousarray(con.i, np.int64),
                         np.ascontiguousarray(con.j, np.int64),
-                        np.ascontiguousarray(con.v, float), int(con.m),
-                        np.ascontiguousarray(Minv, float),
-                        np.ascontiguousarray(Q0, float), np.ascontiguousarray(T, float),
+                        np.ascontiguousarray(con.v, float), int(con.m), wg, lin, frc,
                         np.ascontiguousarray(times, float), np.array(q0, float),
                         np.array(qd0, float), float(rtol), float(atol), float(h0),
                         float(ptol), A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D,
-                        max_steps,
-                        Q, QD, QDD, c)
-    cnt.steps += int(c[C_STEPS])
-    cnt.rejected += int(c[C_REJ])
-    cnt.rhs += int(c[C_RHS])
-    cnt.factorizations += int(c[C_FACT])
-    cnt.projections += int(c[C_PROJ])
-    cnt.newton += int(c[C_NEWTON])
-    cnt.max_phi_step = max(cnt.max_phi_step, float(c[C_PHI]))
-    cnt.max_phi_dot_step = max(cnt.max_phi_dot_step, float(c[C_PHID]))
+                        max_steps, Q, QD, QDD, c)
+    if cnt is not None:
+        for slot, name_ in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),
+                            (C_FACT, "factorizations"), (C_PROJ, "projections"),
+                            (C_NEWTON, "newton")):
+            setattr(cnt, name_, getattr(cnt, name_) + int(c[slot]))
+        cnt.max_phi_step = max(cnt.max_phi_step, float(c[C_PHI]))
+        cnt.max_phi_dot_step = max(cnt.max_phi_dot_step, float(c[C_PHID]))
     if status != OK:
         raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)}")
     return Q, QD, QDD

@@ -21,9 +21,10 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from . import reactions
+from .builder3d import Builder
 from .dynamics import Solution, accelerations
 from .kinematics import State
-from .model3d import GROUND, Builder, NaturalModel, plate_second_moment, rod_second_moment
+from .model3d import GROUND, NaturalModel, plate_second_moment, rod_second_moment
 
 
 @dataclass(frozen=True)

@@ -6,9 +6,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from natcoord.builder3d import Builder
 from natcoord.model3d import (
     GROUND,
-    Builder,
     plate_second_moment,
     rod_second_moment,
     second_moment,

@@ -156,7 +156,7 @@ def test_work_precision_reports_each_natcoord_formulation_apart():
     from natcoord.suite import bench
 
     assert {bench.variant(s) for s in bench.SWEEPS["natcoord"]} == {
-        "index1 dop853", "index1 rk4", "maggi dopri5", "index3 trapezoidal"}
+        "index1 dop853", "index1 rk4", "maggi dop853", "index3 trapezoidal"}
     pts = [
         {"case": "c", "engine": "natcoord", "variant": "index1 dop853", "error": 5e-7,
          "wall_time_s": 2.0},

@@ -31,8 +31,8 @@ SWEEPS: dict[str, list[dict]] = {
     "natcoord": [{"formulation": "index1", "method": "dop853", "h": None, "rtol": r,
                   "atol": r * 1e-2} for r in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)]
     + [{"formulation": "index1", "method": "rk4", "h": h} for h in (4e-3, 2e-3, 1e-3, 5e-4)]
-    + [{"formulation": "maggi", "method": "dopri5", "h": None, "rtol": r, "atol": r * 1e-2}
-       for r in (1e-6, 1e-8, 1e-10)]
+    + [{"formulation": "maggi", "method": "dop853", "h": None, "rtol": r, "atol": r * 1e-2}
+       for r in (1e-6, 1e-8, 1e-10, 1e-11)]
     + [{"formulation": "index3", "method": "trapezoidal", "h": h}
        for h in (2e-3, 1e-3, 5e-4, 2.5e-4)],
     "mujoco": [{"dt": d, "solref_steps": 10} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],

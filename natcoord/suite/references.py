@@ -26,8 +26,8 @@ REFERENCE_SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
 CHECK_SETTINGS = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
 MODEL_SETTINGS = ("coordinates",)  # settings that choose the model, kept in the reference
 # A case may replace both with ``[engines.natcoord.settings] reference = {...}`` and
-# ``reference_check = {...}`` (five_bar: fixed steps through its singular positions, where
-# an adaptive step-size control stalls).
+# ``reference_check = {...}`` (five_bar: natcoord's own dop853, whose steps cross its
+# singular positions; at rtol 1e-12 the step control stalls there).
 
 
 def load_reference(case: str, directory: Path) -> pd.DataFrame | None:
@@ -40,14 +40,20 @@ def load_provenance(case: str, directory: Path) -> dict | None:
     return read_json(path) if path.exists() else None
 
 
+def _describe(settings: dict) -> str:
+    """'dop853 rtol 1e-11' or 'rk4 h 0.0001 s'."""
+    return f"{settings['method']} " + (f"h {settings['h']} s" if settings.get("h") else
+                                       f"rtol {settings['rtol']}")
+
+
 def update_reference(case: Case, directory: Path) -> dict:
     """Recompute and store the reference of one case; returns its provenance."""
     init = initial_body_states(case)
     own = case.engine("natcoord").settings
     model_settings = {k: v for k, v in own.items() if k in MODEL_SETTINGS}
     best = natcoord_run(case, init, model_settings | own.get("reference", REFERENCE_SETTINGS))
-    check = natcoord_run(case, init, model_settings | own.get("reference_check",
-                                                              CHECK_SETTINGS))
+    check_settings = own.get("reference_check", CHECK_SETTINGS)
+    check = natcoord_run(case, init, model_settings | check_settings)
     table = evaluate_channels(case, best.motion)
     check_table = evaluate_channels(case, check.motion)
     estimate = {c.name: float(np.nanmax(np.abs(table[c.name] - check_table[c.name])))
@@ -56,13 +62,11 @@ def update_reference(case: Case, directory: Path) -> dict:
         "case": case.name,
         "case_file": Path(case.file).name,
         "method": "natcoord index-1 Lagrange (Eq. (6)), least-squares projection of q and "
-                  f"qd, {best.settings['method']} "
-                  + (f"h {best.settings['h']} s" if best.settings.get("h") else
-                     f"rtol {best.settings['rtol']}"),
+                  f"qd, {_describe(best.settings)}",
         "settings": best.settings,
         "estimated_error": estimate,
-        "estimated_error_method": "max |reference - run at rtol 1e-10| per channel "
-                                  "(an upper bound of the reference's own error)",
+        "estimated_error_method": f"max |reference - run with {_describe(check_settings)}| "
+                                  "per channel (an upper bound of the reference's own error)",
         "counters": best.counters,
         "undetermined": best.counters.get("undetermined", []),
         "undetermined_method": "channels that lambda + s N c changes (N = ker Phi_q^T at "
