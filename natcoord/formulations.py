@@ -496,12 +496,40 @@ class Index3(Formulation):
         return self._last_qdd
 
     def step(self, t, y, h):
+        """One trapezoidal step. When Newton fails (near a singular position, where the
+        multipliers grow without bound) the step is retried with the penalty x100, up to
+        1e10 x max|M|; counted in ``rejected``."""
+        q0, qd0, qdd0, _ = self._split(y)
+        t1, cs = t + h, self.cs
+        penalty = self.opt["penalty"]
+        while True:
+            beta = penalty * self.mscale  # alpha h^2 / 4
+            qhat = q0 + h * qd0 + 0.25 * h * h * qdd0
+            res = self._newton(t1, y, h, qhat, beta)
+            if res is not None:
+                break
+            if penalty >= 1e10:
+                raise RuntimeError(f"index3: Newton did not converge at t = {t1:.6g} s")
+            penalty *= 100.0
+            self.cnt.rejected += 1
+        q, lam = res
+        qdd = 4.0 / (h * h) * (q - qhat)
+        qd = qd0 + 0.5 * h * (qdd0 + qdd)
+        self._drift(t1, q, qd)
+        J = cs.jacobian(q, t1)
+        Pinv = np.linalg.inv(self.M + beta * (J.T @ J))
+        self.cnt.factorizations += 1
+        qd = self._mproject(Pinv, J, beta, qd, -cs.phi_t(q, t1))
+        qdd = self._mproject(Pinv, J, beta, qdd, cs.gamma(q, qd, t1))
+        self.cnt.projections += 1
+        self._last_qdd = qdd
+        return np.concatenate([q, qd, qdd, lam])
+
+    def _newton(self, t1, y, h, qhat, beta):
+        """Newton on the augmented-Lagrangian step: (q, lambda*) or None when it fails."""
         q0, qd0, qdd0, lam = self._split(y)
         lam = lam.copy()
-        t1 = t + h
-        beta = self.opt["penalty"] * self.mscale  # alpha h^2 / 4
         alpha = 4.0 * beta / (h * h)
-        qhat = q0 + h * qd0 + 0.25 * h * h * qdd0
         q = q0 + h * qd0 + 0.5 * h * h * qdd0
         cs, con, n = self.cs, self.cs.con, self.n
         sel = (con.i < n) & (con.j < n)
@@ -521,21 +549,11 @@ class Index3(Formulation):
             self.cnt.newton += 1
             q = q + dq
             lam = lam + alpha * cs.phi(q, t1)
+            if not np.all(np.isfinite(q)):
+                return None
             if np.max(np.abs(dq)) < self.opt["newton_tol"] * 10 * max(1.0, np.max(np.abs(q))):
-                break
-        else:
-            raise RuntimeError(f"index3: Newton did not converge at t = {t1:.6g} s")
-        qdd = 4.0 / (h * h) * (q - qhat)
-        qd = qd0 + 0.5 * h * (qdd0 + qdd)
-        self._drift(t1, q, qd)
-        J = cs.jacobian(q, t1)
-        Pinv = np.linalg.inv(self.M + beta * (J.T @ J))
-        self.cnt.factorizations += 1
-        qd = self._mproject(Pinv, J, beta, qd, -cs.phi_t(q, t1))
-        qdd = self._mproject(Pinv, J, beta, qdd, cs.gamma(q, qd, t1))
-        self.cnt.projections += 1
-        self._last_qdd = qdd
-        return np.concatenate([q, qd, qdd, lam])
+                return q, lam
+        return None
 
     def _mproject(self, Pinv, J, beta, x, b):
         """argmin (x' - x)^T M (x' - x) subject to J x' = b, by augmented-Lagrangian sweeps
