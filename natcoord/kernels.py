@@ -236,6 +236,27 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 
 @njit(cache=True)
+def _accel(kk, ii, jj, vv, lin, frc, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, wg, cnt):
+    """qdd (n,) at (q, qd) on either path; returns a status code. ``wg`` None: the Schur
+    path (numba compiles the two apart)."""
+    if wg is None:
+        Minv = lin[0]
+        if not _acc(kk, ii, jj, vv, Minv, frc[0], frc[1], q, qd, qdd, J, MiJt, L, w_m, w_m2,
+                    w_n, cnt):
+            return ERR_SINGULAR
+        return OK
+    return acc_general(kk, ii, jj, vv, lin[1], lin[2], frc, q, qd, qdd, wg, cnt)
+
+
+@njit(cache=True)
+def _proj(kk, ii, jj, vv, lin, q, qd, ptol, J, MiJt, L, w_m, wg, cnt):
+    """Project (q, qd) in place on either path; returns a status code."""
+    if wg is None:
+        return _project(kk, ii, jj, vv, lin[0], q, qd, ptol, J, MiJt, L, w_m, cnt)
+    return project_general(kk, ii, jj, vv, lin[2], q, qd, ptol, wg, cnt)
+
+
+@njit(cache=True)
 def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, ptol,
                A, B, C, E5, E3, order, dop853, Aext, Cext, D, max_steps, Q, QD, QDD, cnt):
     """Adaptive embedded RK over ``times`` from a consistent (q0, qd0) at times[0].
@@ -248,8 +269,6 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
     n = q0.shape[0]
     N = 2 * n
     s_st = B.shape[0]
-    Minv, M, rank_tol = lin
-    Q0, T = frc[0], frc[1]
     J = np.zeros((m, n))
     MiJt = np.zeros((n, m))
     L = np.zeros((m, m))
@@ -273,14 +292,10 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    if wg is None:  # the Schur path (numba compiles the two paths apart)
-        if not _acc(kk, ii, jj, vv, Minv, Q0, T, y[:n], y[n:], qdd, J, MiJt, L, w_m, w_m2,
-                    w_n, cnt):
-            return ERR_SINGULAR
-    else:
-        st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, y[:n], y[n:], qdd, wg, cnt)
-        if st_code != OK:
-            return st_code
+    st_code = _accel(kk, ii, jj, vv, lin, frc, y[:n], y[n:], qdd, J, MiJt, L, w_m, w_m2,
+                     w_n, wg, cnt)
+    if st_code != OK:
+        return st_code
     f0[:n] = y[n:]
     f0[n:] = qdd
     Q[0] = y[:n]
@@ -318,15 +333,10 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
             if st == s_st - 1:
                 yn[:] = ys
             K[st, :n] = ys[n:]
-            if wg is None:  # the Schur path (numba compiles the two paths apart)
-                if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L, w_m,
-                            w_m2, w_n, cnt):
-                    return ERR_SINGULAR
-            else:
-                st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, ys[:n], ys[n:], qdd, wg,
-                                      cnt)
-                if st_code != OK:
-                    return st_code
+            st_code = _accel(kk, ii, jj, vv, lin, frc, ys[:n], ys[n:], qdd, J, MiJt, L, w_m, w_m2,
+                             w_n, wg, cnt)
+            if st_code != OK:
+                return st_code
             K[st, n:] = qdd
         # error norm
         if dop853:
@@ -377,15 +387,10 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
                             s += hh * Aext[e, p] * K[p, a]
                     ys[a] = s
                 K[st, :n] = ys[n:]
-                if wg is None:  # the Schur path (numba compiles the two paths apart)
-                    if not _acc(kk, ii, jj, vv, Minv, Q0, T, ys[:n], ys[n:], qdd, J, MiJt, L,
-                                w_m, w_m2, w_n, cnt):
-                        return ERR_SINGULAR
-                else:
-                    st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, ys[:n], ys[n:], qdd, wg,
-                                      cnt)
-                    if st_code != OK:
-                        return st_code
+                st_code = _accel(kk, ii, jj, vv, lin, frc, ys[:n], ys[n:], qdd, J, MiJt, L,
+                                 w_m, w_m2, w_n, wg, cnt)
+                if st_code != OK:
+                    return st_code
                 K[st, n:] = qdd
             for a in range(N):
                 dy = yn[a] - y[a]
@@ -397,20 +402,13 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
                     for p in range(s_st + n_ext):
                         s += D[r, p] * K[p, a]
                     Fd[3 + r, a] = hh * s
-        if wg is None:
-            st_code = _project(kk, ii, jj, vv, Minv, yn[:n], yn[n:], ptol, J, MiJt, L, w_m, cnt)
-        else:
-            st_code = project_general(kk, ii, jj, vv, rank_tol, yn[:n], yn[n:], ptol, wg, cnt)
+        st_code = _proj(kk, ii, jj, vv, lin, yn[:n], yn[n:], ptol, J, MiJt, L, w_m, wg, cnt)
         if st_code != OK:
             return st_code
-        if wg is None:  # the Schur path (numba compiles the two paths apart)
-            if not _acc(kk, ii, jj, vv, Minv, Q0, T, yn[:n], yn[n:], qdd, J, MiJt, L, w_m, w_m2,
-                        w_n, cnt):
-                return ERR_SINGULAR
-        else:
-            st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, yn[:n], yn[n:], qdd, wg, cnt)
-            if st_code != OK:
-                return st_code
+        st_code = _accel(kk, ii, jj, vv, lin, frc, yn[:n], yn[n:], qdd, J, MiJt, L, w_m, w_m2,
+                         w_n, wg, cnt)
+        if st_code != OK:
+            return st_code
         f1[:n] = yn[n:]
         f1[n:] = qdd
         nsteps += 1
@@ -436,20 +434,13 @@ def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, 
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                if wg is None:
-                    st_code = _project(kk, ii, jj, vv, Minv, qs, qds, ptol, J, MiJt, L, w_m, cnt)
-                else:
-                    st_code = project_general(kk, ii, jj, vv, rank_tol, qs, qds, ptol, wg, cnt)
+                st_code = _proj(kk, ii, jj, vv, lin, qs, qds, ptol, J, MiJt, L, w_m, wg, cnt)
                 if st_code != OK:
                     return st_code
-                if wg is None:  # the Schur path (numba compiles the two paths apart)
-                    if not _acc(kk, ii, jj, vv, Minv, Q0, T, qs, qds, qdd, J, MiJt, L, w_m, w_m2,
-                                w_n, cnt):
-                        return ERR_SINGULAR
-                else:
-                    st_code = acc_general(kk, ii, jj, vv, M, rank_tol, frc, qs, qds, qdd, wg, cnt)
-                    if st_code != OK:
-                        return st_code
+                st_code = _accel(kk, ii, jj, vv, lin, frc, qs, qds, qdd, J, MiJt, L, w_m, w_m2,
+                                 w_n, wg, cnt)
+                if st_code != OK:
+                    return st_code
                 Q[k_out] = qs
                 QD[k_out] = qds
                 QDD[k_out] = qdd
