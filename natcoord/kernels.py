@@ -72,6 +72,7 @@ from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-e
     acc_general,
     as_f64,
     forces,
+    jv,
     pack_forces,
     project_general,
     workspace,
@@ -191,14 +192,7 @@ def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
         _phi(kk, ii, jj, vv, m, q, w_m)
     if factored:
         _jac(kk, ii, jj, vv, q, J)
-    e = 0.0
-    for r in range(m):
-        s = 0.0
-        for a in range(n):
-            s += J[r, a] * qd[a]
-        w_m[r] = s
-        e = max(e, abs(s))
-    if e > tol:
+    if jv(J, qd, w_m) > tol:
         if not _schur(J, Minv, MiJt, L):
             return ERR_SINGULAR
         cnt[C_FACT] += 1

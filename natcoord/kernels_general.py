@@ -98,6 +98,19 @@ def _schur(J, Minv, MiJt, L):
 
 
 @njit(cache=True)
+def jv(J, x, w):
+    """w = J x (m,) in place; returns max |w|."""
+    e = 0.0
+    for r in range(J.shape[0]):
+        s = 0.0
+        for a in range(J.shape[1]):
+            s += J[r, a] * x[a]
+        w[r] = s
+        e = max(e, abs(s))
+    return e
+
+
+@njit(cache=True)
 def _cholesky(L, k):
     """In-place lower Cholesky of the leading (k, k) block of L (its lower triangle holds
     the matrix); False when a pivot falls below 1e-14 of the largest diagonal entry."""
@@ -371,14 +384,7 @@ def project_general(kk, ii, jj, vv, rank_tol, q, qd, tol, wg, cnt):
         _phi(kk, ii, jj, vv, m, q, w)
     if rk >= 0:
         _jac(kk, ii, jj, vv, q, J)
-    e = 0.0
-    for r in range(m):
-        s = 0.0
-        for a in range(n):
-            s += J[r, a] * qd[a]
-        w[r] = s
-        e = max(e, abs(s))
-    if e > tol:
+    if jv(J, qd, w) > tol:
         cnt[C_FACT] += 1
         rk = pqr(J, rank_tol, wg[4], wg[5], wg[6], wg[7], wg[8], wg[9])
         _min_norm_step(wg, rk, w, qd)
