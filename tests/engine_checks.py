@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
+import subprocess
+import sys
 
 import numpy as np
+import pytest
 
 from natcoord.casefile import load_case
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
-from natcoord.mechanism import Case, Joint
+from natcoord.errors import Unsupported
+from natcoord.mechanism import Case, Channel, Joint
 from natcoord.result import evaluate_channels
 
-from .conftest import CASES, DATA
+from .conftest import CASES, DATA, ROOT
 
 G = 9.81
 
@@ -83,3 +88,92 @@ def assert_reversed_joint_flips_the_reaction(engine: str) -> None:
     table = evaluate_channels(c, run(engine, c).motion)
     np.testing.assert_allclose(table["O_y"], -2.0 * G, rtol=0, atol=1e-10)
     np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
+
+
+def data_case(tmp_path, name: str, subs: dict[str, str] | None = None) -> Case:
+    """``tests/data/<name>.toml``, loaded; with ``subs``, each placeholder (which must occur)
+    replaced by its text first and the result loaded from ``tmp_path``."""
+    if not subs:
+        return load_case(DATA / f"{name}.toml")
+    text = (DATA / f"{name}.toml").read_text(encoding="utf-8")
+    for placeholder, repl in subs.items():
+        assert placeholder in text, f"{placeholder!r} not found in {name}.toml"
+        text = text.replace(placeholder, repl)
+    return case_from_text(tmp_path, text, name)
+
+
+def worst(err: dict[str, float], *suffixes: str) -> float:
+    """The largest of the errors whose key ends with one of ``suffixes``."""
+    return max(v for k, v in err.items() if k.endswith(suffixes))
+
+
+def open_chain() -> Case:
+    """slider_crank without its slide: crank, rod and the particle hanging at B, moving."""
+    c = case("slider_crank")
+    return dataclasses.replace(
+        c, duration=0.3, joints=c.joints[:3],
+        channels=(Channel("theta", "angle", body="crank"), Channel("phi", "angle", body="rod")),
+        fix={"theta": 0.785398, "phi": -0.3}, velocity={"theta": 1.0, "phi": 2.0})
+
+
+def free_bodies() -> Case:
+    """The open chain with only joint O: the rod and the particle fly free in the plane."""
+    base = open_chain()
+    return dataclasses.replace(
+        base, joints=base.joints[:1],
+        channels=(Channel("theta", "angle", body="crank"), Channel("phi", "angle", body="rod"),
+                  Channel("xA", "position", body="rod", point="A", axis="x"),
+                  Channel("yA", "position", body="rod", point="A", axis="y"),
+                  Channel("xB", "position", body="slider", point="B", axis="x"),
+                  Channel("yB", "position", body="slider", point="B", axis="y")),
+        fix={"theta": 0.785398, "phi": 0.3, "xA": 0.7, "yA": 0.7, "xB": 1.0, "yB": 2.0},
+        velocity={"theta": 1.0, "phi": -2.0, "xA": 0.5, "yA": 1.0, "xB": -1.0, "yB": 3.0})
+
+
+def channel_tables(engine: str, c: Case):
+    """``engine``'s run of ``c`` with natcoord's channel table and its own, both from the same
+    initial state: (run, natcoord table, engine table)."""
+    init = initial_body_states(c)
+    a = evaluate_channels(c, adapter("natcoord").run(c, init, {}).motion)
+    run_ = adapter(engine).run(c, init, {})
+    return run_, a, evaluate_channels(c, run_.motion)
+
+
+def assert_hanging_rod_pushes_up(engine: str):
+    """The hanging rod at rest: the pivot pushes up with m g, nothing sideways, the angle
+    stays at -90 deg. Returns (case, run) for the engine's own checks."""
+    c = hanging_rod()
+    run_ = run(engine, c)
+    table = evaluate_channels(c, run_.motion)
+    np.testing.assert_allclose(table["O_y"], 2.0 * G, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(table["theta"], -np.pi / 2, rtol=0, atol=1e-12)
+    return c, run_
+
+
+def assert_version_and_lazy_import(engine: str, package: str, module: str, printed: str,
+                                   expected: list[str]) -> None:
+    """The adapter reports the package's version, and importing ``natcoord.engines.<module>``
+    (as ``m``) does not import the package; ``printed`` is printed there, split into
+    ``expected``."""
+    assert adapter(engine).version() == importlib.import_module(package).__version__
+    code = (f"import sys, natcoord.engines.{module} as m; "
+            f"assert {package!r} not in sys.modules; print({printed})")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, check=True)
+    assert out.stdout.split() == expected
+
+
+def assert_step_must_divide_the_output_interval(engine: str, dt: float, match: str) -> None:
+    """A time step that does not divide the hanging rod's output interval is refused."""
+    with pytest.raises(ValueError, match=match):
+        run(engine, hanging_rod(), {"dt": dt})
+
+
+def assert_loop_of_prismatic_joints_is_unsupported(engine: str) -> None:
+    """slider_crank with a second slide: refused before the (empty) state is used."""
+    c = case("slider_crank")
+    slide = c.joint("slide")
+    c = dataclasses.replace(c, joints=c.joints + (dataclasses.replace(slide, name="slide2"),))
+    with pytest.raises(Unsupported, match="slide2"):
+        adapter(engine).run(c, {}, {})

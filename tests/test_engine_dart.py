@@ -11,28 +11,21 @@ about 1.5.
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
 from natcoord.engines import adapter
 from natcoord.errors import Unsupported
-from natcoord.mechanism import Channel
 from natcoord.result import evaluate_channels
 
 from . import engine_checks as ec
-from .conftest import DATA
 
 pytest.importorskip("dartpy")
 
 pytestmark = pytest.mark.engines
 
-ROOT = Path(__file__).resolve().parents[1]
 G = ec.G
 
 
@@ -49,12 +42,7 @@ def reference():
 # ------------------------------------------------------------------------------ reaction sign
 
 def test_hanging_rod_pivot_pushes_up_with_mg():
-    case = ec.hanging_rod()
-    run = _run(case)
-    table = evaluate_channels(case, run.motion)
-    np.testing.assert_allclose(table["O_y"], 2.0 * G, rtol=0, atol=1e-10)  # measured 0
-    np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)  # measured 7e-17
-    np.testing.assert_allclose(table["theta"], -np.pi / 2, rtol=0, atol=1e-12)
+    case, run = ec.assert_hanging_rod_pushes_up("dart")  # measured O_y 0, O_x 7e-17
     assert run.n_steps == round(case.duration / 1e-4) + 1  # + the step read for t = end
     assert run.build_time_s > 0 and run.wall_time_s > 0
 
@@ -119,9 +107,9 @@ def test_four_bar_spinning_with_every_joint_reversed():
         runs[c is flipped] = run = _run(c)
         err = ec.motion_errors(c, run.motion, ec.natcoord(c).motion)
         # measured: poses 1.1e-4, velocities 5.7e-4, forces 8.5e-3 N (D; peak ~300 N)
-        assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 2e-4, err
-        assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 1e-3
-        assert max(v for k, v in err.items() if k.endswith(".force")) < 1.5e-2, err
+        assert ec.worst(err, ".origin", ".angle") < 2e-4, err
+        assert ec.worst(err, ".velocity", ".omega") < 1e-3
+        assert ec.worst(err, ".force") < 1.5e-2, err
     for j in ("O", "A", "C", "D"):
         np.testing.assert_allclose(runs[True].motion.joint_force[j],
                                    -runs[False].motion.joint_force[j], rtol=0, atol=1e-6)
@@ -139,36 +127,18 @@ def test_moving_start_reactions_at_t0():
 
 # ------------------------------------------------------------------------------ open chains
 
-def _open_chain():
-    """slider_crank without its slide: crank, rod and the particle hanging at B, moving."""
-    case = ec.case("slider_crank")
-    return dataclasses.replace(
-        case, duration=0.3, joints=case.joints[:3],
-        channels=(Channel("theta", "angle", body="crank"), Channel("phi", "angle", body="rod")),
-        fix={"theta": 0.785398, "phi": -0.3}, velocity={"theta": 1.0, "phi": 2.0})
-
-
 def test_open_chain_with_a_particle():
-    case = _open_chain()
+    case = ec.open_chain()
     err = ec.motion_errors(case, _run(case).motion, ec.natcoord(case).motion)
     # measured: poses 2.0e-4, velocities 6.5e-4, forces 5.0e-3 N
-    assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 3e-4, err
-    assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 1e-3, err
-    assert max(v for k, v in err.items() if k.endswith(".force")) < 8e-3, err
+    assert ec.worst(err, ".origin", ".angle") < 3e-4, err
+    assert ec.worst(err, ".velocity", ".omega") < 1e-3, err
+    assert ec.worst(err, ".force") < 8e-3, err
 
 
 def test_free_bodies_fly_in_the_plane():
     """Only joint O: the rod and the particle fly free (DART planar joints)."""
-    base = _open_chain()
-    case = dataclasses.replace(
-        base, joints=base.joints[:1],
-        channels=(Channel("theta", "angle", body="crank"), Channel("phi", "angle", body="rod"),
-                  Channel("xA", "position", body="rod", point="A", axis="x"),
-                  Channel("yA", "position", body="rod", point="A", axis="y"),
-                  Channel("xB", "position", body="slider", point="B", axis="x"),
-                  Channel("yB", "position", body="slider", point="B", axis="y")),
-        fix={"theta": 0.785398, "phi": 0.3, "xA": 0.7, "yA": 0.7, "xB": 1.0, "yB": 2.0},
-        velocity={"theta": 1.0, "phi": -2.0, "xA": 0.5, "yA": 1.0, "xB": -1.0, "yB": 3.0})
+    case = ec.free_bodies()
     run = _run(case)
     err = ec.motion_errors(case, run.motion, ec.natcoord(case).motion)
     # measured: poses 1.8e-4 (free flight: semi-implicit Euler is off by g t dt / 2, exact in
@@ -178,19 +148,17 @@ def test_free_bodies_fly_in_the_plane():
     assert any("body 'rod' is not joined to the ground" in n for n in run.notes)
 
 
-
-
 @pytest.mark.parametrize("flip", [False, True])
 def test_slide_on_a_turning_body(tmp_path, flip):
     """Prismatic tree joint with its axis in a turning body's frame (either orientation)."""
-    case = load_case(DATA / "slot.toml")
+    case = ec.data_case(tmp_path, "slot")
     if flip:
         case = dataclasses.replace(case, joints=(case.joints[0], ec.reversed_joint(case.joints[1])))
     err = ec.motion_errors(case, _run(case).motion, ec.natcoord(case).motion)
     # measured: poses 2.2e-4, velocities 4.9e-4, forces 8.6e-4 N
-    assert max(v for k, v in err.items() if k.endswith((".origin", ".angle"))) < 3.5e-4, err
-    assert max(v for k, v in err.items() if k.endswith((".velocity", ".omega"))) < 8e-4, err
-    assert max(v for k, v in err.items() if k.endswith(".force")) < 1.5e-3, err
+    assert ec.worst(err, ".origin", ".angle") < 3.5e-4, err
+    assert ec.worst(err, ".velocity", ".omega") < 8e-4, err
+    assert ec.worst(err, ".force") < 1.5e-3, err
 
 
 # ------------------------------------------------------------------------------ refusals, failures
@@ -202,12 +170,7 @@ def test_three_dimensional_case_without_reference_frame_is_unsupported():
 
 
 def test_loop_of_prismatic_joints_is_unsupported():
-    case = ec.case("slider_crank")
-    slide = case.joint("slide")
-    case = dataclasses.replace(case, joints=case.joints + (
-        dataclasses.replace(slide, name="slide2"),))
-    with pytest.raises(Unsupported, match="slide2"):
-        adapter("dart").run(case, {}, {})  # refused before the state is used
+    ec.assert_loop_of_prismatic_joints_is_unsupported("dart")
 
 
 def test_divergence_raises():
@@ -228,19 +191,12 @@ def test_error_reduction_parameter_is_restored():
 
 
 def test_step_must_divide_the_output_interval():
-    with pytest.raises(ValueError, match="divide"):
-        _run(ec.hanging_rod(), {"dt": 3e-3})
+    ec.assert_step_must_divide_the_output_interval("dart", 3e-3, "divide")
 
 
 def test_version_and_lazy_import():
-    import dartpy
-
-    assert adapter("dart").version() == dartpy.__version__
-    code = ("import sys, natcoord.engines.dart_engine as m; "
-            "assert 'dartpy' not in sys.modules; print(m.NAME, m.PACKAGE)")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                         text=True, check=True)
-    assert out.stdout.split() == ["dart", "dartpy"]
+    ec.assert_version_and_lazy_import("dart", "dartpy", "dart_engine", "m.NAME, m.PACKAGE",
+                                      ["dart", "dartpy"])
 
 
 # ------------------------------------------------------------------------------ paper cases

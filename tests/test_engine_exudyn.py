@@ -7,10 +7,7 @@ Bounds are the errors measured with exudyn 1.13.6 at the default step h = 1e-3 s
 from __future__ import annotations
 
 import dataclasses
-import subprocess
-import sys
 from functools import cache
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,13 +19,12 @@ from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
 from natcoord.result import evaluate_channels
 
+from . import engine_checks as ec
+from .conftest import CASES, DATA
+
 pytest.importorskip("exudyn")
 
 pytestmark = pytest.mark.engines
-
-ROOT = Path(__file__).resolve().parents[1]
-CASES = ROOT / "cases"
-DATA = ROOT / "tests" / "data"
 
 # max |exudyn - natcoord| measured at h = 1e-3 s, in brackets; the bound is about 2x
 BOUNDS = {
@@ -61,103 +57,7 @@ BOUNDS = {
 # Code paths the two suite cases do not reach: a particle sliding on a rotating rod (the
 # prismatic normal must turn with the rod), a rigid block with an offset centre of mass on a
 # tilted ground slide (rotation locked), a particle on a revolute joint (MassPoint2D) and an
-# applied torque. Starts with nonzero velocities.
-BEAD = """
-name = "bead"
-description = "torqued rod with a bead on it and a bob at its end; block on a tilted slide"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 1.0
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0], G = [3.0, 0.0] }
-
-[[bodies]]
-name = "rod"
-kind = "uniform_rod"
-mass = 1.0
-points = { O = [0.0, 0.0], P = [2.0, 0.0] }
-
-[[bodies]]
-name = "bead"
-kind = "particle"
-mass = 0.5
-points = { Q = [0.0, 0.0] }
-
-[[bodies]]
-name = "block"
-kind = "rigid"
-mass = 2.0
-com = [0.2, 0.1]
-inertia = 0.05
-points = { S = [0.0, 0.0], T = [0.5, 0.0] }
-
-[[bodies]]
-name = "bob"
-kind = "particle"
-mass = 0.3
-points = { R = [0.0, 0.0] }
-
-[[joints]]
-name = "P"
-type = "revolute"
-bodies = ["rod", "bob"]
-points = ["P", "R"]
-
-[[joints]]
-name = "O"
-type = "revolute"
-bodies = ["ground", "rod"]
-points = ["O", "O"]
-
-[[joints]]
-name = "slide"
-type = "prismatic"
-bodies = ["rod", "bead"]
-points = ["O", "Q"]
-axis = [1.0, 0.0]
-
-[[joints]]
-name = "gslide"
-type = "prismatic"
-bodies = ["ground", "block"]
-points = ["G", "S"]
-axis = [0.8, -0.6]
-
-[[forces]]
-type = "torque"
-body = "rod"
-value = 3.0
-
-[initial]
-fix = { theta = "30 deg", xQ = 0.866, xT = 3.4 }
-velocity = { theta = 0.5, xQ = 0.2, xT = 0.3 }
-
-[initial.pose]
-rod = { origin = [0.0, 0.0], angle = "30 deg" }
-bead = { origin = [0.866, 0.5] }
-block = { origin = [3.0, 0.0], angle = "20 deg" }
-bob = { origin = [1.732, 1.0] }
-
-[channels]
-theta = { kind = "angle", body = "rod" }
-xQ = { kind = "position", body = "bead", point = "Q", axis = "x" }
-yQ = { kind = "position", body = "bead", point = "Q", axis = "y" }
-vxQ = { kind = "velocity", body = "bead", point = "Q", axis = "x" }
-xT = { kind = "position", body = "block", point = "T", axis = "x" }
-yT = { kind = "position", body = "block", point = "T", axis = "y" }
-vyT = { kind = "velocity", body = "block", point = "T", axis = "y" }
-phiB = { kind = "angle", body = "block" }
-O_x = { kind = "reaction", joint = "O", axis = "x" }
-O_y = { kind = "reaction", joint = "O", axis = "y" }
-N_bead = { kind = "reaction", joint = "slide", axis = "normal" }
-N_block = { kind = "reaction", joint = "gslide", axis = "normal" }
-P_x = { kind = "reaction", joint = "P", axis = "x" }
-P_y = { kind = "reaction", joint = "P", axis = "y" }
-energy = { kind = "energy" }
-"""
-
+# applied torque. Starts with nonzero velocities: tests/data/bead.toml.
 # measured [in brackets] at h = 1e-3. The reactions of this case converge only to first order
 # in h: generalized-alpha's multiplier transient after a start with nonzero velocity
 # (largest at the first sample, t = 0.01 s); the motion stays second order.
@@ -236,10 +136,8 @@ def test_second_order(name):
         assert 3.5 < e1[c] / e2[c] < 4.5, f"{name}.{c}: {e1[c]:.3e} -> {e2[c]:.3e}"
 
 
-def test_other_paths(tmp_path):
-    f = tmp_path / "bead.toml"
-    f.write_text(BEAD)
-    path = str(f)
+def test_other_paths():
+    path = str(DATA / "bead.toml")
     run, table = _exudyn(path)
     err = _errors(path, table)
     over = {c: (e, BEAD_BOUNDS[c]) for c, e in err.items() if not e <= BEAD_BOUNDS[c]}
@@ -286,14 +184,7 @@ def test_quiet(capfd):
 
 
 def test_version_and_lazy_import():
-    import exudyn
-
-    assert adapter("exudyn").version() == exudyn.__version__
-    code = ("import sys, natcoord.engines.exudyn_engine as e; "
-            "assert 'exudyn' not in sys.modules; print(e.NAME)")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
-                         text=True, check=True)
-    assert out.stdout.strip() == "exudyn"
+    ec.assert_version_and_lazy_import("exudyn", "exudyn", "exudyn_engine", "m.NAME", ["exudyn"])
 
 
 # ---- the paper's redundant cases (3-D, massless rods, spring-dampers) ----------------------

@@ -7,12 +7,10 @@ margin of about 5; they are RK4 truncation error (it falls 16x per halved dt), n
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
@@ -26,8 +24,6 @@ pytest.importorskip("pinocchio")
 
 pytestmark = pytest.mark.engines
 
-ROOT = Path(__file__).resolve().parents[1]
-G = ec.G
 
 
 def _run(case, settings=None):
@@ -35,12 +31,7 @@ def _run(case, settings=None):
 
 
 def test_hanging_rod_pivot_pushes_up_with_mg():
-    case = ec.hanging_rod()
-    run = _run(case)
-    table = evaluate_channels(case, run.motion)
-    np.testing.assert_allclose(table["O_y"], 2.0 * G, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(table["O_x"], 0.0, rtol=0, atol=1e-10)
-    np.testing.assert_allclose(table["theta"], -np.pi / 2, rtol=0, atol=1e-12)
+    case, run = ec.assert_hanging_rod_pushes_up("pinocchio")
     assert run.n_steps == round(case.duration / 1e-3)
 
 
@@ -61,7 +52,7 @@ MOTION_BOUNDS = {"origin": 2e-8, "angle": 2e-8, "velocity": 5e-8, "omega": 5e-8}
 
 @pytest.fixture(scope="module", params=sorted(BOUNDS))
 def parity(request):
-    case = load_case(ROOT / "cases" / f"{request.param}.toml")
+    case = ec.case(request.param)
     init = initial_body_states(case)
     ref = adapter("natcoord").run(case, init, {})
     run = adapter("pinocchio").run(case, init, {})
@@ -103,152 +94,29 @@ def test_costs_and_drift_are_bounded(parity):
 # Open chains exercising what the two case files do not: a particle on a revolute joint
 # listed child-first; an inclined prismatic joint with a rigid child (com off its axis), a
 # joint listed child-first and an applied torque. Measured errors <= 1.5e-10 N, 1e-11 rad, m.
-ROD_BOB = """\
-name = "rod_bob"
-description = "rod with a particle pinned at its tip, released horizontal"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 1.0
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0] }
-
-[[bodies]]
-name = "rod"
-kind = "uniform_rod"
-mass = 2.0
-points = { O = [0.0, 0.0], P = [1.0, 0.0] }
-
-[[bodies]]
-name = "bob"
-kind = "particle"
-mass = 0.5
-points = { P = [0.0, 0.0] }
-
-[[joints]]
-name = "O"
-type = "revolute"
-bodies = ["ground", "rod"]
-points = ["O", "O"]
-
-[[joints]]
-name = "P"
-type = "revolute"
-bodies = ["bob", "rod"]
-points = ["P", "P"]
-
-[initial]
-fix = { theta = "0 deg" }
-velocity = { theta = 1.0 }
-
-[initial.pose]
-rod = { origin = [0.0, 0.0], angle = "0 deg" }
-bob = { origin = [1.0, 0.0] }
-
-[channels]
-theta = { kind = "angle", body = "rod" }
-xP = { kind = "position", body = "bob", point = "P", axis = "x" }
-vyP = { kind = "velocity", body = "bob", point = "P", axis = "y" }
-O_x = { kind = "reaction", joint = "O", axis = "x" }
-O_y = { kind = "reaction", joint = "O", axis = "y" }
-P_x = { kind = "reaction", joint = "P", axis = "x" }
-P_y = { kind = "reaction", joint = "P", axis = "y" }
-energy = { kind = "energy" }
-"""
-
-RAIL_PENDULUM = """\
-name = "rail_pendulum"
-description = "block on an inclined rail carrying a pendulum, torque on the pendulum"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 1.0
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0] }
-
-[[bodies]]
-name = "block"
-kind = "rigid"
-mass = 3.0
-points = { A = [0.0, 0.0], E = [0.4, 0.0] }
-com = [0.2, 0.1]
-inertia = 0.05
-
-[[bodies]]
-name = "rod"
-kind = "uniform_rod"
-mass = 1.0
-points = { H = [0.0, 0.0], T = [1.2, 0.0] }
-
-[[joints]]
-name = "rail"
-type = "prismatic"
-bodies = ["ground", "block"]
-points = ["O", "A"]
-axis = [0.8660254037844386, 0.5]
-
-[[joints]]
-name = "H"
-type = "revolute"
-bodies = ["rod", "block"]
-points = ["H", "E"]
-
-[[forces]]
-type = "torque"
-body = "rod"
-value = 2.0
-
-[initial]
-fix = { s = 0.3, phi = "-60 deg" }
-velocity = { s = 0.5, phi = 1.0 }
-
-[initial.pose]
-block = { origin = [0.26, 0.15], angle = "10 deg" }
-rod = { origin = [0.65, 0.22], angle = "-60 deg" }
-
-[channels]
-s = { kind = "position", body = "block", point = "A", axis = "x" }
-phi = { kind = "angle", body = "rod" }
-beta = { kind = "angle", body = "block" }
-vT = { kind = "velocity", body = "rod", point = "T", axis = "y" }
-rail_x = { kind = "reaction", joint = "rail", axis = "x" }
-rail_y = { kind = "reaction", joint = "rail", axis = "y" }
-N = { kind = "reaction", joint = "rail", axis = "normal" }
-H_x = { kind = "reaction", joint = "H", axis = "x" }
-H_y = { kind = "reaction", joint = "H", axis = "y" }
-energy = { kind = "energy" }
-"""
-
-
-@pytest.mark.parametrize("name, text", [("rod_bob", ROD_BOB), ("rail_pendulum", RAIL_PENDULUM)])
-def test_open_chains_match_natcoord(tmp_path, name, text):
-    case = ec.case_from_text(tmp_path, text, name)
-    init = initial_body_states(case)
-    a = evaluate_channels(case, adapter("natcoord").run(case, init, {}).motion)
-    run = adapter("pinocchio").run(case, init, {})
-    b = evaluate_channels(case, run.motion)
+@pytest.mark.parametrize("name", ["rod_bob", "rail_pendulum"])
+def test_open_chains_match_natcoord(tmp_path, name):
+    case = ec.data_case(tmp_path, name)
+    run, a, b = ec.channel_tables("pinocchio", case)
     bad = ec.channel_mismatches(case, a, b, {"reaction": 2e-9}, 1e-10)
     assert not bad, f"{name}: " + "; ".join(bad)
     assert ("particle" in " ".join(run.notes)) == (name == "rod_bob")
 
 
 def test_slider_crank_prismatic_loop_is_moved_into_the_tree():
-    case = load_case(ROOT / "cases" / "slider_crank.toml")
+    case = ec.case("slider_crank")
     run = _run(case, {"dt": 0.01})
     assert any("prismatic" in n for n in run.notes)
 
 
 def test_divergence_is_reported():
-    case = load_case(ROOT / "cases" / "four_bar.toml")
+    case = ec.case("four_bar")
     with pytest.raises(RuntimeError, match="loop opened"):
         _run(case, {"dt": 0.01, "max_drift": 1e-9})
 
 
 def test_dt_must_divide_the_output_interval():
-    with pytest.raises(ValueError, match="must divide"):
-        _run(ec.hanging_rod(), {"dt": 0.003})
+    ec.assert_step_must_divide_the_output_interval("pinocchio", 0.003, "must divide")
 
 
 # ---- reference-frame cases: 3-D, massless rods, spring-dampers (pinocchio_3d) -------------
@@ -403,76 +271,8 @@ def test_radau_option_agrees_with_rk4_on_the_springs():
 # Two pendulums from the ground, the first one double; joints in breadth-first file order
 # (O, P, then Q below O), which Pinocchio needs depth-first. Measured <= 2.7e-10 (N);
 # added in file order the angles were 1.2 rad off, with no error raised.
-BRANCHED = """\
-name = "branched"
-description = "a double pendulum and a single one hanging from the ground"
-dimension = 2
-gravity = [0.0, -9.81]
-duration = 0.5
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0], P = [2.0, 0.0] }
-
-[[bodies]]
-name = "a"
-kind = "uniform_rod"
-mass = 1.0
-points = { O = [0.0, 0.0], Q = [1.0, 0.0] }
-
-[[bodies]]
-name = "b"
-kind = "uniform_rod"
-mass = 2.0
-points = { P = [0.0, 0.0], E = [1.0, 0.0] }
-
-[[bodies]]
-name = "c"
-kind = "uniform_rod"
-mass = 0.5
-points = { Q = [0.0, 0.0], F = [1.0, 0.0] }
-
-[[joints]]
-name = "O"
-type = "revolute"
-bodies = ["ground", "a"]
-points = ["O", "O"]
-
-[[joints]]
-name = "P"
-type = "revolute"
-bodies = ["ground", "b"]
-points = ["P", "P"]
-
-[[joints]]
-name = "Q"
-type = "revolute"
-bodies = ["a", "c"]
-points = ["Q", "Q"]
-
-[initial]
-fix = { ta = "0 deg", tb = "-30 deg", tc = "20 deg" }
-velocity = { ta = 0.0, tb = 0.0, tc = 0.0 }
-
-[initial.pose]
-a = { origin = [0.0, 0.0], angle = "0 deg" }
-b = { origin = [2.0, 0.0], angle = "-30 deg" }
-c = { origin = [1.0, 0.0], angle = "20 deg" }
-
-[channels]
-ta = { kind = "angle", body = "a" }
-tb = { kind = "angle", body = "b" }
-tc = { kind = "angle", body = "c" }
-O_y = { kind = "reaction", joint = "O", axis = "y" }
-Q_x = { kind = "reaction", joint = "Q", axis = "x" }
-energy = { kind = "energy" }
-"""
-
-
 def test_branched_tree_is_built_depth_first(tmp_path):
-    case = ec.case_from_text(tmp_path, BRANCHED, "branched")
-    init = initial_body_states(case)
-    a = evaluate_channels(case, adapter("natcoord").run(case, init, {}).motion)
-    b = evaluate_channels(case, adapter("pinocchio").run(case, init, {}).motion)
+    case = ec.data_case(tmp_path, "branched")
+    _, a, b = ec.channel_tables("pinocchio", case)
     bad = ec.channel_mismatches(case, a, b, {}, 1e-8)
     assert not bad, "; ".join(bad)

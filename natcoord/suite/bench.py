@@ -34,7 +34,7 @@ SWEEPS: dict[str, list[dict]] = {
     + [{"formulation": "maggi", "method": "dop853", "h": None, "rtol": r, "atol": r * 1e-2}
        for r in (1e-6, 1e-8, 1e-10, 1e-11)]
     + [{"formulation": "index3", "method": "trapezoidal", "h": h}
-       for h in (2e-3, 1e-3, 5e-4, 2.5e-4)],
+       for h in (2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4)],
     "mujoco": [{"dt": d, "solref_steps": 10} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
     "pinocchio": [{"dt": d} for d in (1e-2, 5e-3, 2e-3, 1e-3, 5e-4)],
     "exudyn": [{"dt": d} for d in (5e-3, 2e-3, 1e-3, 5e-4, 2e-4)],
