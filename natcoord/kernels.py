@@ -71,6 +71,7 @@ from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-e
     _sub_matvec,
     acc_general,
     as_f64,
+    drift,
     forces,
     jv,
     pack_forces,
@@ -155,23 +156,8 @@ def _acc(kk, ii, jj, vv, Minv, Q0, T, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, cn
 def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
     """Newton projection of q on Phi = 0 (simplified: one factorization), then qd on
     Phi_q qd = 0, both M-orthogonal. Returns a status code."""
-    n = q.shape[0]
     m = J.shape[0]
-    _phi(kk, ii, jj, vv, m, q, w_m)
-    e = 0.0
-    for r in range(m):
-        e = max(e, abs(w_m[r]))
-    if e > cnt[C_PHI]:
-        cnt[C_PHI] = e
-    _jac(kk, ii, jj, vv, q, J)
-    ev = 0.0
-    for r in range(m):
-        s = 0.0
-        for a in range(n):
-            s += J[r, a] * qd[a]
-        ev = max(ev, abs(s))
-    if ev > cnt[C_PHID]:
-        cnt[C_PHID] = ev
+    drift(kk, ii, jj, vv, q, qd, w_m, J, cnt)
     factored = False
     for it in range(11):
         e = 0.0

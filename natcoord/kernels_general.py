@@ -98,6 +98,22 @@ def _schur(J, Minv, MiJt, L):
 
 
 @njit(cache=True)
+def drift(kk, ii, jj, vv, q, qd, w, J, cnt):
+    """Before a projection: w = Phi(q) (m,), J = Phi_q (m, n), and the largest |Phi| and
+    |Phi_q qd| so far in cnt[C_PHI], cnt[C_PHID] (what one step let drift)."""
+    m, n = J.shape
+    _phi(kk, ii, jj, vv, m, q, w)
+    for r in range(m):
+        cnt[C_PHI] = max(cnt[C_PHI], abs(w[r]))
+    _jac(kk, ii, jj, vv, q, J)
+    for r in range(m):
+        s = 0.0
+        for a in range(n):
+            s += J[r, a] * qd[a]
+        cnt[C_PHID] = max(cnt[C_PHID], abs(s))
+
+
+@njit(cache=True)
 def jv(J, x, w):
     """w = J x (m,) in place; returns max |w|."""
     e = 0.0
@@ -309,11 +325,10 @@ def workspace(n, m):
     4 W (m, n), 5 th (m,), 6 piv (m,) int, 7 pn, 8 on (m,), 9 sup (n,) int, 10-12 Z, MZ, K
     (n, n), 13-14 (n,), 15 (1,) int: the rank of a QR left valid for the current q by a
     velocity projection, else -1."""
-    g = n
-    return (np.zeros((m, n)), np.zeros(m), np.zeros(m), np.zeros(g), np.zeros((m, n)),
+    return (np.zeros((m, n)), np.zeros(m), np.zeros(m), np.zeros(n), np.zeros((m, n)),
             np.zeros(m), np.zeros(m, np.int64), np.zeros(m), np.zeros(m),
-            np.zeros(g, np.int64), np.zeros((g, n)), np.zeros((g, n)), np.zeros((g, n)),
-            np.zeros(g), np.zeros(g), np.full(1, -1, np.int64))
+            np.zeros(n, np.int64), np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n)),
+            np.zeros(n), np.zeros(n), np.full(1, -1, np.int64))
 
 
 @njit(cache=True)
@@ -351,22 +366,9 @@ def project_general(kk, ii, jj, vv, rank_tol, q, qd, tol, wg, cnt):
     with min-norm corrections (``Index1.project`` in qr mode); a status code. Leaves the QR
     of Phi_q at the final q for the next :func:`acc_general` when it made one there."""
     J, w = wg[0], wg[1]
-    n = q.shape[0]
     m = J.shape[0]
     wg[15][0] = -1
-    _phi(kk, ii, jj, vv, m, q, w)
-    e = 0.0
-    for r in range(m):
-        e = max(e, abs(w[r]))
-    cnt[C_PHI] = max(cnt[C_PHI], e)
-    _jac(kk, ii, jj, vv, q, J)
-    ev = 0.0
-    for r in range(m):
-        s = 0.0
-        for a in range(n):
-            s += J[r, a] * qd[a]
-        ev = max(ev, abs(s))
-    cnt[C_PHID] = max(cnt[C_PHID], ev)
+    drift(kk, ii, jj, vv, q, qd, w, J, cnt)
     rk = -1
     for it in range(11):
         e = 0.0

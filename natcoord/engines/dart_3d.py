@@ -248,6 +248,19 @@ def _planar_revolutes(case: Case) -> bool:
                for a in axes)
 
 
+def make_world(dart, skel, gravity, dt: float, rods, nodes):
+    """A DART world (gravity (3,) m/s^2, time step dt s) holding ``skel`` and the light
+    rods' end constraints; returns (world, its constraint solver)."""
+    world = dart.simulation.World()
+    world.setGravity(gravity)
+    world.setTimeStep(dt)
+    world.addSkeleton(skel)
+    solver = world.getConstraintSolver()
+    for r in rods:
+        solver.addConstraint(r.constraint(dart, nodes))
+    return world, solver
+
+
 def run_3d(case: Case, init, s: dict) -> EngineRun:
     import dartpy as dart
 
@@ -330,13 +343,7 @@ def run_3d(case: Case, init, s: dict) -> EngineRun:
                                      joint="ball"))
     _set_initial_rates(case, init, tree, nodes, joints, rods)
     _check_assembly(case, nodes, init)
-    world = dart.simulation.World()
-    world.setGravity(g3)
-    world.setTimeStep(dt)
-    world.addSkeleton(skel)
-    solver = world.getConstraintSolver()
-    for r in rods:
-        solver.addConstraint(r.constraint(dart, nodes))
+    world, solver = make_world(dart, skel, g3, dt, rods, nodes)
     for j in loops:
         pos = point3(case, j.bodies[1], j.points[1])
         ends = [nodes[x] for x in j.bodies if x != GROUND]

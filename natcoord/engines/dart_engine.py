@@ -56,6 +56,7 @@ from .dart_3d import (
     check_state,
     loop_bodies,
     make_motion,
+    make_world,
     sample_reactions,
     simulate_with_erp,
     step_and_read,
@@ -256,13 +257,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     _set_rod_rates(rods, init)
     _check_assembly(case, nodes, init)
 
-    world = dart.simulation.World()
-    world.setGravity(gravity)
-    world.setTimeStep(dt)
-    world.addSkeleton(skel)
-    solver = world.getConstraintSolver()
-    for r in rods:
-        solver.addConstraint(r.constraint(dart, nodes))
+    world, solver = make_world(dart, skel, gravity, dt, rods, nodes)
     for j in loops:
         a, b = j.bodies
         on = (b, j.points[1]) if b != GROUND else (a, j.points[0])

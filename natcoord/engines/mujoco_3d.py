@@ -372,6 +372,23 @@ def forward(mujoco, m, d) -> int:
     return int(d.solver_niter[0])
 
 
+def read_forces(mujoco, d, ten, tree: dict, bid: dict, subtree: dict, loops, eqid: dict,
+                dim: int, rod_force: dict, forces: dict, i: int) -> float:
+    """Sample i of the rod/spring tensions (``rod_force``) and of every joint force
+    (``forces``: tree joints from cfrc_int less the tendon forces, loop joints from their
+    connect equalities), world axes, N; returns the largest constraint drift seen, m."""
+    tension, drift = ten.tensions(d)
+    for r, v in tension.items():
+        rod_force[r][i] = v
+    on_body = ten.body_forces(d, tension)  # cfrc_int carries them: take them out
+    for name, (child, sign) in tree.items():
+        forces[name][i] = sign * tree_force(d, bid[child], subtree[child], on_body, dim)
+    loop_f, dr = connect_forces(mujoco, d, loops, eqid, dim)
+    for name, f in loop_f.items():
+        forces[name][i] = f
+    return max(drift, dr)
+
+
 def tree_force(d, body: int, subtree: list, on_body: dict, dim: int) -> np.ndarray:
     """Force through a tree joint from ``cfrc_int`` less the rods' and springs' forces on the
     child's subtree (``cfrc_int`` carries them)."""
@@ -460,17 +477,8 @@ def run_3d(case: Case, init, s: dict, check) -> EngineRun:
             rotation[n][i] = d.xmat[j].reshape(3, 3)
             velocity[n][i] = vel6[3:]
             omega[n][i] = vel6[:3]
-        tension, dr = ten.tensions(d)
-        drift = max(drift, dr)
-        for r, v in tension.items():
-            rod_force[r][i] = v
-        on_body = ten.body_forces(d, tension)
-        for name, (child, sign) in tree.items():
-            forces[name][i] = sign * tree_force(d, bid[child], subtree[child], on_body, 3)
-        loop_f, dr = connect_forces(mujoco, d, built.loops, eqid, 3)
-        drift = max(drift, dr)
-        for name, f in loop_f.items():
-            forces[name][i] = f
+        drift = max(drift, read_forces(mujoco, d, ten, tree, bid, subtree, built.loops, eqid,
+                                       3, rod_force, forces, i))
 
     sample(0)
     check(mujoco, m, d, 0.0)

@@ -52,16 +52,15 @@ from .base import EngineRun, merged, steps_per_sample
 from .mujoco_3d import (
     TendonForces,
     _fmt,
-    connect_forces,
     engine_run,
     forward,
     load_model,
     mjcf_document,
+    read_forces,
     run_3d,
     step_samples,
     subtree_bodies,
     tendons_mjcf,
-    tree_force,
 )
 
 NAME = "mujoco"
@@ -379,17 +378,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                 angle[b.name][i] = math.atan2(R[1, 0], R[0, 0])
                 velocity[b.name][i] = vel6[3:5]
                 omega[b.name][i] = w
-        tension, dr = ten.tensions(d)
-        drift = max(drift, dr)
-        for r, v in tension.items():
-            rod_force[r][i] = v
-        on_body = ten.body_forces(d, tension)  # cfrc_int carries them: take them out
-        for name, (child, sign) in tree_sign.items():
-            forces[name][i] = sign * tree_force(d, bid[child], subtree[child], on_body, 2)
-        loop_f, dr = connect_forces(mujoco, d, built.loops, eqid, 2)
-        drift = max(drift, dr)
-        for name, f in loop_f.items():
-            forces[name][i] = f
+        drift = max(drift, read_forces(mujoco, d, ten, tree_sign, bid, subtree, built.loops,
+                                       eqid, 2, rod_force, forces, i))
 
     sample(0)
     _check(mujoco, m, d, 0.0)
