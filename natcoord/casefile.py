@@ -18,8 +18,10 @@ from .mechanism import (
     BODY_KINDS,
     CHANNEL_KINDS,
     DRIVER_TYPES,
+    ENGINES,
     GROUND,
     JOINT_TYPES,
+    PLANAR_JOINTS,
     PLANES,
     Body,
     Case,
@@ -48,7 +50,6 @@ UNITS = {
     "N/m": (1.0, "stiffness"), "N s/m": (1.0, "damping"),
     "N m/rad": (1.0, "torsional stiffness"),
 }
-KNOWN_ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
             "drivers", "rods", "springs", "reactions", "comparison"}
@@ -158,7 +159,7 @@ def load_case(path: str | Path) -> Case:
     dim = r.get(data, "dimension", "")
     if dim not in (2, 3) or isinstance(dim, bool):
         r.fail("dimension", f"must be 2 or 3, got {dim!r}")
-    init = r.table(data, "initial", "", required=dim == 2)
+    init = r.table(data, "initial", "", required=False)
     reference_frame = "pose" not in init
     if dim == 3 and not reference_frame:
         r.fail("initial.pose", "3-D cases give every body point as its world position at "
@@ -209,7 +210,7 @@ def load_case(path: str | Path) -> Case:
     rods = tuple(x for x in links.values() if isinstance(x, Rod))
     springs = tuple(x for x in links.values() if isinstance(x, Spring))
 
-    drivers = tuple(_driver(r, d, i, names, points_of)
+    drivers = tuple(_driver(r, d, i, names, points_of, dim)
                     for i, d in enumerate(_array(r, data, "drivers", required=False)))
     dnames = [d.name for d in drivers]
     for i, n in enumerate(dnames):
@@ -237,8 +238,8 @@ def load_case(path: str | Path) -> Case:
     engines = {}
     for ename, spec in r.table(data, "engines", "", required=False).items():
         p = f"engines.{ename}"
-        if ename not in KNOWN_ENGINES:
-            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(KNOWN_ENGINES)}")
+        if ename not in ENGINES:
+            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(ENGINES)}")
         tol = {}
         for key, value in r.table(spec, "tolerance", p, required=False).items():
             if key not in CHANNEL_KINDS and key not in {c.name for c in channels}:
@@ -464,21 +465,38 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
         if pt not in points_of[b]:
             r.fail(f"{p}.points", f"body {b!r} has no point {pt!r}; it has "
                    f"{', '.join(points_of[b]) or 'none'}")
-    if (jtype == "spherical") != (dim == 3) and jtype != "revolute":
-        r.fail(f"{p}.type", f"{jtype!r} joints are not available in {dim}-D case files")
+    unknown = sorted(set(j) - {"name", "type", "bodies", "points", "axis", "axis2"})
+    if unknown:
+        r.fail(f"{p}.{unknown[0]}", "unknown field; expected name, type, bodies, points, "
+               "axis, axis2")
+    if dim == 2 and jtype not in PLANAR_JOINTS:
+        r.fail(f"{p}.type", f"{jtype!r} joints need a 3-D case; a 2-D case has "
+               f"{' and '.join(PLANAR_JOINTS)} joints")
     if jtype == "revolute" and dim == 2 and "axis" in j:
         r.fail(f"{p}.axis", "a 2-D revolute turns about z; remove the axis")
-    axis = None
-    if jtype == "prismatic" or (jtype == "revolute" and dim == 3):
-        axis = r.vector(r.get(j, "axis", p), f"{p}.axis", dim, "length")
-        norm = np.linalg.norm(axis)
-        if norm < 1e-12:
-            r.fail(f"{p}.axis", "must not be zero")
-        axis = axis / norm
-    return Joint(name, jtype, (bodies[0], bodies[1]), (pts[0], pts[1]), axis)
+    if jtype != "universal" and "axis2" in j:
+        r.fail(f"{p}.axis2", "only a universal joint has a second axis")
+    axis = axis2 = None
+    if jtype != "spherical" and not (jtype == "revolute" and dim == 2):
+        axis = _unit(r, r.get(j, "axis", p), f"{p}.axis", dim)
+    if jtype == "universal":
+        axis2 = _unit(r, r.get(j, "axis2", p), f"{p}.axis2", dim)
+        if abs(axis @ axis2) > 1e-9:
+            r.fail(f"{p}.axis2", f"must be perpendicular to axis at t = 0 (cosine "
+                   f"{axis @ axis2:.3g})")
+    return Joint(name, jtype, (bodies[0], bodies[1]), (pts[0], pts[1]), axis, axis2)
 
 
-def _driver(r: _Reader, d: dict, i: int, bodies, points_of) -> Driver:
+def _unit(r: _Reader, value, field: str, dim: int) -> np.ndarray:
+    """A direction (dim,) normalised to a unit vector."""
+    axis = r.vector(value, field, dim, "length")
+    norm = np.linalg.norm(axis)
+    if norm < 1e-12:
+        r.fail(field, "must not be zero")
+    return axis / norm
+
+
+def _driver(r: _Reader, d: dict, i: int, bodies, points_of, dim: int) -> Driver:
     p = f"drivers[{i}]"
     name = r.string(d, "name", p)
     p = f"drivers[{i}] ({name})"
@@ -491,6 +509,9 @@ def _driver(r: _Reader, d: dict, i: int, bodies, points_of) -> Driver:
     if body not in bodies:
         r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
     if dtype == "angle":
+        if dim == 3:
+            r.fail(f"{p}.type", "an angle driver turns a body in the plane (2-D cases); in "
+                   "3-D drive a point coordinate (type = \"coordinate\")")
         dims = ("angle", "angular velocity", "angular acceleration")
         v0 = r.number(d, "angle0", p, dims[0])
         point = axis = None
@@ -500,7 +521,7 @@ def _driver(r: _Reader, d: dict, i: int, bodies, points_of) -> Driver:
         point = r.string(d, "point", p)
         if point not in points_of[body]:
             r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
-        axis = r.string(d, "axis", p, choices=("x", "y"))
+        axis = r.string(d, "axis", p, choices=("x", "y", "z")[:dim])
     rate = r.number(d, "rate", p, dims[1], required=False, default=0.0)
     accel = r.number(d, "accel", p, dims[2], required=False, default=0.0)
     return Driver(name, dtype, body, v0, rate, accel, point, axis)
@@ -542,8 +563,9 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 r.fail(f"{p}.joint", f"unknown joint {joint!r}; joints are {', '.join(jnames)}")
             axis = r.string(c, "axis", p, choices=(*axes, "normal"))
             jt = joints[jnames.index(joint)]
-            if axis == "normal" and jt.type != "prismatic":
-                r.fail(f"{p}.axis", f"'normal' needs a prismatic joint; {joint!r} is {jt.type}")
+            if axis == "normal" and (jt.type != "prismatic" or dim != 2):
+                r.fail(f"{p}.axis", f"'normal' needs a 2-D prismatic joint; {joint!r} is a "
+                       f"{dim}-D {jt.type} joint")
         if kind == "driver":
             driver = r.string(c, "driver", p)
             if driver not in drivers:

@@ -19,19 +19,22 @@ Conventions
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
 GROUND = "ground"
 
 BODY_KINDS = ("uniform_rod", "particle", "rigid")
-JOINT_TYPES = ("revolute", "prismatic", "spherical")
+JOINT_TYPES = ("revolute", "prismatic", "spherical", "universal", "cylindrical")
+PLANAR_JOINTS = ("revolute", "prismatic")  # the joint types a 2-D case can have
 FORCE_TYPES = ("torque", "force")
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
                  "driver", "axial", "combination")
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
+FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
+ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
 
 
 @dataclass(frozen=True)
@@ -71,13 +74,17 @@ class Joint:
     Attributes
     ----------
     name : str
-    type : {"revolute", "prismatic", "spherical"}
+    type : {"revolute", "prismatic", "spherical", "universal", "cylindrical"}
     bodies : tuple[str, str]
     points : tuple[str, str]
         The joint point on each body.
     axis : ndarray (d,) or None
-        Prismatic: sliding direction in the first body's frame; 3-D revolute: the rotation
-        axis in the first body's frame (unit vector).
+        Unit vector in the first body's frame: the sliding direction (prismatic,
+        cylindrical), the rotation axis (3-D revolute, cylindrical), the first body's cross
+        axis (universal). A 2-D revolute turns about z and has none.
+    axis2 : ndarray (3,) or None
+        Universal joint only: the second body's cross axis, in the second body's frame,
+        perpendicular to ``axis`` at t = 0.
     """
 
     name: str
@@ -85,6 +92,7 @@ class Joint:
     bodies: tuple[str, str]
     points: tuple[str, str]
     axis: np.ndarray | None = None
+    axis2: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -157,9 +165,9 @@ class Channel:
 class Driver:
     """A prescribed motion (rheonomic constraint) ``value(t) = v0 + rate t + accel t^2 / 2``.
 
-    type ``angle``: the angle of ``body`` (rad); its effort is the driving torque on the body
-    (N m). type ``coordinate``: world coordinate ``axis`` (x|y) of ``point`` of ``body`` (m);
-    its effort is the driving force along that axis (N).
+    type ``angle`` (2-D): the angle of ``body`` (rad); its effort is the driving torque on the
+    body (N m). type ``coordinate``: world coordinate ``axis`` (x|y|z) of ``point`` of
+    ``body`` (m); its effort is the driving force along that axis (N).
     """
 
     name: str
@@ -248,76 +256,3 @@ class Case:
 
     def engine(self, name: str) -> EngineSpec:
         return self.engines.get(name, EngineSpec())
-
-
-def spanning_tree(case: Case) -> tuple[list[Joint], list[Joint]]:
-    """Split the joints into a tree rooted at the ground and the loop-closing rest.
-
-    Breadth-first from ``ground`` in file order, so every adapter cuts the same loops.
-    Tree joints are returned parent before child, unchanged: a joint may name its child
-    first, and :func:`tree_orientation` gives the sign that turns "parent on child" into the
-    case convention "joint on its second body".
-    """
-    reached = {GROUND}
-    tree: list[Joint] = []
-    remaining = list(case.joints)
-    progress = True
-    while progress:
-        progress = False
-        for j in list(remaining):
-            a, b = j.bodies
-            if (a in reached) != (b in reached):
-                tree.append(j)
-                reached.add(b if a in reached else a)
-                remaining.remove(j)
-                progress = True
-                break
-    return tree, remaining
-
-
-def point_loop_tree(case: Case, why: str) -> tuple[list[Joint], list[Joint], list[str]]:
-    """Spanning tree for engines that close loops with point constraints (MuJoCo ``connect``,
-    Pinocchio ``CONTACT_3D``, DART ball joints), which cannot slide.
-
-    When :func:`spanning_tree` leaves a prismatic joint to close a loop, the tree is
-    recomputed with prismatic joints first so that the loop is cut at a revolute joint.
-    Returns ``(tree, loops, recut)``, ``recut`` naming the prismatic joints the plain tree
-    would have left as loops (empty when it was kept). Raises Unsupported (``why`` says
-    what the engine lacks) when a prismatic joint must still close a loop.
-    """
-    from .errors import Unsupported
-
-    tree, loops = spanning_tree(case)
-    recut = [j.name for j in loops if j.type == "prismatic"]
-    if not recut:
-        return tree, loops, recut
-    first = tuple(sorted(case.joints, key=lambda j: j.type != "prismatic"))
-    tree, loops = spanning_tree(replace(case, joints=first))
-    bad = [j.name for j in loops if j.type != "revolute"]
-    if bad:
-        raise Unsupported(f"prismatic joint(s) {', '.join(bad)} must close a loop: {why}")
-    return tree, loops, recut
-
-
-def tree_parents(tree: list[Joint]) -> list[tuple[Joint, str, str]]:
-    """``(joint, parent, child)`` in tree order; the parent is the end the tree reached first
-    (a joint may name its child first)."""
-    reached = {GROUND}
-    out = []
-    for j in tree:
-        a, b = j.bodies
-        parent, child = (a, b) if a in reached else (b, a)
-        if parent not in reached or child in reached:
-            raise ValueError(f"joint {j.name!r} does not extend the tree")
-        reached.add(child)
-        out.append((j, parent, child))
-    return out
-
-
-def tree_orientation(joint: Joint, parent: str) -> int:
-    """+1 when ``joint.bodies[0]`` is the tree parent, -1 when the joint points child-first.
-
-    Multiply a force computed as "parent on child" by this sign to get the case convention
-    "joint on its second body".
-    """
-    return 1 if joint.bodies[0] == parent else -1

@@ -8,7 +8,7 @@ from enum import StrEnum
 import numpy as np
 import pandas as pd
 
-from .mechanism import GROUND, PLANES, Case
+from .mechanism import FORCE_KINDS, GROUND, PLANES, Case
 
 
 class Status(StrEnum):
@@ -157,9 +157,6 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
                 v = f[:, axis_index[ch.axis]]
         cols[ch.name] = np.asarray(v, dtype=float)
     return pd.DataFrame(cols)
-
-
-FORCE_KINDS = ("reaction", "axial", "combination")
 
 
 def methods_table(case: Case, run) -> pd.DataFrame:

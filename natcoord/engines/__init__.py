@@ -5,7 +5,8 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart")
+from ..mechanism import ENGINES
+
 _MODULES = {"natcoord": "natcoord_engine", "mujoco": "mujoco_engine",
             "pinocchio": "pinocchio_engine", "exudyn": "exudyn_engine", "dart": "dart_engine"}
 

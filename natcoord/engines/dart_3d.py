@@ -5,7 +5,7 @@ Modelling (every choice is also written into ``EngineRun.notes``):
 * Reference-frame cases only (every body frame is the world frame at t = 0): each body is
   built at its world position with identity orientation, so every tree joint starts at
   position 0 and only rates come from natcoord's ``init``.
-* The spanning tree is :func:`natcoord.mechanism.point_loop_tree` (the 2-D adapter's rule):
+* The spanning tree is :func:`natcoord.engines.tree.point_loop_tree` (the 2-D adapter's rule):
   revolute joints about their axis (``RevoluteJoint``), spherical joints ``BallJoint``;
   bodies the tree does not reach get a ``FreeJoint``.
 * A loop-closing spherical joint is a ``BallJointConstraint``; so is a loop-closing revolute
@@ -33,9 +33,10 @@ import time
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, point_loop_tree, tree_orientation, tree_parents
+from ..mechanism import GROUND, Case
 from ..result import Motion
 from .base import EngineRun, steps_per_sample
+from .tree import point_loop_tree, tree_orientation, tree_parents
 
 
 def iso(dart, p, R=None):

@@ -3,7 +3,7 @@ constraints, integrated by DART's semi-implicit (symplectic) Euler.
 
 Modelling, in short (every choice is also written into ``EngineRun.notes``):
 
-* One ``Skeleton`` holds the spanning tree of :func:`natcoord.mechanism.spanning_tree`: a
+* One ``Skeleton`` holds the spanning tree of :func:`natcoord.engines.tree.spanning_tree`: a
   revolute joint about world z or a prismatic joint per tree joint, rooted at the world.
   DART has no prismatic joint *constraint*, so when that tree leaves a prismatic joint to
   close a loop the tree is recomputed with the prismatic joints tried first (the same
@@ -47,7 +47,7 @@ import time
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
+from ..mechanism import GROUND, Case, Joint
 from .base import EngineRun, merged, steps_per_sample
 from .dart_3d import (
     ROD_NOTE,
@@ -62,6 +62,7 @@ from .dart_3d import (
     step_and_read,
     stepper,
 )
+from .tree import point_loop_tree, tree_orientation, tree_parents
 
 NAME = "dart"
 PACKAGE = "dartpy"

@@ -3,7 +3,7 @@
 Companion of :mod:`natcoord.engines.mujoco_engine` (which owns the 2-D tree builder and the
 shared run checks). Modelling choices, each repeated in ``EngineRun.notes`` when it applies:
 
-* Tree: :func:`natcoord.mechanism.spanning_tree` as in 2-D. Revolute tree joints are hinges
+* Tree: :func:`natcoord.engines.tree.spanning_tree` as in 2-D. Revolute tree joints are hinges
   about the case's axis, spherical ones balls; a body not reached from the ground gets a
   free joint. Loop-closing revolute or spherical joints are ``connect``
   equalities between two sites (3 rows: a loop revolute's axis alignment is left to the tree,
@@ -38,9 +38,10 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, spanning_tree, tree_orientation, tree_parents
+from ..mechanism import GROUND, Case
 from ..result import Motion
 from .base import EngineRun, steps_per_sample
+from .tree import spanning_tree, tree_orientation, tree_parents
 
 
 def _fmt(*xs) -> str:

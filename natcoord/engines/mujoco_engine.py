@@ -9,7 +9,7 @@ light rod, whose loops open past 0.1 mm when it is made lighter).
 
 Modelling choices (each one that applies is repeated in ``EngineRun.notes``):
 
-* Tree: :func:`natcoord.mechanism.spanning_tree`. MuJoCo has no point-on-line equality, so
+* Tree: :func:`natcoord.engines.tree.spanning_tree`. MuJoCo has no point-on-line equality, so
   when that tree would cut a prismatic joint, the tree is rebuilt with prismatic joints taken
   first (the loop is then cut at a revolute joint instead); a loop made only of prismatic
   joints is unsupported.
@@ -46,7 +46,7 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, Joint, point_loop_tree, tree_orientation, tree_parents
+from ..mechanism import GROUND, Case, Joint
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
 from .mujoco_3d import (
@@ -62,6 +62,7 @@ from .mujoco_3d import (
     subtree_bodies,
     tendons_mjcf,
 )
+from .tree import point_loop_tree, tree_orientation, tree_parents
 
 NAME = "mujoco"
 PACKAGE = "mujoco"

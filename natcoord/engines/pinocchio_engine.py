@@ -5,7 +5,7 @@ built by :mod:`natcoord.engines.pinocchio_3d`; this module keeps the planar join
 
 Model
 -----
-* Tree: :func:`natcoord.mechanism.spanning_tree`. A loop-closing *prismatic* joint cannot be a
+* Tree: :func:`natcoord.engines.tree.spanning_tree`. A loop-closing *prismatic* joint cannot be a
   ``CONTACT_3D`` constraint (that pins a point), so when the natural tree leaves one, the tree
   is rebuilt with prismatic joints tried first; the joint cut instead is a revolute one. For a
   non-redundant loop the reactions do not depend on where it is cut.
@@ -40,10 +40,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, point_loop_tree, tree_orientation
+from ..mechanism import GROUND, Case
 from ..result import Motion
 from .base import EngineRun, merged, steps_per_sample
 from .pinocchio_3d import rk4_samples
+from .tree import point_loop_tree, tree_orientation
 
 NAME = "pinocchio"
 PACKAGE = "pin"

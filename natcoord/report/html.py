@@ -30,8 +30,8 @@ import plotly.offline
 from markupsafe import Markup
 from plotly.subplots import make_subplots
 
+from ..mechanism import FORCE_KINDS
 from . import redundant
-from .redundant import FORCE_KINDS
 
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 ENGINE_COLORS = {

@@ -15,7 +15,8 @@ import plotly.graph_objects as go
 import plotly.io as pio
 from markupsafe import Markup
 
-FORCE_KINDS = ("reaction", "axial", "combination")
+from ..mechanism import FORCE_KINDS
+
 METHOD_DASHES = ("dash", "dot", "dashdot", "longdash", "longdashdot")
 
 

@@ -7,8 +7,7 @@ from collections.abc import Collection
 import numpy as np
 import pandas as pd
 
-from ..mechanism import Case
-from ..result import FORCE_KINDS
+from ..mechanism import FORCE_KINDS, Case
 
 
 def channel_errors(case: Case, engine: str, table: pd.DataFrame,

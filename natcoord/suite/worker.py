@@ -26,7 +26,8 @@ from ..casefile import load_case  # noqa: E402
 from ..engines import adapter  # noqa: E402
 from ..engines.base import initial_body_states  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..result import FORCE_KINDS, Result, Status, evaluate_channels, methods_table  # noqa: E402
+from ..mechanism import FORCE_KINDS  # noqa: E402
+from ..result import Result, Status, evaluate_channels, methods_table  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
 
