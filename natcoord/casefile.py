@@ -260,7 +260,8 @@ def load_case(path: str | Path) -> Case:
                 ground=ground, bodies=bodies, joints=joints, forces=forces,
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
-                reference_frame=reference_frame, comparison=comparison)
+                pose_tolerance=1e-6 if reference_frame else float("inf"),
+                comparison=comparison)
     return case
 
 

@@ -1,4 +1,4 @@
-"""The ``natcoord`` command line (DESIGN.md, Sec. 2)."""
+"""The ``natcoord`` command line: cases, run, report, gate, bench, suite, reference update."""
 
 from __future__ import annotations
 
@@ -50,21 +50,20 @@ def _cases(names: list[str] | None, cases_dir: Path):
                     _fail(f"unknown case {n!r}; cases are: {known}")
                 files.append(p)
         cases = [load_case(f) for f in files]
-        for case in cases:
-            _check_assembles(case)
-        return cases
     except CaseError as e:
         _fail(str(e))
+    return [_prepared(case) for case in cases]
 
 
-def _check_assembles(case):
-    """A mechanism that does not assemble is bad input too (exit 2), caught before running."""
-    from .engines.base import initial_body_states
+def _prepared(case):
+    """Assemble a case once (the Job every run of it starts from). A mechanism that does
+    not assemble is bad input too (exit 2), caught before running."""
+    from .suite.runner import prepare
 
-    try:
-        initial_body_states(case)
-    except NatcoordError as e:
-        raise CaseError(case.file, "initial", str(e)) from None
+    job = prepare(case)
+    if job.init is None:
+        _fail(str(CaseError(case.file, "initial", job.assembly_error)))
+    return job
 
 
 def _engines(spec: str | None) -> list[str]:
@@ -102,7 +101,7 @@ def cases_cmd(cases_dir: CasesDir = Path("cases")):
     table.add_column("case")
     table.add_column("description")
     table.add_column("engines")
-    for c in _cases(None, cases_dir):
+    for c in (job.case for job in _cases(None, cases_dir)):
         eng = [e if not c.engine(e).unsupported else f"[dim strike]{e}[/]" for e in ENGINES]
         table.add_row(c.name, c.description, " ".join(eng))
     out.print(table)
@@ -258,8 +257,9 @@ def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = Path("cases")
     """Regenerate stored references (natcoord at tight tolerance), with provenance."""
     from .suite.references import update_reference
 
-    for case in _cases(cases, cases_dir):
-        prov = update_reference(case, references)
+    for job in _cases(cases, cases_dir):
+        case = job.case
+        prov = update_reference(case, references, job.init)
         worst = max(prov["estimated_error"].values())
         out.print(f"{case.name}: reference written (estimated error <= {worst:.2g}, "
                   f"{prov['counters'].get('steps', '?')} steps)")

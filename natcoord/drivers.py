@@ -7,11 +7,12 @@ Every driver row is linear in q with time-dependent coefficients over ``qh = [q,
 so that the acceleration right-hand side of a driver row is
 ``c = -(2 a'(t)[:n] @ qd + a''(t) @ qh)`` (the quadratic part is zero).
 
-* angle driver of a rigid body with basic points i, j, d = r_j - r_i and a world angle
-  th(t) = value(t) + angle of (p_j - p_i) in the body frame: ``cross(e(th), d) = 0`` with
-  ``e = (cos th, sin th)``. Its row never vanishes (|grad| = sqrt(2)), so it holds through
-  any crank angle. The torque it applies to the body is ``-lambda (e . d)`` (N m).
-* coordinate driver: the world x or y of a body point equals value(t); its effort is
+* angle driver (2-D) of a rigid body with a difference vector d (a map over qh, e.g.
+  r_j - r_i of two of its points) and a world angle th(t) = value(t) + angle of d in the body
+  frame: ``cross(e(th), d) = 0`` with ``e = (cos th, sin th)``. Its row never vanishes, so
+  it holds through any angle. The torque it applies to the body is ``-lambda (e . d)``
+  (N m).
+* coordinate driver: a world coordinate of a body point equals value(t); its effort is
   ``-lambda`` (N along the axis).
 
 :class:`ConstraintSystem` appends the driver rows after the model's ``m`` constraint rows,
@@ -29,9 +30,11 @@ from .constraints import QuadraticConstraints
 
 @dataclass(frozen=True)
 class DriverRow:
-    """One rheonomic row. ``kind`` "angle": cols (4,) = [r_i, r_j] of the body, offset the
-    body-frame angle of p_j - p_i; "coordinate": ``C`` (n + 1,) the affine map of the
-    driven world coordinate. value(t) = v0 + rate t + accel t^2 / 2.
+    """One rheonomic row; value(t) = v0 + rate t + accel t^2 / 2.
+
+    ``kind`` "angle": ``C`` (2, n + 1) the map of the body's difference vector d, ``offset``
+    the angle of d in the body frame (rad); "coordinate": ``C`` (n + 1,) the affine map of
+    the driven world coordinate.
     """
 
     name: str
@@ -39,9 +42,8 @@ class DriverRow:
     v0: float
     rate: float
     accel: float
-    cols: np.ndarray | None = None
+    C: np.ndarray
     offset: float = 0.0
-    C: np.ndarray | None = None
 
     def law(self, t: float) -> tuple[float, float, float]:
         """(value, first, second derivative) of the prescribed motion at t."""
@@ -58,9 +60,7 @@ class DriverRow:
             g = np.array([-s, c])          # cross(e, d) = g @ d
             gd = vd * np.array([-c, -s])  # dg/dt
             gdd = vdd * np.array([-c, -s]) + vd * vd * np.array([s, -c])
-            for vec, w in ((a, g), (ad, gd), (add, gdd)):
-                vec[self.cols[2:]] += w
-                vec[self.cols[:2]] -= w
+            a, ad, add = g @ self.C, gd @ self.C, gdd @ self.C
         else:
             a[:] = self.C
             a[n] -= v
@@ -71,7 +71,7 @@ class DriverRow:
         """Driving torque (N m) or force (N) from its multiplier lam (T,), q (T, n), t (T,)."""
         if self.kind == "angle":
             th = self.v0 + self.rate * t + 0.5 * self.accel * t * t + self.offset
-            d = q[:, self.cols[2:]] - q[:, self.cols[:2]]
+            d = np.append(q, np.ones((len(q), 1)), axis=1) @ self.C.T
             return -lam * (np.cos(th) * d[:, 0] + np.sin(th) * d[:, 1])
         return -lam
 
@@ -143,21 +143,3 @@ class ConstraintSystem:
             pt[self.m0:] = Ad @ qh
             c = np.concatenate([c, -(2.0 * Ad[:, :-1] @ qd + Add @ qh)])
         return p, J, pt, c
-
-
-def build_drivers(case, shell) -> tuple[DriverRow, ...]:
-    """Driver rows of a case; ``shell`` a model with ``bodies`` and ``point_map``."""
-    out = []
-    for d in getattr(case, "drivers", ()):
-        b = shell.bodies[d.body]
-        if d.type == "angle":
-            if b.p_j is None:
-                raise ValueError(f"driver {d.name!r}: a particle has no angle to drive")
-            dloc = b.p_j - b.p_i
-            out.append(DriverRow(d.name, "angle", d.v0, d.rate, d.accel, cols=b.cols,
-                                 offset=float(np.arctan2(dloc[1], dloc[0]))))
-        else:
-            P = shell.point_map(d.body, case.body(d.body).points[d.point])
-            out.append(DriverRow(d.name, "coordinate", d.v0, d.rate, d.accel,
-                                 C=P[{"x": 0, "y": 1}[d.axis]].copy()))
-    return tuple(out)

@@ -140,16 +140,8 @@ def check_existence(model, q: np.ndarray, t: float = 0.0, tol: float = 1e-9) -> 
 
 
 def _coordinate_names(model) -> list[str]:
-    names = [f"q[{k}]" for k in range(model.n)]
-    for bname, b in (getattr(model, "bodies", None) or {}).items():
-        cols = getattr(b, "cols", None)
-        if cols is None:
-            continue
-        labels = ["x_i", "y_i", "x_j", "y_j"] if len(cols) == 4 else \
-            [f"c{k}" for k in range(len(cols))]
-        for c, lab in zip(cols, labels, strict=False):
-            names[c] = f"{bname}.{lab}"
-    return names
+    names = getattr(model, "coordinate_names", None)
+    return names() if names else [f"q[{k}]" for k in range(model.n)]
 
 
 def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray:
@@ -161,15 +153,11 @@ def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray
 def compiled_forces(model) -> tuple | None:
     """The applied forces of ``model`` as the arrays of the compiled loop
     (:func:`natcoord.kernels_general.pack_forces`), or None for a force model it does not
-    know. Knows ``Model.forces`` (Q0 + T q) and ``NaturalModel.forces`` (Q0, constant
-    torques on bodies, linear spring-dampers)."""
+    know (it knows :meth:`natcoord.model.Model.forces`: Q0, constant torques on bodies,
+    linear spring-dampers)."""
     from .kernels_general import pack_forces
     from .model import Model
-    from .model3d import NaturalModel
-    kind = getattr(type(model), "forces", None)
-    if kind is Model.forces:
-        return pack_forces(model.Q0, model.T)
-    if kind is not NaturalModel.forces:
+    if getattr(type(model), "forces", None) is not Model.forces:
         return None
     n, d = model.n, model.dim
     G, toff, tau = [np.zeros((0, d, n + 1))], [0], np.zeros((len(model.torques), 3))

@@ -1,7 +1,12 @@
-"""Position, velocity and acceleration problems (Newton-Raphson on Phi(q) = 0).
+"""Position, velocity and acceleration problems (Newton-Raphson on Phi(q, t) = 0).
 
 Redundant constraints are allowed: every linear solve is a least-squares solve, which gives
 the minimum-norm correction and tolerates a rank-deficient Phi_q.
+
+Quantities held fixed while assembling (a crank angle, a slider position) are
+:class:`Prescribed` rows: a world coordinate ``C @ [q, 1]`` of a point, or the angle of a
+difference vector ``d = C @ [q, 1]`` (2 rows of C) in a plane, plus a fixed offset. Both are
+linear in q at the position level (``cross(e(value + offset), d) = 0`` for an angle).
 """
 
 from __future__ import annotations
@@ -12,8 +17,7 @@ import numpy as np
 
 from .drivers import ConstraintSystem
 from .errors import AssemblyError
-from .mechanism import Case
-from .model import J2, Model
+from .model import J2
 
 
 @dataclass(frozen=True)
@@ -24,56 +28,60 @@ class State:
     qd: np.ndarray
 
 
-def _drivers(model: Model, q: np.ndarray, values: dict[str, float], velocity: bool):
-    """Rows B (k, n) and right-hand sides (k,) that set channels to values.
+@dataclass(frozen=True)
+class Prescribed:
+    """A value set at t = 0: ``kind`` "position" with C (n + 1,) (a world coordinate, m) or
+    "angle" with C (2, n + 1) (a difference vector in a plane whose angle, less ``offset``,
+    is the value, rad); ``value`` in m or rad (m/s or rad/s at the velocity level)."""
 
-    Position (velocity=False): linearised about q, so that B @ (q + dq) - z = 0 is one
-    Newton row. Velocity: B @ qd = z exactly.
-    """
-    case, rows, rhs = model.case, [], []
-    for name, value in values.items():
-        ch = case.channel(name)
-        b = model.bodies[ch.body]
-        if ch.kind == "position":
-            C = model.point_map(ch.body, case.body(ch.body).points[ch.point])
-            k = {"x": 0, "y": 1}[ch.axis]
-            rows.append(C[k, :-1])
-            rhs.append(value - (0.0 if velocity else C[k, -1]))
-        elif ch.kind == "angle":
-            if b.p_j is None:
-                raise AssemblyError(f"channel {name!r}: a particle has no angle to set")
-            d = q[b.cols[2:]] - q[b.cols[:2]]
-            row = np.zeros(model.n)
-            if velocity:  # omega = (d x dd) / |d|^2
-                g = J2 @ d / (d @ d)
-                row[b.cols[2:]], row[b.cols[:2]] = g, -g
-                rows.append(row)
-                rhs.append(value)
-            else:  # d parallel to R(value) dloc: cross(e0, d) = 0, linear in q
-                dloc = b.p_j - b.p_i
-                th = value + np.arctan2(dloc[1], dloc[0])
-                e0 = np.array([np.cos(th), np.sin(th)])
-                g = np.array([-e0[1], e0[0]])  # cross(e0, d) = g @ d
-                row[b.cols[2:]], row[b.cols[:2]] = g, -g
-                rows.append(row)
-                rhs.append(0.0)
-    return np.array(rows).reshape(-1, model.n), np.array(rhs)
+    name: str
+    kind: str
+    C: np.ndarray
+    value: float
+    offset: float = 0.0
 
 
-def assemble(model: Model, q0: np.ndarray, fix: dict[str, float], *, tol: float = 1e-12,
+def _position_rows(n: int, fix: list[Prescribed]) -> np.ndarray:
+    """Rows a (k, n + 1) with a @ [q, 1] = 0 for every fixed value (linear in q)."""
+    rows = []
+    for p in fix:
+        if p.kind == "position":
+            a = p.C.copy()
+            a[n] -= p.value
+        else:  # d parallel to e(value + offset): cross(e, d) = g @ d = 0
+            th = p.value + p.offset
+            a = np.array([-np.sin(th), np.cos(th)]) @ p.C
+        rows.append(a)
+    return np.array(rows).reshape(-1, n + 1)
+
+
+def _velocity_rows(q: np.ndarray, given: list[Prescribed]) -> tuple[np.ndarray, np.ndarray]:
+    """Rows B (k, n) and values z (k,) with B @ qd = z for every given rate."""
+    n, qh = len(q), np.append(q, 1.0)
+    rows = []
+    for p in given:
+        if p.kind == "position":
+            rows.append(p.C[:n])
+        else:  # omega = (J2 d) . d_dot / |d|^2
+            d = p.C @ qh
+            rows.append((J2 @ d) @ p.C[:, :n] / (d @ d))
+    return np.array(rows).reshape(-1, n), np.array([p.value for p in given])
+
+
+def assemble(model, q0: np.ndarray, fix: list[Prescribed] = (), *, tol: float = 1e-12,
              max_iter: int = 50, t: float = 0.0) -> tuple[np.ndarray, int]:
-    """Newton-Raphson from q0 to Phi(q, t) = 0 (drivers included) with ``fix`` channels held.
+    """Newton-Raphson from q0 to Phi(q, t) = 0 (drivers included) with ``fix`` held.
 
     Returns (q, iterations). Raises AssemblyError naming the constraints still violated.
     """
     q = np.array(q0, dtype=float)
     con = ConstraintSystem(model)
+    B = _position_rows(model.n, list(fix))
     for it in range(1, max_iter + 1):
-        B, z = _drivers(model, q, fix, velocity=False)
-        r = np.concatenate([con.phi(q, t), B @ q - z])
+        r = np.concatenate([con.phi(q, t), B @ np.append(q, 1.0)])
         if np.max(np.abs(r), initial=0.0) < tol and it > 1:
             return q, it - 1
-        A = np.vstack([con.jacobian(q, t), B])
+        A = np.vstack([con.jacobian(q, t), B[:, :-1]])
         dq = np.linalg.lstsq(A, -r, rcond=None)[0]
         q += dq
         if np.max(np.abs(dq)) < tol * max(1.0, np.max(np.abs(q))) and \
@@ -82,39 +90,39 @@ def assemble(model: Model, q0: np.ndarray, fix: dict[str, float], *, tol: float 
     phi = con.phi(q, t)
     bad = np.argsort(-np.abs(phi))[:3]
     worst = ", ".join(f"{con.labels[k]} ({phi[k]:.3g})" for k in bad if abs(phi[k]) > tol)
-    raise AssemblyError(f"case {model.case.name!r} does not assemble from its initial pose "
-                        f"after {max_iter} Newton iterations; "
-                        f"violated: {worst or 'fixed channels'}")
+    raise AssemblyError(f"the mechanism does not assemble from its initial pose after "
+                        f"{max_iter} Newton iterations; violated: {worst or 'fixed values'}")
 
 
-def solve_velocity(model: Model, q: np.ndarray, velocity: dict[str, float],
+def solve_velocity(model, q: np.ndarray, given: list[Prescribed] = (),
                    t: float = 0.0) -> np.ndarray:
-    """Velocity problem Phi_q qd = -Phi_t with the ``velocity`` channels prescribed: qd (n,)."""
-    B, z = _drivers(model, q, velocity, velocity=True)
+    """Velocity problem Phi_q qd = -Phi_t with the ``given`` rates: qd (n,).
+
+    With no rates given and no driver the mechanism starts at rest. Otherwise the rates and
+    the drivers must fix qd uniquely and consistently (AssemblyError says what is missing).
+    """
     con = ConstraintSystem(model)
+    given = list(given)
+    if not given and not con.rheonomic:
+        return np.zeros(model.n)
+    B, z = _velocity_rows(q, given)
     Jq = con.jacobian(q, t)
     A = np.vstack([Jq, B])
     rhs = np.concatenate([-con.phi_t(q, t), z])
-    qd, *_ = np.linalg.lstsq(A, rhs, rcond=None)
-    res = A @ qd - rhs
-    if np.max(np.abs(res), initial=0.0) > 1e-9 * max(1.0, np.max(np.abs(qd))):
-        raise AssemblyError("the initial velocities are inconsistent with the constraints "
-                            f"(residual {np.max(np.abs(res)):.3g})")
-    dof = model.n - np.linalg.matrix_rank(Jq)
-    if len(z) < dof:
-        raise AssemblyError(f"the mechanism has {dof} degrees of freedom but initial.velocity "
-                            f"sets {len(z)}")
+    qd = np.linalg.lstsq(A, rhs, rcond=None)[0]
+    dof = model.n - int(np.linalg.matrix_rank(Jq, 1e-9))
+    res = np.max(np.abs(A @ qd - rhs), initial=0.0)
+    if res > 1e-9 * max(1.0, np.max(np.abs(qd))):
+        raise AssemblyError(f"the initial velocities are inconsistent with the constraints "
+                            f"and drivers (residual {res:.3g})")
+    if np.linalg.matrix_rank(A, 1e-9) < model.n:
+        raise AssemblyError(f"the mechanism has {dof} degree(s) of freedom left by its "
+                            f"drivers, but initial.velocity sets {len(given)}: the rates "
+                            "given must fix every velocity")
     return qd
 
 
-def initial_state(model: Model) -> State:
-    """Assemble the case's initial pose and solve its initial velocities."""
-    case: Case = model.case
-    q, _ = assemble(model, model.q_from_poses(case.guess), case.fix)
-    return State(q, solve_velocity(model, q, case.velocity))
-
-
-def mobility(model: Model, q: np.ndarray, tol: float = 1e-9, *,
+def mobility(model, q: np.ndarray, tol: float = 1e-9, *,
              drivers: bool = False, t: float = 0.0) -> tuple[int, int, int]:
     """(rank r of Phi_q, degrees of freedom n - r, redundant constraints m - r) at q.
 

@@ -9,12 +9,15 @@ Conventions
 * A body frame is attached to each body; named points are given in that frame.
 * 2-D: a pose is ``(x, y, angle)``; the angle of a body is the angle of its frame's x axis
   from world +x, counter-clockwise positive.
-* Reference-frame cases (``Case.reference_frame``: the file has no ``[initial.pose]``; every
-  3-D case): body points are world positions at t = 0 and every body frame coincides with
-  the world frame at t = 0.
+* ``Case.guess`` gives every body frame's pose at t = 0. A case file written in the
+  *reference frame* (no ``[initial.pose]``; every 3-D case) gives every point as its world
+  position at t = 0: its body frames are the world frame at t = 0 and its points close the
+  joints exactly (``pose_tolerance`` 1e-6 m). A *posed* file gives each body an approximate
+  pose, from which assembly closes the joints (``pose_tolerance`` infinite). After loading,
+  both are the same kind of description.
 * A joint joins ``bodies[0]`` and ``bodies[1]`` at ``points[0]`` (on the first) and
   ``points[1]`` (on the second). Its reaction is the force the joint applies to the second
-  body, in world axes (DESIGN.md, Sec. 2).
+  body, in world axes.
 """
 
 from __future__ import annotations
@@ -210,7 +213,8 @@ class Case:
 
     ``reactions``: natcoord's reaction methods, name -> options (``stiffness``: rod, spring
     or body name -> N/m or N m/rad, for a weighted minimum norm); the first method gives
-    natcoord's channel values. ``reference_frame``: see the module docstring.
+    natcoord's channel values. ``pose_tolerance`` (m): how far assembly may move a body
+    point from where ``guess`` puts it (see the module docstring).
     ``comparison``: ``{"singular": {channel, angles (rad), within (rad)}}``, samples where
     force channels are not compared (see :func:`natcoord.suite.compare.channel_errors`).
     """
@@ -236,7 +240,7 @@ class Case:
     rods: tuple[Rod, ...] = ()
     springs: tuple[Spring, ...] = ()
     reactions: dict[str, dict] = field(default_factory=dict)
-    reference_frame: bool = False
+    pose_tolerance: float = float("inf")
     comparison: dict = field(default_factory=dict)
 
     @property

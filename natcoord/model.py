@@ -1,60 +1,137 @@
-"""Natural-coordinate model of a 2-D mechanism (García de Jalón & Bayo, 1994).
+"""The natural-coordinate model: points, unit vectors, rigid bodies, joints, forces (2-D and
+3-D alike; 2-D is the planar case).
 
-Each moving body owns its basic points as coordinates (two points for a rigid body, one for a
-particle); every other point of the body is a constant linear combination of them, so the
-mass matrix is constant. Joints are coincidence or point-on-line equations between points
-of different bodies, so that their Lagrange multipliers are directly the joint forces.
+García de Jalón & Bayo (1994): the coordinates are the world positions of *points* and the
+world components of *unit vectors*, 3 numbers each (2 in a 2-D model). A rigid body is a
+*basis* of such elements (two points and two unit vectors, three points and one vector,
+four non-coplanar points, a point and three vectors, or a degenerate basis for a rod or a
+thin plate whose mass lies in the span of the basis); every other point or vector of the
+body is a constant linear combination of its basis, so
 
-``q`` is ordered body by body: ``[x_i, y_i, x_j, y_j]`` for a rigid body, ``[x, y]`` for a
-particle.
+* the mass matrix is constant (possibly singular: massless bodies, extra points),
+* every constraint is at most quadratic, held as arrays by
+  :class:`~natcoord.constraints.ConstraintBuilder`.
+
+Everything is written in terms of *maps*: a (d, n + 1) array ``C`` with ``C @ [q, 1]`` the
+world position of a point or the world components of a direction. Bodies are defined in
+their reference configuration (world axes), which is also the initial guess ``q0``.
+
+This module holds the frozen model (:class:`Element`, :class:`Body`, :class:`Spring`,
+:class:`JointForce`, :class:`Model` and its force evaluation). Models are assembled with
+:class:`~natcoord.builder.Builder`; inertia helpers live in :mod:`natcoord.inertia`.
+
+Build order: declare all elements first (:meth:`Builder.point`, :meth:`Builder.vector`,
+fixed ones), then bodies, constraints, joints, drivers and forces; :meth:`Builder.build`
+returns a frozen :class:`Model` that follows the dynamics protocol (``n, m, M,
+constraints, drivers, forces(t, q, qd)``).
+
+Row conventions (so that multipliers read as forces):
+* coincidence rows are ``r_a - r_b`` (a on the first body): lambda is the force that the
+  joint applies to the second body, world axes, N;
+* a distance row ``|r_b - r_a|^2 - L^2``: the axial force is ``2 L lambda``, tension
+  positive;
+* a point-on-line row ``p_a . (r_b - r_a)`` (p_a a direction of the first body normal to the
+  line): the force on the second body is ``-lambda p_a``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from .constraints import S2, ConstraintBuilder, QuadraticConstraints
-from .drivers import build_drivers
-from .mechanism import GROUND, Case
+from .constraints import QuadraticConstraints
+from .inertia import plate_second_moment, rod_second_moment, second_moment
+from .mechanism import GROUND
 
-J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg rotation
+__all__ = ["GROUND", "J2", "Element", "Body", "Spring", "JointForce", "Model",
+           "second_moment", "rod_second_moment", "plate_second_moment"]
+
+J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg rotation in the plane
 
 
 @dataclass(frozen=True)
-class BodyMap:
-    """Where a body lives in q and how its frame follows from its basic points.
-
-    ``cols``: (2k,) indices in q (k = 2 basic points, or 1 for a particle).
-    ``p_i, p_j``: basic points in the body frame (2,), ``L = |p_j - p_i|``.
-    """
+class Element:
+    """A point or unit vector: ``cols`` (d,) in q (empty when fixed), reference ``x0`` (d,)."""
 
     name: str
+    kind: str  # "point" | "vector"
+    fixed: bool
     cols: np.ndarray
-    p_i: np.ndarray
-    p_j: np.ndarray | None
-    L: float
+    x0: np.ndarray
 
 
 @dataclass(frozen=True)
-class JointMap:
-    """Rows of a joint in Phi and the map lambda -> force on its second body (world, N).
-
-    Revolute: force = lambda[rows]. Prismatic: force = -lambda[rows[0]] * n with n the
-    joint normal ``J2 @ axis_map @ qh``; ``axis_map`` (2, n + 1) gives the world axis.
-    """
+class Body:
+    """A rigid body: origin map G0 (d, n+1), difference maps G (K, d, n+1) whose reference
+    values are the columns of D (d, K); mass (kg), com (d,), second moment about the com
+    ``Jg = ∫ (x - g)(x - g)^T dm`` (d, d), all in the reference configuration (world axes).
+    ``R0`` (d, d), ``o0`` (d,): the pose of the body's own frame in that configuration (its
+    points in its frame are ``R0^T (x - o0)``)."""
 
     name: str
+    basis: tuple[str, ...]
+    G0: np.ndarray
+    G: np.ndarray
+    D: np.ndarray
+    p0: np.ndarray
+    mass: float
+    com: np.ndarray
+    Jg: np.ndarray
+    R0: np.ndarray | None = None
+    o0: np.ndarray | None = None
+
+    @property
+    def rank(self) -> int:
+        """Number of independent directions the basis spans (0 for a particle)."""
+        return int(np.linalg.matrix_rank(self.D, 1e-9)) if self.D.size else 0
+
+    def coeffs(self, x: np.ndarray, *, point: bool) -> np.ndarray:
+        """c (K,) with ``x - p0 = D c`` (point) or ``x = D c`` (direction); checks the span."""
+        v = np.asarray(x, float) - (self.p0 if point else 0.0)
+        c = np.linalg.lstsq(self.D, v, rcond=None)[0]
+        if np.linalg.norm(self.D @ c - v) > 1e-9 * max(1.0, np.linalg.norm(v)):
+            raise ValueError(f"body {self.name!r}: {x} is outside the span of its basis "
+                             f"{self.basis}; add a point or a unit vector to the basis")
+        return c
+
+    def point_map(self, x: np.ndarray) -> np.ndarray:
+        """(d, n + 1) map to the body point at reference position x (d,)."""
+        return self.G0 + np.tensordot(self.coeffs(x, point=True), self.G, 1)
+
+    def dir_map(self, v: np.ndarray) -> np.ndarray:
+        """(d, n + 1) map to the body-fixed direction with reference components v (d,)."""
+        return np.tensordot(self.coeffs(v, point=False), self.G, 1)
+
+
+@dataclass(frozen=True)
+class Spring:
+    """Linear spring-damper between maps A and B (d, n+1): tension ``k (l - l0) + c l_dot``."""
+
+    name: str
+    A: np.ndarray
+    B: np.ndarray
+    k: float
+    c: float
+    l0: float
+
+
+@dataclass(frozen=True)
+class JointForce:
+    """How a joint's multipliers make the force it applies to its second body.
+
+    ``force = sum_k lambda[rows[k]] * (maps[k] @ [q, 1])``: coincidence rows have a constant
+    unit map (lambda is the force component), point-on-line rows the map ``-p_a`` of the
+    normal they are written along. rows (r,), maps (r, d, n + 1).
+    """
+
     rows: np.ndarray
-    axis_map: np.ndarray | None = None
+    maps: np.ndarray
 
     def force(self, lam: np.ndarray, q: np.ndarray) -> np.ndarray:
-        """Force on the second body (T, 2) from lambda (T, m) and q (T, n)."""
-        if self.axis_map is None:
-            return lam[:, self.rows]
-        u = np.append(q, np.ones((len(q), 1)), axis=1) @ self.axis_map.T
-        return -lam[:, self.rows[:1]] * (u @ J2.T)
+        """Force on the second body (T, d), N, from lambda (T, m_all) and q (T, n)."""
+        qh = np.append(q, np.ones((len(q), 1)), axis=1)
+        return np.einsum("tk,kan,tn->ta", lam[:, self.rows], self.maps, qh)
 
 
 @dataclass(frozen=True)
@@ -63,145 +140,103 @@ class Model:
 
     Attributes
     ----------
-    n : int                       number of coordinates
-    M : (n, n)                    constant mass matrix, kg
-    Q0 : (n,)                     constant generalized forces (gravity), N
-    T : (n, n)                    generalized force linear in q (applied torques): Q = Q0 + T q
+    dim : int                  2 or 3
+    n : int                    number of coordinates
+    M : (n, n)                 constant mass matrix, kg (kg m^2 on unit-vector coordinates)
     constraints : QuadraticConstraints   m rows
-    bodies : dict[str, BodyMap]
-    joints : dict[str, JointMap]
-    drivers : tuple[DriverRow, ...]      rheonomic rows, appended after the m rows in lambda
+    Q0 : (n,)                  constant generalized forces (gravity, constant forces), N
+    q0 : (n,)                  reference configuration (initial guess), m
+    elements : dict[str, Element]
+    bodies : dict[str, Body]
+    rows : dict[str, ndarray]  named groups of constraint rows (joints, rods, ...)
+    rod_length : dict[str, float]   length L of each named distance row (axial = 2 L lambda)
+    torques : tuple            (body, tau) constant torques, world axes, N m
+    springs : tuple[Spring, ...]
+    joints : dict[str, JointForce]  force each joint applies to its second body
+    drivers : tuple[DriverRow, ...]  rheonomic rows, after the m rows in lambda
     """
 
-    case: Case
+    dim: int
     n: int
     M: np.ndarray
-    Q0: np.ndarray
-    T: np.ndarray
     constraints: QuadraticConstraints
-    bodies: dict[str, BodyMap]
-    joints: dict[str, JointMap]
+    Q0: np.ndarray
+    q0: np.ndarray
+    elements: dict[str, Element]
+    bodies: dict[str, Body]
+    rows: dict[str, np.ndarray]
+    rod_length: dict[str, float]
+    torques: tuple = ()
+    springs: tuple[Spring, ...] = ()
+    joints: dict[str, JointForce] = field(default_factory=dict)
     drivers: tuple = ()
 
     @property
     def m(self) -> int:
         return self.constraints.m
 
+    def coordinate_names(self) -> list[str]:
+        """A name per coordinate (n,): ``element.x|y|z``."""
+        names = [f"q[{k}]" for k in range(self.n)]
+        for e in self.elements.values():
+            for c, ax in zip(e.cols, "xyz", strict=False):
+                names[c] = f"{e.name}.{ax}"
+        return names
+
     def forces(self, t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
-        """Generalized applied forces Q(t, q, qd): (n,), N (or N m for unit-vector rows)."""
-        return self.Q0 + self.T @ q
+        """Generalized applied forces Q(t, q, qd): (n,), N (N m on unit-vector coordinates)."""
+        Q = self.Q0.copy()
+        if not (self.torques or self.springs):
+            return Q
+        qh, vh = np.append(q, 1.0), np.append(qd, 0.0)
+        for body, tau in self.torques:
+            Q += _torque_force(self.bodies[body], tau, qh)
+        for s in self.springs:
+            d, dd = (s.B - s.A) @ qh, (s.B - s.A) @ vh
+            ln = np.linalg.norm(d)
+            e = d / ln
+            tension = s.k * (ln - s.l0) + s.c * (e @ dd)
+            Q += (s.B - s.A)[:, :-1].T @ (-tension * e)
+        return Q
 
-    # ---- body frames from coordinates -------------------------------------------------
-    def point_map(self, body: str, x: np.ndarray) -> np.ndarray:
-        """(2, n + 1) map from qh = [q, 1] to the world position of body point x (2,)."""
-        C = np.zeros((2, self.n + 1))
-        if body == GROUND:
-            C[:, self.n] = x
-            return C
-        b = self.bodies[body]
-        if b.p_j is None:  # particle: the point is the body's only point, translated
-            C[:, b.cols] = np.eye(2)
-            C[:, self.n] = x - b.p_i
-            return C
-        e1 = (b.p_j - b.p_i) / b.L
-        e2 = J2 @ e1
-        a, c = (x - b.p_i) @ e1 / b.L, (x - b.p_i) @ e2 / b.L
-        C[:, b.cols[:2]] = (1 - a) * np.eye(2) - c * J2
-        C[:, b.cols[2:]] = a * np.eye(2) + c * J2
-        return C
+    def spring_tension(self, q: np.ndarray, qd: np.ndarray) -> dict[str, np.ndarray]:
+        """Tension (T,) of every spring-damper, N, from q, qd (T, n)."""
+        qh = np.append(q, np.ones((len(q), 1)), 1)
+        vh = np.append(qd, np.zeros((len(q), 1)), 1)
+        out = {}
+        for s in self.springs:
+            d, dd = qh @ (s.B - s.A).T, vh @ (s.B - s.A).T
+            ln = np.linalg.norm(d, axis=1)
+            out[s.name] = s.k * (ln - s.l0) + s.c * np.sum(d * dd, 1) / ln
+        return out
 
-    def body_pose(self, body: str, q: np.ndarray, qd: np.ndarray):
-        """Frame origin (T, 2), angle (T,), origin velocity (T, 2), omega (T,) from q, qd (T, n)."""
-        b = self.bodies[body]
-        ri, vi = q[:, b.cols[:2]], qd[:, b.cols[:2]]
-        if b.p_j is None:
-            z = np.zeros(len(q))
-            return ri - b.p_i, z, vi, z
-        d, dd = q[:, b.cols[2:]] - ri, qd[:, b.cols[2:]] - vi
-        dloc = b.p_j - b.p_i
-        angle = np.arctan2(d[:, 1], d[:, 0]) - np.arctan2(dloc[1], dloc[0])
-        omega = (d[:, 0] * dd[:, 1] - d[:, 1] * dd[:, 0]) / np.sum(d**2, 1)
-        c, s = np.cos(angle), np.sin(angle)
-        rp = np.stack([c * b.p_i[0] - s * b.p_i[1], s * b.p_i[0] + c * b.p_i[1]], -1)
-        origin = ri - rp
-        velocity = vi - omega[:, None] * np.stack([-rp[:, 1], rp[:, 0]], -1)
-        return origin, np.unwrap(angle), velocity, omega
+    def axial(self, name: str, lam: np.ndarray) -> np.ndarray:
+        """Axial force of distance row ``name`` from lambda (..., m): ``2 L lambda``, tension
+        positive, N."""
+        return 2.0 * self.rod_length[name] * lam[..., self.rows[name][0]]
 
-    def q_from_poses(self, poses: dict) -> np.ndarray:
-        """Coordinates (n,) placing each body at a pose {body: Pose}."""
-        q = np.zeros(self.n)
-        for name, b in self.bodies.items():
-            pose = poses[name]
-            c, s = np.cos(pose.angle), np.sin(pose.angle)
-            R = np.array([[c, -s], [s, c]])
-            q[b.cols[:2]] = pose.origin + R @ b.p_i
-            if b.p_j is not None:
-                q[b.cols[2:]] = pose.origin + R @ b.p_j
-        return q
+    def cols(self, name: str) -> np.ndarray:
+        return self.elements[name].cols
+
+    def kinetic_energy(self, qd: np.ndarray) -> np.ndarray:
+        """1/2 qd^T M qd for qd (..., n), J."""
+        return 0.5 * np.einsum("...i,ij,...j->...", qd, self.M, qd)
 
 
-def build_model(case: Case) -> Model:
-    """Natural coordinates, constant mass matrix and constraint rows of a 2-D case."""
-    bodies: dict[str, BodyMap] = {}
-    col = 0
-    for body in case.bodies:
-        pts = list(body.points.values())
-        if body.kind == "particle":
-            bodies[body.name] = BodyMap(body.name, np.arange(col, col + 2), pts[0], None, 0.0)
-            col += 2
-        else:
-            L = float(np.linalg.norm(pts[1] - pts[0]))
-            bodies[body.name] = BodyMap(body.name, np.arange(col, col + 4), pts[0], pts[1], L)
-            col += 4
-    n = col
-    M, Q0, T = np.zeros((n, n)), np.zeros(n), np.zeros((n, n))
-    shell = Model(case, n, M, Q0, T, None, bodies, {})  # type: ignore[arg-type]
-
-    for body in case.bodies:
-        b = bodies[body.name]
-        CG = shell.point_map(body.name, body.com)[:, b.cols]  # (2, 2k)
-        Mb = body.mass * CG.T @ CG
-        if b.p_j is not None:
-            D = np.hstack([-np.eye(2), np.eye(2)])  # d = r_j - r_i
-            Mb += body.inertia / b.L**2 * D.T @ D
-        M[np.ix_(b.cols, b.cols)] += Mb
-        Q0[b.cols] += body.mass * CG.T @ case.gravity
-    for f in case.forces:  # torque tau: Q_d = tau / L^2 J d, linear in q
-        b = bodies[f.body]
-        if b.p_j is None:
-            raise ValueError(f"torque on particle {f.body!r} has no effect")
-        D = np.hstack([-np.eye(2), np.eye(2)])
-        T[np.ix_(b.cols, b.cols)] += f.value / b.L**2 * D.T @ J2 @ D
-
-    cb = ConstraintBuilder(n)
-    for name, b in bodies.items():
-        if b.p_j is not None:  # rigid-body distance |r_j - r_i|^2 - L^2 = 0
-            A = np.zeros((2, n + 1))
-            A[:, b.cols[:2]], A[:, b.cols[2:]] = -np.eye(2), np.eye(2)
-            cb.bilinear(A, np.eye(2), A, -b.L**2, f"{name}: length")
-    joints: dict[str, JointMap] = {}
-    points_of = {b.name: b.points for b in case.bodies} | {GROUND: case.ground}
-    for j in case.joints:
-        (a, b), (pa, pb) = j.bodies, j.points
-        Ca, Cb = shell.point_map(a, points_of[a][pa]), shell.point_map(b, points_of[b][pb])
-        if j.type == "revolute":  # r_Pa - r_Pb = 0: lambda is the force on b
-            rows = [cb.linear(Ca[0] - Cb[0], f"{j.name}: x"),
-                    cb.linear(Ca[1] - Cb[1], f"{j.name}: y")]
-            joints[j.name] = JointMap(j.name, np.array(rows))
-        else:  # prismatic: cross(u, r_Pb - r_Pa) = 0, u the axis in world axes
-            U = _direction_map(shell, a, j.axis)
-            row = cb.bilinear(U, S2, Cb - Ca, 0.0, f"{j.name}: on line", length_dim=1)
-            rows = [row]
-            if bodies.get(b) is not None and bodies[b].p_j is not None:
-                rel = case.guess[b].angle - (case.guess[a].angle if a != GROUND else 0.0)
-                Da, Db = _direction_map(shell, a, np.array([1.0, 0.0])), \
-                    _direction_map(shell, b, np.array([1.0, 0.0]))
-                rows.append(cb.bilinear(Da, S2, Db, -np.sin(rel), f"{j.name}: no rotation",
-                                        length_dim=0))
-            joints[j.name] = JointMap(j.name, np.array(rows), U)
-    return Model(case, n, M, Q0, T, cb.build(), bodies, joints, build_drivers(case, shell))
+def _cross_matrix(d: np.ndarray) -> np.ndarray:
+    """B (r, dim) with B @ f = d x f (r = 3 in 3-D, 1 in 2-D)."""
+    if len(d) == 2:
+        return np.array([[-d[1], d[0]]])
+    return np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
 
 
-def _direction_map(shell: Model, body: str, u_local: np.ndarray) -> np.ndarray:
-    """(2, n + 1) map from qh to the world direction of a body-frame unit vector."""
-    return shell.point_map(body, u_local) - shell.point_map(body, np.zeros(2))
+def _torque_force(body: Body, tau, qh: np.ndarray) -> np.ndarray:
+    """Generalized force (n,) of a torque ``tau`` (world, N m) on a body.
+
+    Forces f_k on the body's difference vectors d_k with sum d_k x f_k = tau (minimum norm):
+    a rigid rotation dtheta moves d_k by dtheta x d_k, so the virtual work is dtheta . tau.
+    """
+    d = body.G @ qh  # (K, dim)
+    B = np.hstack([_cross_matrix(dk) for dk in d])
+    f = np.linalg.lstsq(B, np.atleast_1d(tau).astype(float), rcond=None)[0]
+    return np.einsum("kan,ka->n", body.G[:, :, :-1], f.reshape(len(d), -1))

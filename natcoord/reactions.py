@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import qr, solve_triangular
 
+from .drivers import ConstraintSystem
 from .errors import ExistenceError
 
 RANK_RTOL = 1e-10  # relative to the largest pivot of Phi_q^T
@@ -206,15 +207,21 @@ def resultant(model, t: float, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -
 
 def along(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
           w: np.ndarray | None = None) -> np.ndarray:
-    """Weighted minimum-norm multipliers (T, m) along samples t (T,), q, qd, qdd (T, n).
+    """Weighted minimum-norm multipliers (T, m_all) along samples t (T,), q, qd, qdd (T, n)
+    (driver rows after the m constraint rows).
 
-    ``w`` (m,) or (T, m): row weights (None: plain minimum norm).
+    ``w`` (m,) or (T, m): weights of the constraint rows (None: plain minimum norm); driver
+    rows weigh 1.
     """
+    con = ConstraintSystem(model)
     T = len(t)
-    lam = np.zeros((T, model.m))
-    W = None if w is None else np.broadcast_to(np.asarray(w, float), (T, model.m))
+    lam = np.zeros((T, con.m))
+    W = None
+    if w is not None:
+        W = np.ones((T, con.m))
+        W[:, :model.m] = np.broadcast_to(np.asarray(w, float), (T, model.m))
     for k in range(T):
-        Jq = model.constraints.jacobian(q[k])
+        Jq = con.jacobian(q[k], t[k])
         f = resultant(model, t[k], q[k], qd[k], qdd[k])
         lam[k] = weighted(Jq, f, None if W is None else W[k]).lam
     return lam

@@ -8,13 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord import casemodel, paper
+from natcoord import casemodel
 from natcoord.casefile import load_case
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
 from natcoord.result import evaluate_channels
 from natcoord.suite.compare import channel_errors
 from natcoord.suite.references import load_provenance, load_reference
+from tests import paper_models as paper
 
 from .conftest import CASES, REFERENCES
 

@@ -1,5 +1,5 @@
 """Compiled index-1 loop on its general path (natcoord.kernels_general): singular M,
-redundant constraints, NaturalModel torques and spring-dampers, against the Python loop in
+redundant constraints, Model torques and spring-dampers, against the Python loop in
 ``linsolve="qr"`` mode on the paper's reference-frame cases."""
 
 from __future__ import annotations
@@ -14,9 +14,8 @@ from natcoord import casefile, casemodel, kernels
 from natcoord import kernels_general as kg
 from natcoord.dynamics import integrate
 from natcoord.formulations import Counters, Index1, compiled_forces
-from natcoord.kinematics import initial_state
-from natcoord.model import build_model
-from natcoord.model3d import NaturalModel, Spring
+from natcoord.model import Model, Spring
+from tests.models import build_model, initial_state
 
 from .conftest import CASES
 
@@ -63,7 +62,7 @@ def run_compiled(model, state, times, method, rtol, atol, **options):
     return form.mode, Q, QD, QDD, cnt
 
 
-def _with_extra_forces(model: NaturalModel, rng) -> NaturalModel:
+def _with_extra_forces(model: Model, rng) -> Model:
     """four_bar_3d with 3-D torques on a full body (3 difference vectors), on a rod (one)
     and on a body of two collinear ones, and three spring-dampers between random maps."""
     crank = model.bodies["crank"]
@@ -100,7 +99,7 @@ def test_forces_of_2d_model_and_unknown_force_models():
     kg.forces(frc, q, q, out)
     assert np.allclose(out, model.forces(0.0, q, q), rtol=1e-14, atol=1e-12)
 
-    class Custom(NaturalModel):
+    class Custom(Model):
         def forces(self, t, q, qd):
             return self.Q0
 

@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from natcoord.builder3d import Builder
-from natcoord.model3d import (
+from natcoord.builder import Builder
+from natcoord.model import (
     GROUND,
     plate_second_moment,
     rod_second_moment,

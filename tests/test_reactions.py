@@ -6,10 +6,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from natcoord import reactions
-from natcoord.builder3d import Builder
+from natcoord.builder import Builder
 from natcoord.errors import ExistenceError
 from natcoord.kinematics import State
-from natcoord.model3d import rod_second_moment
+from natcoord.model import rod_second_moment
 
 
 def _redundant(seed: int, n: int, r: int, m: int):

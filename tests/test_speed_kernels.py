@@ -12,14 +12,13 @@ import pytest
 
 from natcoord import load_case
 from natcoord.dynamics import integrate
-from natcoord.kinematics import initial_state
-from natcoord.model import build_model
+from tests.models import body_angle, build_model, initial_state
 
 from .conftest import CASES, REFERENCES, ROOT
 
 
 def _theta_error(name, sol, model):
-    _, ang, _, _ = model.body_pose("crank", sol.q, sol.qd)
+    ang = body_angle(model, "crank", sol.q, sol.qd)
     ref = pd.read_csv(REFERENCES / f"{name}.csv")["theta"].to_numpy()
     return float(np.max(np.abs(ang - ref)))
 

@@ -116,8 +116,9 @@ def _kill_worker_when_started(engine: str, stop: threading.Event):
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if b"natcoord.suite.worker" in cmd and engine.encode() in cmd \
-                    and b"four_bar" in b" ".join(cmd):
+            line = b" ".join(cmd)  # the job file is results/<case>/.<engine>.job.pkl
+            if b"natcoord.suite.worker" in cmd and f".{engine}.job".encode() in line \
+                    and b"four_bar" in line:
                 time.sleep(0.3)  # mid-run: after imports, while it integrates
                 os.kill(int(pid), signal.SIGKILL)
                 return

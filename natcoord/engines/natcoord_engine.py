@@ -2,29 +2,28 @@
 
 Settings (``[engines.natcoord].settings``): ``formulation`` (index1 | maggi | index3),
 ``method`` (dop853 | dopri5 | rk4 | trapezoidal | DOP853 | RK45 | Radau | LSODA | BDF), ``rtol``,
-``atol``, ``h`` (fixed step, s; required for rk4 and trapezoidal) and the formulation options
-of :data:`natcoord.formulations.DEFAULT_OPTIONS` (``stabilization``, ``linsolve``,
-``penalty``, ``compiled``, ...).
+``atol``, ``h`` (fixed step, s; required for rk4 and trapezoidal), ``coordinates`` (joints |
+shared, see :mod:`natcoord.casemodel`) and the formulation options of
+:data:`natcoord.formulations.DEFAULT_OPTIONS` (``stabilization``, ``linsolve``, ``penalty``,
+``compiled``, ...).
 
-The default (index1, dop853) runs as one compiled numba loop (:mod:`natcoord.kernels`); its
-compile or cache-load time goes into ``build_time_s`` (and ``counters["compile_time_s"]``),
-never into ``wall_time_s``.
+Every case runs the same way: the case's natural-coordinate model, started from the
+assembled state ``init`` (q, qd), every reaction method of the case, and the channels that
+N = ker Phi_q^T leaves undetermined. The default (index1, dop853) runs as one compiled numba
+loop (:mod:`natcoord.kernels`); its compile or cache-load time goes into ``build_time_s``
+(and ``counters["compile_time_s"]``), never into ``wall_time_s``.
 """
 
 from __future__ import annotations
 
 import time
 
-import numpy as np
-
-from .. import __version__
+from .. import __version__, casemodel
 from ..dynamics import integrate
 from ..formulations import DEFAULT_OPTIONS
-from ..kinematics import initial_state
+from ..kinematics import State
 from ..mechanism import Case
-from ..model import J2, build_model
-from ..result import Motion
-from .base import EngineRun, merged
+from .base import EngineRun, InitialState, merged
 
 NAME = "natcoord"
 PACKAGE = "natcoord"
@@ -36,65 +35,23 @@ def version() -> str:
     return __version__
 
 
-def run(case: Case, init, settings: dict) -> EngineRun:
+def settings_of(settings: dict) -> dict:
+    """The case's settings over the defaults; unknown keys are refused."""
     s = {k: v for k, v in merged(DEFAULTS, settings).items()
          if k not in ("reference", "reference_check")}  # used by `natcoord reference update`
     unknown = sorted(set(s) - set(DEFAULTS) - set(DEFAULT_OPTIONS))
     if unknown:
         raise ValueError(f"natcoord settings: unknown key {unknown[0]!r}; keys are "
                          f"{', '.join([*DEFAULTS, *DEFAULT_OPTIONS])}")
-    if case.reference_frame:
-        return _run_reference_frame(case, s)
-    t0 = time.perf_counter()
-    model = build_model(case)
-    state = initial_state(model)
-    compile_s = 0.0
-    if s.get("compiled", True) and s["formulation"] == "index1" and s["h"] is None:
-        from .. import kernels
-        compile_s = kernels.ensure_compiled()  # cold compile or cache load: build, not wall
-    build = time.perf_counter() - t0
-    options = {k: v for k, v in s.items() if k in DEFAULT_OPTIONS}
-    method = s["method"]
-    if s["formulation"] == "index3" and method == DEFAULTS["method"]:
-        method = "trapezoidal"
-    sol = integrate(model, state, case.times, formulation=s["formulation"], method=method,
-                    rtol=s["rtol"], atol=s["atol"], h=s["h"], **options)
-    counters = sol.counters | {"compile_time_s": compile_s}
-    return EngineRun(motion_of(model, sol), build, sol.wall_time_s, sol.counters["steps"], s,
-                     counters)
+    return s
 
 
-def motion_of(model, sol) -> Motion:
-    """Neutral motion from a natcoord solution (accelerations and driver efforts included)."""
-    origin, angle, velocity, omega, acc, alpha = {}, {}, {}, {}, {}, {}
-    for name, b in model.bodies.items():
-        origin[name], angle[name], velocity[name], omega[name] = model.body_pose(
-            name, sol.q, sol.qd)
-        C0 = model.point_map(name, np.zeros(2))[:, :-1]
-        if b.p_j is None:  # particle: its frame origin is its point translated
-            C0 = np.zeros((2, model.n))
-            C0[:, b.cols] = np.eye(2)
-            alpha[name] = np.zeros(len(sol.t))
-        else:  # alpha = (d x d_ddot) / |d|^2 for d = r_j - r_i (d . d_dot = 0)
-            d = sol.q[:, b.cols[2:]] - sol.q[:, b.cols[:2]]
-            ddd = sol.qdd[:, b.cols[2:]] - sol.qdd[:, b.cols[:2]]
-            alpha[name] = np.sum((d @ J2.T) * ddd, 1) / np.sum(d * d, 1)
-        acc[name] = sol.qdd @ C0.T
-    forces = {name: j.force(sol.lam, sol.q) for name, j in model.joints.items()}
-    m0 = model.constraints.m
-    efforts = {d.name: d.effort(sol.lam[:, m0 + k], sol.q, sol.t)
-               for k, d in enumerate(getattr(model, "drivers", ()))}
-    return Motion(sol.t, origin, angle, velocity, omega, forces, acc, alpha, efforts)
-
-
-def _run_reference_frame(case: Case, s: dict) -> EngineRun:
-    """Reference-frame cases (3-D, rods, springs): :mod:`natcoord.casemodel`, every
-    reaction method of the case, and the channels N = ker Phi_q^T leaves undetermined."""
-    from .. import casemodel
-
+def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
+    """Integrate the case from ``init`` (assembled here when None)."""
+    s = settings_of(settings)
     t0 = time.perf_counter()
     cm = casemodel.build(case, s["coordinates"])
-    state = casemodel.initial_state(cm)
+    state = State(init.q, init.qd) if init is not None else casemodel.initial_state(cm)
     build = time.perf_counter() - t0
     options = {k: v for k, v in s.items() if k in DEFAULT_OPTIONS}
     method = s["method"]
@@ -102,6 +59,7 @@ def _run_reference_frame(case: Case, s: dict) -> EngineRun:
         method = "trapezoidal"
     sol = integrate(cm.model, state, case.times, formulation=s["formulation"], method=method,
                     rtol=s["rtol"], atol=s["atol"], h=s["h"], **options)
+    build += sol.counters["compile_time_s"]  # a cold compile or cache load: build, not wall
     lams = casemodel.reactions_by_method(cm, sol)
     motions = {name: casemodel.motion(cm, sol, lam) for name, lam in lams.items()}
     first = next(iter(lams))
@@ -113,4 +71,4 @@ def _run_reference_frame(case: Case, s: dict) -> EngineRun:
              f"{diag['m']} constraints of rank {diag['rank']}: {diag['dof']} DOF, "
              f"{diag['redundant']} redundant; channel values by the {first} reactions"]
     return EngineRun(motions[first], build, sol.wall_time_s, sol.counters["steps"], s,
-                     counters, notes, motions)
+                     counters, notes, motions if len(motions) > 1 or case.reactions else {})

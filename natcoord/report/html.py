@@ -1,6 +1,6 @@
 """Self-contained HTML report of a results directory.
 
-Input (the runner's contract, DESIGN.md section 2):
+Input (the runner's contract, README "Commands"):
 
 - ``DIR/summary.json``: header fields and one record per case x engine;
 - ``DIR/results/<case>/<engine>.csv``: column ``t`` then one column per channel;

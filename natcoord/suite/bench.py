@@ -21,7 +21,7 @@ from .. import __version__
 from ..mechanism import Case
 from .io import write_json
 from .references import load_reference
-from .runner import machine_info, run_subprocess
+from .runner import as_job, machine_info, run_subprocess
 
 # Work-precision sweeps: settings that trade accuracy for time, coarse to fine (data, not
 # code: a user tunes them here). MuJoCo's loop stiffness follows its step (solref_steps).
@@ -49,11 +49,12 @@ def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 3,
     """Benchmark and return ``{"records": [...], "machine": ..., "generated": ...}``."""
     records = []
     with tempfile.TemporaryDirectory(prefix="natcoord-bench-") as tmp:
-        for case in cases:
+        for job in map(as_job, cases):
+            case = job.case
             for engine in engines:
-                runs = [run_subprocess(case, engine, Path(tmp), timeout_s)]
+                runs = [run_subprocess(job, engine, Path(tmp), timeout_s)]
                 while len(runs) < repeats and (runs[0].get("wall_time_s") or 0) < LONG_RUN_S:
-                    runs.append(run_subprocess(case, engine, Path(tmp), timeout_s))
+                    runs.append(run_subprocess(job, engine, Path(tmp), timeout_s))
                 ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
                 rec = {"case": case.name, "engine": engine, "repeats": len(ok),
                        "status": runs[-1]["status"], "reason": runs[-1].get("reason", ""),
@@ -101,14 +102,15 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
     """
     points = []
     with tempfile.TemporaryDirectory(prefix="natcoord-wp-") as tmp:
-        for case in cases:
+        for job in map(as_job, cases):
+            case = job.case
             ref = load_reference(case.name, references)
             angle = next((c.name for c in case.channels if c.kind == "angle"), None)
             if ref is None or angle is None:
                 continue
             for engine in engines:
                 for setting in SWEEPS.get(engine, []):
-                    runs = [run_subprocess(case, engine, Path(tmp), timeout_s, setting)
+                    runs = [run_subprocess(job, engine, Path(tmp), timeout_s, setting)
                             for _ in range(repeats)]
                     ok = [r for r in runs if r["status"] == "ok"]
                     rec = {"case": case.name, "engine": engine, "setting": setting,

@@ -46,9 +46,10 @@ def _describe(settings: dict) -> str:
                                        f"rtol {settings['rtol']}")
 
 
-def update_reference(case: Case, directory: Path) -> dict:
-    """Recompute and store the reference of one case; returns its provenance."""
-    init = initial_body_states(case)
+def update_reference(case: Case, directory: Path, init=None) -> dict:
+    """Recompute and store the reference of one case (from its assembled state ``init``,
+    assembled here when None); returns its provenance."""
+    init = initial_body_states(case) if init is None else init
     own = case.engine("natcoord").settings
     model_settings = {k: v for k, v in own.items() if k in MODEL_SETTINGS}
     best = natcoord_run(case, init, model_settings | own.get("reference", REFERENCE_SETTINGS))

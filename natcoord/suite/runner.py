@@ -7,9 +7,10 @@ starts, so a gate never trusts a summary from an interrupted run.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
-import json
 import os
+import pickle
 import platform
 import signal
 import subprocess
@@ -21,10 +22,13 @@ from pathlib import Path
 import pandas as pd
 
 from .. import __version__
+from ..casemodel import initial_body_states
+from ..errors import NatcoordError
 from ..mechanism import Case
 from .compare import channel_errors
 from .io import read_json, write_json
 from .references import load_provenance, load_reference
+from .worker import Job
 
 DEFAULT_TIMEOUT_S = 600.0
 
@@ -35,15 +39,35 @@ def machine_info() -> dict:
             "blas_threads": 1}
 
 
-def run_subprocess(case: Case, engine: str, out: Path, timeout_s: float,
+def prepare(case: Case) -> Job:
+    """Assemble a case once: a Job template (engine left empty) that every run of the case
+    starts from. A case that does not assemble keeps the reason instead of a state."""
+    try:
+        return Job(case, initial_body_states(case), "")
+    except NatcoordError as e:
+        return Job(case, None, "", assembly_error=str(e))
+
+
+def as_job(case: Case | Job) -> Job:
+    """A prepared Job as it is, or a loaded case assembled now."""
+    return case if isinstance(case, Job) else prepare(case)
+
+
+def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
                    settings: dict | None = None) -> dict:
     """Run one case x engine in a child process; return its record (status failed on a
-    crash, a non-zero exit or the time limit)."""
+    crash, a non-zero exit or the time limit). ``case`` may be a prepared Job (assembled
+    once for all its engines)."""
+    job = as_job(case)
+    case = job.case
     folder = out / "results" / case.name
     for suffix in (".csv", ".json"):
         (folder / f"{engine}{suffix}").unlink(missing_ok=True)
-    cmd = [sys.executable, "-m", "natcoord.suite.worker", case.file, engine, str(out),
-           "--settings", json.dumps(settings or {})]
+    folder.mkdir(parents=True, exist_ok=True)
+    job_file = folder / f".{engine}.job.pkl"
+    with open(job_file, "wb") as f:
+        pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {})), f)
+    cmd = [sys.executable, "-m", "natcoord.suite.worker", str(job_file), str(out)]
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
@@ -54,10 +78,13 @@ def run_subprocess(case: Case, engine: str, out: Path, timeout_s: float,
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate()
+        job_file.unlink(missing_ok=True)
         return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
     except KeyboardInterrupt:
         os.killpg(proc.pid, signal.SIGKILL)
+        job_file.unlink(missing_ok=True)
         raise
+    job_file.unlink(missing_ok=True)
     record_file = folder / f"{engine}.json"
     if proc.returncode != 0 or not record_file.exists():
         if proc.returncode and proc.returncode < 0:
@@ -92,24 +119,27 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
     return {**record, "channels": channels, "verdict": verdict, "verdict_reason": why}
 
 
-def run_suite(cases: Sequence[Case], engines: Sequence[str], out: Path, *,
+def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
               references: Path = Path("references"), timeout_s: float = DEFAULT_TIMEOUT_S,
               progress: Callable[[str, dict], None] | None = None) -> dict:
-    """Run every case in every engine and write ``out/summary.json``; returns the summary."""
+    """Run every case in every engine and write ``out/summary.json``; returns the summary.
+    ``cases`` may be loaded cases or prepared Jobs (assembled once by the caller)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").unlink(missing_ok=True)
     records = []
-    for case in cases:
+    jobs = [as_job(c) for c in cases]
+    for job in jobs:
+        case = job.case
         for engine in engines:
-            record = compare_record(case, run_subprocess(case, engine, out, timeout_s), out,
+            record = compare_record(case, run_subprocess(job, engine, out, timeout_s), out,
                                     references)
             records.append(record)
             if progress:
                 progress(f"{case.name}/{engine}", record)
     summary = {"generated": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                "natcoord_version": __version__, "machine": machine_info(),
-               "cases": [c.name for c in cases], "engines": list(engines),
+               "cases": [j.case.name for j in jobs], "engines": list(engines),
                "records": records}
     write_json(out / "summary.json", summary)
     return summary

@@ -1,8 +1,11 @@
 """Run one case in one engine, in its own process, and write its result files.
 
-    python -m natcoord.suite.worker CASE_FILE ENGINE OUT_DIR [--settings JSON]
+    python -m natcoord.suite.worker JOB_FILE OUT_DIR
 
-Writes ``OUT_DIR/results/<case>/<engine>.csv`` (when the run produced data) and
+``JOB_FILE`` is a pickled :class:`Job` written by the runner: the case as loaded and
+assembled once by the command (the worker neither reads the case file nor assembles it
+again), the engine and its setting overrides. Writes
+``OUT_DIR/results/<case>/<engine>.csv`` (when the run produced data) and
 ``OUT_DIR/results/<case>/<engine>.json`` (the run record), both atomically. The parent
 process owns time limits and crashes: whatever this process does not write is reported by
 the parent as ``failed``.
@@ -11,10 +14,11 @@ the parent as ``failed``.
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import pickle
 import sys
 import traceback
+from dataclasses import dataclass, field
 from pathlib import Path
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -22,11 +26,10 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
-from ..casefile import load_case  # noqa: E402
 from ..engines import adapter  # noqa: E402
-from ..engines.base import initial_body_states  # noqa: E402
+from ..engines.base import InitialState  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..mechanism import FORCE_KINDS  # noqa: E402
+from ..mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..result import Result, Status, evaluate_channels, methods_table  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
@@ -43,10 +46,22 @@ def record_of(result: Result, sim_time_s: float) -> dict:
     }
 
 
-def run_one(case_file: str, engine: str, settings_override: dict | None = None) -> Result:
-    """Run a case in an engine in this process and return its Result (never raises for
-    engine trouble: that becomes the status)."""
-    case = load_case(case_file)
+@dataclass(frozen=True)
+class Job:
+    """One case x engine run: the loaded case, its assembled state at t = 0 (None with
+    ``assembly_error`` when it does not assemble), the engine and setting overrides."""
+
+    case: Case
+    init: InitialState | None
+    engine: str
+    settings: dict = field(default_factory=dict)
+    assembly_error: str = ""
+
+
+def run_one(job: Job) -> Result:
+    """Run a job in this process and return its Result (never raises for engine trouble:
+    that becomes the status)."""
+    case, engine = job.case, job.engine
     spec = case.engine(engine)
     res = Result(case.name, engine)
     mod = adapter(engine)
@@ -59,9 +74,12 @@ def run_one(case_file: str, engine: str, settings_override: dict | None = None) 
         res.status = Status.SKIPPED
         res.reason = f"package {mod.PACKAGE!r} is not installed ({e}); pip install {mod.PACKAGE}"
         return res
-    settings = {**spec.settings, **(settings_override or {})}
+    if job.init is None:
+        res.status, res.reason = Status.FAILED, f"the case does not assemble: {job.assembly_error}"
+        return res
+    settings = {**spec.settings, **job.settings}
     try:
-        run = mod.run(case, initial_body_states(case), settings)
+        run = mod.run(case, job.init, settings)
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
         return res
@@ -88,19 +106,18 @@ def run_one(case_file: str, engine: str, settings_override: dict | None = None) 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="natcoord.suite.worker")
-    p.add_argument("case_file")
-    p.add_argument("engine")
+    p.add_argument("job_file", help="pickled Job written by the runner")
     p.add_argument("out_dir")
-    p.add_argument("--settings", default="{}", help="JSON object overriding engine settings")
     a = p.parse_args(argv)
-    res = run_one(a.case_file, a.engine, json.loads(a.settings))
-    case = load_case(a.case_file)
+    with open(a.job_file, "rb") as f:
+        job: Job = pickle.load(f)
+    res = run_one(job)
     folder = Path(a.out_dir) / "results" / res.case
     if res.table is not None:
         write_csv(folder / f"{res.engine}.csv", res.table)
     if res.methods is not None:
         write_csv(folder / f"{res.engine}.methods.csv", res.methods)
-    write_json(folder / f"{res.engine}.json", record_of(res, case.duration))
+    write_json(folder / f"{res.engine}.json", record_of(res, job.case.duration))
     return 0
 
 

@@ -7,7 +7,7 @@
 * :func:`parallelogram_3d`  Example 3 (Eqs. (95)-(115)), rigid (18 rows, rank 17) or with
                             the six rods as spring-dampers (``flexible=True``).
 
-Geometry and loads are those of DESIGN.md, Section 4. Each function returns a
+Geometry and loads are those of the case files of the same names. Each function returns a
 :class:`PaperModel`: the model (dynamics protocol), its initial state, the duration, the row
 weights of every reaction method, and :meth:`PaperModel.outputs` for the named channels.
 """
@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from . import reactions
-from .builder3d import Builder
-from .dynamics import Solution, accelerations
-from .kinematics import State
-from .model3d import GROUND, NaturalModel, plate_second_moment, rod_second_moment
+from natcoord import reactions
+from natcoord.builder import Builder
+from natcoord.dynamics import Solution, accelerations
+from natcoord.kinematics import State
+from natcoord.model import GROUND, Model, plate_second_moment, rod_second_moment
 
 
 @dataclass(frozen=True)
@@ -34,7 +34,7 @@ class PaperModel:
     Attributes
     ----------
     name : str
-    model : NaturalModel
+    model : Model
     state : State                 initial q (n,), qd (n,), consistent with the constraints
     duration : float              s
     methods : dict[str, (m,) or None]   row weights of each reaction method (None: min norm)
@@ -43,7 +43,7 @@ class PaperModel:
     """
 
     name: str
-    model: NaturalModel
+    model: Model
     state: State
     duration: float
     methods: dict[str, np.ndarray | None] = field(default_factory=dict)
@@ -167,7 +167,7 @@ def five_bar_null_vector(q: np.ndarray) -> np.ndarray:
 
 # ---- Example 1: 3-D four-bar with parallel revolute axes ----------------------------------
 def four_bar_3d() -> PaperModel:
-    """DESIGN.md four_bar moved into the Y-Z plane: ground pivots O = (0,0,0), D = (0,2,0),
+    """The four_bar case moved into the Y-Z plane: ground pivots O = (0,0,0), D = (0,2,0),
     crank O-A 1 m, coupler A-C 2 m, rocker D-C 1.5 m, uniform rods of 1 kg/m, revolutes with
     their axes along X, gravity -z; released at rest with the crank at 60 deg.
 
@@ -233,7 +233,7 @@ PARALLELOGRAM_RODS = (("A", "1"), ("C", "2"), ("E", "3"), ("G", "4"), ("K", "5")
 ROD_K, ROD_C, PLATE_FACTOR = 17e6, 1e5, 1e6
 
 
-def parallelogram_weights(model: NaturalModel, k_rod: float = ROD_K,
+def parallelogram_weights(model: Model, k_rod: float = ROD_K,
                           k_plate: float = PLATE_FACTOR * ROD_K) -> np.ndarray:
     """Eq. (115): rods ``sqrt(k) / L``, the plate's warping rows (Eq. (105), point 4)
     ``sqrt(k_P) / 2``; every other row 1 (determined or never loaded by the
@@ -248,7 +248,7 @@ def parallelogram_weights(model: NaturalModel, k_rod: float = ROD_K,
 
 
 def parallelogram_3d(*, flexible: bool = False) -> PaperModel:
-    """Example 3, Eqs. (95)-(106), with DESIGN.md's geometry.
+    """Example 3, Eqs. (95)-(106), with the geometry of cases/parallelogram_3d.toml.
 
     q = [r1 .. r6] (18). Rows: the six rod lengths A-1, C-2, E-3, G-4, K-5, M-6 (Eqs.
     (95)-(100)), plate distances 1-2, 2-3, 1-3, then the linear rows of point 4 (Eq. (105)),

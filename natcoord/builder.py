@@ -1,10 +1,16 @@
-"""Builder for natural-coordinate models: elements, bodies, constraint rows, joints, forces.
+"""Builder for natural-coordinate models: elements, bodies, constraint rows, joints, drivers,
+forces.
 
 Declare all elements first (:meth:`Builder.point`, :meth:`Builder.vector`, fixed ones), then
 bodies, constraints, joints and forces; :meth:`Builder.build` returns a frozen
-:class:`~natcoord.model3d.NaturalModel`. Maps are (d, n + 1) arrays ``C`` with ``C @ [q, 1]``
-a world position (m) or world direction components; row conventions are in
-:mod:`natcoord.model3d`.
+:class:`~natcoord.model.Model`. Maps are (d, n + 1) arrays ``C`` with ``C @ [q, 1]`` a world
+position (m) or world direction components; row conventions are in :mod:`natcoord.model`.
+
+Geometry is given in the *reference configuration*: the elements' reference values, in world
+axes. Each body's reference placement only has to be rigid within the body; bodies need not
+fit together there (a joint's two points are given apart, ``point`` on the first body and
+``point_b`` on the second), so an approximate pose is a valid reference and the position
+problem (:mod:`natcoord.kinematics`) closes the joints.
 """
 
 from __future__ import annotations
@@ -14,7 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .constraints import ConstraintBuilder
-from .model3d import GROUND, J2, Body, Element, NaturalModel, Spring
+from .drivers import DriverRow
+from .model import GROUND, J2, Body, Element, JointForce, Model, Spring
 
 
 @dataclass
@@ -35,6 +42,8 @@ class Builder:
     rod_length: dict[str, float] = field(default_factory=dict)
     torques: list = field(default_factory=list)
     springs: list = field(default_factory=list)
+    joints: dict[str, JointForce] = field(default_factory=dict)
+    drivers: list = field(default_factory=list)
     _n: int = 0
     _cb: ConstraintBuilder | None = None
     _M: np.ndarray | None = None
@@ -127,7 +136,7 @@ class Builder:
 
     # ---- bodies -------------------------------------------------------------------------
     def body(self, name: str, basis: list[str], *, mass: float = 0.0, com=None,
-             second_moment=None, rigid: bool = True) -> None:
+             second_moment=None, rigid: bool = True, frame=None) -> None:
         """A rigid body on the elements ``basis`` (the first must be a point).
 
         Adds its mass to M and its weight to Q0, and (``rigid``) the rigid-body rows among
@@ -137,6 +146,9 @@ class Builder:
 
         ``second_moment``: ∫ (x - g)(x - g)^T dm about the com (dim, dim), kg m^2, in the
         reference configuration (see :func:`second_moment` to convert an inertia tensor).
+        ``frame``: ``(R0 (dim, dim), o0 (dim,))``, the pose of the body's own frame in the
+        reference configuration (default: the world frame); it only names the body's frame
+        in outputs.
         """
         self._start()
         if name in self.bodies or name == GROUND:
@@ -155,7 +167,9 @@ class Builder:
         com = p0 if com is None else np.asarray(com, float)
         Jg = np.zeros((self.dim, self.dim)) if second_moment is None else \
             np.asarray(second_moment, float)
-        b = Body(name, tuple(basis), self.E(basis[0]), G, D, p0, float(mass), com, Jg)
+        R0, o0 = (np.eye(self.dim), np.zeros(self.dim)) if frame is None else \
+            (np.asarray(frame[0], float), np.asarray(frame[1], float))
+        b = Body(name, tuple(basis), self.E(basis[0]), G, D, p0, float(mass), com, Jg, R0, o0)
         if mass > 0:
             cbar = b.coeffs(com, point=True)
             Jo = mass * np.outer(com - p0, com - p0) + Jg
@@ -277,17 +291,35 @@ class Builder:
 
     # ---- joints (geometry in the reference configuration, world axes) --------------------
     def _perp(self, axis) -> np.ndarray:
+        """(dim - 1, dim) orthonormal directions normal to ``axis`` (2-D: J2 axis)."""
         a = np.asarray(axis, float) / np.linalg.norm(axis)
-        return np.linalg.svd(a[None, :])[2][1:]  # (dim - 1, dim) orthonormal, ⊥ a
+        if self.dim == 2:
+            return (J2 @ a)[None]
+        return np.linalg.svd(a[None, :])[2][1:]
 
-    def _joint(self, name, rows):
+    def _joint(self, name, rows, force_rows, force_maps):
         self.rows[name] = np.array(rows, int)
+        self.joints[name] = JointForce(np.array(force_rows, int),
+                                       np.array(force_maps, float).reshape(
+                                           len(force_rows), self.dim, self._n + 1))
         return self.rows[name]
 
-    def spherical(self, name: str, a: str, b: str, point) -> np.ndarray:
-        """Spherical joint: the point of a and the point of b coincide (3 rows); lambda is
+    def _coincident_joint(self, name, a, b, point, point_b) -> tuple[list[int], list]:
+        """Coincidence rows r_a - r_b (dim rows) and their unit force maps."""
+        rows = self.coincident(self.at(a, point), self.at(b, point if point_b is None
+                                                           else point_b), name)
+        maps = []
+        for k in range(self.dim):
+            C = np.zeros((self.dim, self._n + 1))
+            C[k, -1] = 1.0
+            maps.append(C)
+        return rows, maps
+
+    def spherical(self, name: str, a: str, b: str, point, point_b=None) -> np.ndarray:
+        """Spherical joint: the point of a and the point of b coincide (dim rows); lambda is
         the force on b."""
-        return self._joint(name, self.coincident(self.at(a, point), self.at(b, point), name))
+        rows, maps = self._coincident_joint(name, a, b, point, point_b)
+        return self._joint(name, rows, rows, maps)
 
     def _aligned(self, name, a, b, axis) -> list[int]:
         """Axis of a ⊥ two directions of b that are ⊥ the axis: 2 rows, independent."""
@@ -295,43 +327,78 @@ class Builder:
         return [self._start().dot(ua, self.along(b, p), 0.0, f"{name}: axis.{k}", 0)
                 for k, p in enumerate(self._perp(axis))]
 
-    def revolute(self, name: str, a: str, b: str, point, axis) -> np.ndarray:
+    def revolute(self, name: str, a: str, b: str, point, axis=None,
+                 point_b=None) -> np.ndarray:
         """Revolute joint about ``axis`` through ``point``: 3 coincidence + 2 alignment rows
-        (5 independent). The first 3 multipliers are the force on b (N), world axes."""
-        if self.dim == 2:
-            return self.spherical(name, a, b, point)
-        rows = self.coincident(self.at(a, point), self.at(b, point), name)
-        return self._joint(name, rows + self._aligned(name, a, b, axis))
+        (5 independent; 2-D: the 2 coincidence rows). The first dim multipliers are the
+        force on b (N), world axes."""
+        rows, maps = self._coincident_joint(name, a, b, point, point_b)
+        extra = self._aligned(name, a, b, axis) if self.dim == 3 else []
+        return self._joint(name, rows + extra, rows, maps)
 
-    def universal(self, name: str, a: str, b: str, point, axis_a, axis_b) -> np.ndarray:
+    def universal(self, name: str, a: str, b: str, point, axis_a, axis_b,
+                  point_b=None) -> np.ndarray:
         """Universal (Cardan) joint: coincident points and axis_a of a ⊥ axis_b of b."""
-        rows = self.coincident(self.at(a, point), self.at(b, point), name)
-        rows.append(self._start().dot(self.along(a, axis_a), self.along(b, axis_b), 0.0,
-                                      f"{name}: cross", 0))
-        return self._joint(name, rows)
+        rows, maps = self._coincident_joint(name, a, b, point, point_b)
+        cross = self._start().dot(self.along(a, axis_a), self.along(b, axis_b), 0.0,
+                                  f"{name}: cross", 0)
+        return self._joint(name, rows + [cross], rows, maps)
 
-    def _on_line(self, name, a, b, point, axis) -> list[int]:
-        rel = self.at(b, point) - self.at(a, point)
-        return [self._start().dot(self.along(a, p), rel, 0.0, f"{name}: line.{k}", 1)
-                for k, p in enumerate(self._perp(axis))]
+    def _on_line(self, name, a, b, point, axis, point_b) -> tuple[list[int], list]:
+        """The point of b on a's line through ``point`` along ``axis`` (dim - 1 rows
+        ``p_a . (r_b - r_a)``) and their force maps ``-p_a``."""
+        if a != GROUND and self.bodies[a].rank == 0:
+            raise ValueError(f"joint {name!r}: its first body {a!r} is a particle and has no "
+                             "direction to slide along; name the other body first")
+        rel = self.at(b, point if point_b is None else point_b) - self.at(a, point)
+        rows, maps = [], []
+        for k, p in enumerate(self._perp(axis)):
+            pa = self.along(a, p)
+            rows.append(self._start().dot(pa, rel, 0.0, f"{name}: line.{k}", 1))
+            maps.append(-pa)
+        return rows, maps
 
-    def cylindrical(self, name: str, a: str, b: str, point, axis) -> np.ndarray:
+    def _turns(self, body: str) -> bool:
+        return body == GROUND or self.bodies[body].rank > 0
+
+    def cylindrical(self, name: str, a: str, b: str, point, axis, point_b=None) -> np.ndarray:
         """Cylindrical joint: the point of b on a's line (2 rows), axes parallel (2 rows)."""
-        return self._joint(name, self._on_line(name, a, b, point, axis) +
-                           self._aligned(name, a, b, axis))
+        rows, maps = self._on_line(name, a, b, point, axis, point_b)
+        extra = self._aligned(name, a, b, axis) if self._turns(b) else []
+        return self._joint(name, rows + extra, rows, maps)
 
-    def prismatic(self, name: str, a: str, b: str, point, axis) -> np.ndarray:
-        """Prismatic joint: cylindrical plus no rotation about the axis (5 rows in 3-D)."""
-        rows = self._on_line(name, a, b, point, axis)
-        if self.dim == 3:
+    def prismatic(self, name: str, a: str, b: str, point, axis, point_b=None) -> np.ndarray:
+        """Prismatic joint: the point of b on a's line and no relative rotation (5 rows in
+        3-D, 2 in 2-D; a particle as second body only keeps to the line)."""
+        rows, maps = self._on_line(name, a, b, point, axis, point_b)
+        extra = []
+        if self._turns(b):
             p = self._perp(axis)
-            rows += self._aligned(name, a, b, axis)
-            rows.append(self._start().dot(self.along(a, p[0]), self.along(b, p[1]), 0.0,
-                                          f"{name}: no spin", 0))
-        else:
-            rows.append(self._start().dot(self.along(a, self._perp(axis)[0]),
-                                          self.along(b, axis), 0.0, f"{name}: no spin", 0))
-        return self._joint(name, rows)
+            if self.dim == 3:
+                extra = self._aligned(name, a, b, axis) + [self._start().dot(
+                    self.along(a, p[0]), self.along(b, p[1]), 0.0, f"{name}: no spin", 0)]
+            else:
+                extra = [self._start().dot(self.along(a, p[0]), self.along(b, axis), 0.0,
+                                           f"{name}: no spin", 0)]
+        return self._joint(name, rows + extra, rows, maps)
+
+    # ---- drivers ------------------------------------------------------------------------
+    def drive_angle(self, name: str, body: str, law: tuple[float, float, float]) -> None:
+        """A 2-D rheonomic row: the angle of ``body``'s frame follows ``law`` = (v0, rate,
+        accel) (rad, rad/s, rad/s^2), written on its first basis difference."""
+        b = self.bodies[body]
+        if self.dim != 2 or b.rank == 0:
+            raise ValueError(f"driver {name!r}: an angle driver needs a 2-D rigid body")
+        d_body = b.R0.T @ b.D[:, 0]
+        self.drivers.append(DriverRow(name, "angle", *law, C=b.G[0].copy(),
+                                      offset=float(np.arctan2(d_body[1], d_body[0]))))
+
+    def drive_coordinate(self, name: str, body: str, point, axis: int,
+                         law: tuple[float, float, float]) -> None:
+        """A rheonomic row: world coordinate ``axis`` of the body point (reference position
+        ``point``) follows ``law`` = (v0, rate, accel) (m, m/s, m/s^2)."""
+        self.drivers.append(DriverRow(name, "coordinate", *law,
+                                      C=self.at(body, point)[axis].copy()))
 
     # ---- forces -------------------------------------------------------------------------
     def force(self, body: str, point, F) -> None:
@@ -357,9 +424,9 @@ class Builder:
         l0 = float(np.linalg.norm((B - A) @ self._qh0())) if l0 is None else float(l0)
         self.springs.append(Spring(name, A, B, float(k), float(c), l0))
 
-    def build(self) -> NaturalModel:
+    def build(self) -> Model:
         cb = self._start()
-        return NaturalModel(self.dim, self._n, self._M.copy(), cb.build(), self._Q0.copy(),
-                            self._qh0()[:-1], dict(self.elements), dict(self.bodies),
-                            dict(self.rows), dict(self.rod_length), tuple(self.torques),
-                            tuple(self.springs))
+        return Model(self.dim, self._n, self._M.copy(), cb.build(), self._Q0.copy(),
+                     self._qh0()[:-1], dict(self.elements), dict(self.bodies),
+                     dict(self.rows), dict(self.rod_length), tuple(self.torques),
+                     tuple(self.springs), dict(self.joints), tuple(self.drivers))
