@@ -246,6 +246,9 @@ def load_case(path: str | Path) -> Case:
                 r.fail(f"{p}.tolerance.{key}", "neither a channel name nor a channel kind")
             tol[key] = r.quantity(value, f"{p}.tolerance.{key}", _kind_dim(key, channels),
                                   positive=True)
+        if ename == "natcoord":
+            _natcoord_settings(r, r.table(spec, "settings", p, required=False),
+                               f"{p}.settings")
         engines[ename] = EngineSpec(
             settings=r.table(spec, "settings", p, required=False),
             tolerance=tol,
@@ -263,6 +266,26 @@ def load_case(path: str | Path) -> Case:
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
                 comparison=comparison)
     return case
+
+
+def _natcoord_settings(r: _Reader, settings: dict, field: str) -> None:
+    """natcoord's settings must make a valid solver (formulation, integrator, step control:
+    :class:`natcoord.solver.Solver`), and so must its ``reference`` and ``reference_check``
+    settings; ``coordinates`` must name a way to write the joints."""
+    from .casemodel import COORDINATES
+    from .solver import REFERENCE_KEYS, case_solver
+
+    if settings.get("coordinates", "joints") not in COORDINATES:
+        r.fail(f"{field}.coordinates", f"must be one of {', '.join(COORDINATES)}, got "
+               f"{settings['coordinates']!r}")
+    for key in ("", *REFERENCE_KEYS):
+        own = settings if not key else settings.get(key, {})
+        if not isinstance(own, dict):
+            r.fail(f"{field}.{key}", "must be a table of solver settings")
+        try:
+            case_solver(own)
+        except (ValueError, TypeError) as e:
+            r.fail(f"{field}{'.' + key if key else ''}", str(e))
 
 
 def _comparison(r: _Reader, table: dict, channels) -> dict:

@@ -1,9 +1,9 @@
 """Forward dynamics: one entry point, :func:`integrate`, over the formulations of
-:mod:`natcoord.formulations` and the integrators of :mod:`natcoord.integrators`.
+:mod:`natcoord.formulations` and the integrators of :mod:`natcoord.integrators`, configured
+by a :class:`~natcoord.solver.Solver`.
 
-    sol = integrate(model, state, times, formulation="index1", method="dopri5",
-                    rtol=1e-10, atol=1e-12)
-    sol = integrate(model, state, times, formulation="index3", method="trapezoidal", h=1e-3)
+    sol = integrate(model, state, times)                       # index1, dop853, rtol 1e-10
+    sol = integrate(model, state, times, Solver(Index3(), "trapezoidal", Fixed(1e-3)))
 
 Before integrating, the existence condition ker M ∩ ker Phi_q = {0} (Eq. (37)) is checked
 at the initial state (ExistenceError names the motion without kinetic energy). Every
@@ -20,21 +20,12 @@ import numpy as np
 
 from . import kernels
 from .drivers import ConstraintSystem
-from .formulations import (
-    DEFAULT_OPTIONS,
-    FORMULATIONS,
-    Counters,
-    Index1,
-    check_existence,
-    multipliers,
-)
+from .formulations import RUNTIME, Counters, Index1Loop, check_existence, multipliers
 from .integrators import time_loop
 from .kinematics import State
+from .solver import Solver
 
-DEFAULT_METHOD = {"index1": "dopri5", "maggi": "dopri5", "index3": "trapezoidal"}
-
-__all__ = ["Counters", "Solution", "integrate", "accelerations", "project", "FORMULATIONS",
-           "DEFAULT_OPTIONS"]
+__all__ = ["Counters", "Solution", "Solver", "integrate", "accelerations", "project"]
 
 
 @dataclass(frozen=True)
@@ -52,44 +43,30 @@ class Solution:
     wall_time_s: float = 0.0
 
 
-def integrate(model, state: State, times: np.ndarray, *, formulation: str = "index1",
-              method: str | None = None, h: float | None = None, rtol: float = 1e-10,
-              atol: float = 1e-12, check: bool = True, **options) -> Solution:
+def integrate(model, state: State, times: np.ndarray, solver: Solver | None = None, *,
+              check: bool = True) -> Solution:
     """Integrate from ``state`` at times[0] and sample at ``times`` (T,).
 
-    Parameters
-    ----------
-    formulation : "index1" | "maggi" | "index3"
-    method : integrator name (natcoord.integrators.INTEGRATORS); default dopri5 for the
-        ODE forms, trapezoidal for index3. ``dop853`` (and adaptive ``dopri5``) on index1
-        runs as one compiled numba loop when the model allows (option ``compiled``); its
-        compile/cache-load time is reported as ``counters["compile_time_s"]``, never in
-        ``wall_time_s``
-    h : fixed step, s (required for rk4 and trapezoidal; makes dopri5 fixed-step)
-    rtol, atol : adaptive tolerances
-    check : test Eq. (37) at the initial state first
-    options : formulation options (``formulations.DEFAULT_OPTIONS``), e.g.
-        stabilization="baumgarte", linsolve="qr", penalty=1e7
+    ``solver`` (default ``Solver()``: index1, dop853, rtol 1e-10, atol 1e-12). ``dop853``
+    (and adaptive ``dopri5``) on index1 runs as one compiled numba loop when the model
+    allows; its compile/cache-load time is reported as ``counters["compile_time_s"]``,
+    never in ``wall_time_s``. ``check``: test Eq. (37) at the initial state first.
     """
-    if formulation not in FORMULATIONS:
-        raise ValueError(f"unknown formulation {formulation!r}; expected one of "
-                         f"{', '.join(FORMULATIONS)}")
-    unknown = sorted(set(options) - set(DEFAULT_OPTIONS))
-    if unknown:
-        raise ValueError(f"unknown option {unknown[0]!r}; options are "
-                         f"{', '.join(DEFAULT_OPTIONS)}")
-    method = method or DEFAULT_METHOD[formulation]
+    solver = Solver() if solver is None else solver
+    name, method, h = solver.formulation.name, solver.method, solver.h
+    options = solver.formulation.options()
+    rtol, atol = (solver.step.rtol, solver.step.atol) if h is None else (0.0, 0.0)
     times = np.asarray(times, dtype=float)
     t0 = float(times[0])
     if check:
         check_existence(model, state.q, t0)
     cnt = Counters()
-    form = FORMULATIONS[formulation](model, options, cnt)
+    form = RUNTIME[name](model, options, cnt)
     cs = ConstraintSystem(model)
     n, T = model.n, len(times)
     Q, QD, QDD, LAM = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, cs.m))
-    if formulation != "index3":  # start from a consistent state (index3 projects itself)
-        q0, qd0 = Index1(model, {**options, "linsolve": "qr"}, Counters()).project(
+    if name != "index3":  # start from a consistent state (index3 projects itself)
+        q0, qd0 = Index1Loop(model, {**options, "linsolve": "qr"}, Counters()).project(
             t0, np.asarray(state.q, float), np.asarray(state.qd, float))
     else:
         q0, qd0 = np.asarray(state.q, float), np.asarray(state.qd, float)
@@ -115,7 +92,7 @@ def integrate(model, state: State, times: np.ndarray, *, formulation: str = "ind
         cnt.max_phi = max(cnt.max_phi, float(np.max(np.abs(p), initial=0.0)))
         cnt.max_phi_dot = max(cnt.max_phi_dot, float(np.max(np.abs(J @ QD[k] + pt),
                                                             initial=0.0)))
-    counters = cnt.as_dict() | {"formulation": formulation, "method": method,
+    counters = cnt.as_dict() | {"formulation": name, "method": method,
                                 "compiled": bool(compiled), "compile_time_s": compile_s}
     return Solution(times, Q, QD, QDD, LAM, counters, wall)
 
@@ -127,13 +104,13 @@ def accelerations(model, q: np.ndarray, qd: np.ndarray,
     Rank-revealing (pivoted QR), so redundant constraints and a singular M are fine as
     long as ker M ∩ ker Phi_q = {0}.
     """
-    qdd = Index1(model, {"linsolve": "qr"}, Counters()).accelerations(t, q, qd)
+    qdd = Index1Loop(model, {"linsolve": "qr"}, Counters()).accelerations(t, q, qd)
     return qdd, multipliers(model, ConstraintSystem(model), t, q, qd, qdd)
 
 
 def project(model, q: np.ndarray, qd: np.ndarray, tol: float = 1e-13,
             counters: Counters | None = None, t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Project q onto Phi(q, t) = 0 (Newton) and qd onto Phi_q qd = -Phi_t (min-norm)."""
-    form = Index1(model, {"linsolve": "qr", "project_tol": tol}, counters or Counters())
+    form = Index1Loop(model, {"linsolve": "qr", "project_tol": tol}, counters or Counters())
     form.mode = "qr"
     return form.project(t, np.asarray(q, float), np.asarray(qd, float))

@@ -1,4 +1,5 @@
-"""Equations of motion in natural coordinates, chosen by name (``FORMULATIONS``).
+"""Equations of motion in natural coordinates: the loops behind the formulations of
+:mod:`natcoord.solver`, by name (``RUNTIME``).
 
 Every formulation works on any model with ``n``, ``M`` (n, n), ``constraints``
 (:class:`~natcoord.constraints.QuadraticConstraints`), ``forces(t, q, qd) -> (n,)`` and
@@ -33,6 +34,7 @@ import scipy.linalg
 
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
+from .solver import Index1, Index3, Maggi
 
 
 @dataclass
@@ -60,17 +62,8 @@ class Counters:
         return dict(self.__dict__)
 
 
-DEFAULT_OPTIONS = {
-    "stabilization": "projection",  # index1: projection | baumgarte | none
-    "baumgarte": (10.0, 10.0),      # (alpha, beta) 1/s: c - 2 alpha Phi_dot - beta^2 Phi
-    "linsolve": "auto",             # index1: auto | schur | qr
-    "project_tol": 1e-13,
-    "newton_tol": 1e-13,
-    "repartition_growth": 1.5,      # maggi: re-partition when max|R^d| grows this much
-    "penalty": 1e4,                 # index3: alpha h^2 / 4 = penalty * max|M| (1e6+: round-off)
-    "rank_tol": 1e-9,
-    "compiled": True,               # index1 + dop853/dopri5 adaptive: numba loop when it fits
-}
+# every option of every formulation with its default (:mod:`natcoord.solver` documents them)
+DEFAULT_OPTIONS = {**Index1().options(), **Maggi().options(), **Index3().options()}
 
 
 # ---- shared linear algebra ------------------------------------------------------------
@@ -183,7 +176,7 @@ def _is_spd(M: np.ndarray) -> bool:
 
 
 # ---- formulations ---------------------------------------------------------------------
-class Formulation:
+class FormulationLoop:
     """Base: how a formulation meets the time loop.
 
     1. ``init(t, q, qd) -> y`` maps a consistent state to what is integrated.
@@ -212,7 +205,7 @@ class Formulation:
                                         float(np.max(np.abs(J @ qd + pt), initial=0)))
 
 
-class Index1(Formulation):
+class Index1Loop(FormulationLoop):
     """Eq. (6) as an ODE in y = [q, qd] (2n)."""
 
     name = "index1"
@@ -345,11 +338,11 @@ class Index1(Formulation):
         return q, qd
 
 
-class Maggi(Formulation):
+class MaggiLoop(FormulationLoop):
     """Eq. (23) as an ODE in y = [q^i, qd^i] (2f), R from coordinate partitioning."""
 
     name = "maggi"
-    methods = Index1.methods
+    methods = Index1Loop.methods
 
     def init(self, t, q, qd):
         self.q = np.array(q, dtype=float)
@@ -451,7 +444,7 @@ class Maggi(Formulation):
         return y
 
 
-class Index3(Formulation):
+class Index3Loop(FormulationLoop):
     """Index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal projections.
 
     y = [q, qd, qdd, lambda*] (3n + m). Per step: Newton on
@@ -465,7 +458,7 @@ class Index3(Formulation):
     methods = ("trapezoidal",)
 
     def init(self, t, q, qd):
-        i1 = Index1(self.model, {**self.opt, "linsolve": "qr"}, self.cnt)
+        i1 = Index1Loop(self.model, {**self.opt, "linsolve": "qr"}, self.cnt)
         qdd = i1.accelerations(t, q, qd)
         lam = multipliers(self.model, self.cs, t, q, qd, qdd)
         self.mscale = float(np.max(np.abs(np.diag(self.M))))
@@ -556,4 +549,5 @@ class Index3(Formulation):
         return x
 
 
-FORMULATIONS: dict[str, type[Formulation]] = {f.name: f for f in (Index1, Maggi, Index3)}
+RUNTIME: dict[str, type[FormulationLoop]] = {f.name: f for f in (Index1Loop, MaggiLoop,
+                                                                   Index3Loop)}

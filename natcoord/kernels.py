@@ -237,15 +237,23 @@ def _proj(kk, ii, jj, vv, lin, q, qd, ptol, J, MiJt, L, w_m, wg, cnt):
 
 
 @njit(cache=True)
-def run_index1(kk, ii, jj, vv, m, wg, lin, frc, times, q0, qd0, rtol, atol, h0, ptol,
-               A, B, C, E5, E3, order, dop853, Aext, Cext, D, max_steps, Q, QD, QDD, cnt):
-    """Adaptive embedded RK over ``times`` from a consistent (q0, qd0) at times[0].
+def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
+    """Adaptive embedded RK over ``times`` (T,) from a consistent (q0, qd0) (n,) at
+    times[0].
 
+    ``con`` = (k, i, j, v, m): the constraint triplets over qh and the row count;
     ``wg``: None for the Schur path, else the general path's work arrays
     (:func:`kernels_general.workspace`); ``lin`` = (Minv (n, n), M (n, n), rank_tol): Minv
-    for the Schur path, M and rank_tol for the general one; ``frc``: :func:`pack_forces`.
-    Fills Q, QD, QDD (T, n) and cnt (N_COUNTERS,); returns a status code (0 = ok).
+    for the Schur path, M and rank_tol for the general one; ``frc``: :func:`pack_forces`;
+    ``tab`` = (A, B, C, E5, E3, order, dop853, Aext, Cext, D): the method's tableau
+    (:data:`TABLEAUX`); ``ctl`` = (rtol, atol, h0, ptol, max_steps): step control (h0 <= 0:
+    Hairer's initial step) and projection tolerance; ``out`` = (Q, QD, QDD (T, n), cnt
+    (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
     """
+    kk, ii, jj, vv, m = con
+    A, B, C, E5, E3, order, dop853, Aext, Cext, D = tab
+    rtol, atol, h0, ptol, max_steps = ctl
+    Q, QD, QDD, cnt = out
     n = q0.shape[0]
     N = 2 * n
     s_st = B.shape[0]
@@ -495,14 +503,13 @@ def run(name: str, con, frc, times, q0, qd0, *, Minv=None, M=None, rank_tol: flo
     wg = workspace(n, int(con.m)) if Minv is None else None
     lin = (as_f64(np.zeros((0, 0)) if Minv is None else Minv, 2),
            as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
-    status = run_index1(np.ascontiguousarray(con.k, np.int64),
-                        np.ascontiguousarray(con.i, np.int64),
-                        np.ascontiguousarray(con.j, np.int64),
-                        np.ascontiguousarray(con.v, float), int(con.m), wg, lin, frc,
-                        np.ascontiguousarray(times, float), np.array(q0, float),
-                        np.array(qd0, float), float(rtol), float(atol), float(h0),
-                        float(ptol), A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D,
-                        max_steps, Q, QD, QDD, c)
+    triplets = (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
+                np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
+                int(con.m))
+    tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D)
+    ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps))
+    status = run_index1(triplets, wg, lin, frc, tab, ctl, np.ascontiguousarray(times, float),
+                        np.array(q0, float), np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:
         for slot, name_ in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),
                             (C_FACT, "factorizations"), (C_PROJ, "projections"),

@@ -13,6 +13,7 @@ from natcoord.casefile import load_case
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
 from natcoord.result import evaluate_channels
+from natcoord.solver import Adaptive, Fixed, Index3, Solver
 from natcoord.suite.compare import channel_errors
 from natcoord.suite.references import load_provenance, load_reference
 from tests import paper_models as paper
@@ -103,8 +104,8 @@ def test_five_bar_index3_passes_the_singular_positions_by_raising_its_penalty():
 
     case = _case("five_bar")
     cm = casemodel.build(case, "shared")
-    sol = integrate(cm.model, casemodel.initial_state(cm), case.times, formulation="index3",
-                    h=1e-3)
+    sol = integrate(cm.model, casemodel.initial_state(cm), case.times,
+                    Solver(Index3(), "trapezoidal", Fixed(1e-3)))
     x = np.c_[sol.q, np.ones(len(sol.q))] @ cm.point_map("135", "3").T
     phi = np.unwrap(np.arctan2(x[:, 1], x[:, 0]))
     assert np.max(np.abs(phi - _five_bar_one_dof(case.times))) < 2e-4
@@ -167,7 +168,8 @@ def test_parallelogram_case_file_matches_the_papers_model():
     pm = paper.parallelogram_3d()
     from natcoord.dynamics import integrate
 
-    sol = integrate(pm.model, pm.state, case.times, method="dopri5", rtol=1e-10, atol=1e-12)
+    sol = integrate(pm.model, pm.state, case.times,
+                    Solver(method="dopri5", step=Adaptive(1e-10, 1e-12)))
     for method in ("min_norm", "weighted"):
         out = pm.outputs(sol, method)
         for rod in ("A1", "C2", "E3", "G4", "K5", "M6"):

@@ -13,8 +13,9 @@ import pytest
 from natcoord import casefile, casemodel, kernels
 from natcoord import kernels_general as kg
 from natcoord.dynamics import integrate
-from natcoord.formulations import Counters, Index1, compiled_forces
+from natcoord.formulations import Counters, Index1Loop, compiled_forces
 from natcoord.model import Model, Spring
+from natcoord.solver import Adaptive, Index1, Solver
 from tests.models import build_model, initial_state
 
 from .conftest import CASES
@@ -44,16 +45,16 @@ def _python_loop(name, method=None, rtol=None, end=None):
     _, model, st = _case(name)
     times = _times(name) if end is None else _case(name)[0].times
     method, rtol = method or RUNS[name][2], rtol or RUNS[name][3]
-    return integrate(model, st, times, method=method, rtol=rtol, atol=rtol * 1e-2,
-                     compiled=False)
+    return integrate(model, st, times, Solver(Index1(compiled=False), method,
+                                              Adaptive(rtol, rtol * 1e-2)))
 
 
 def run_compiled(model, state, times, method, rtol, atol, **options):
     """What ``integrate`` runs on the compiled path: (mode, Q, QD, QDD, counters)."""
     cnt = Counters()
-    q0, qd0 = Index1(model, {**options, "linsolve": "qr"}, Counters()).project(
+    q0, qd0 = Index1Loop(model, {**options, "linsolve": "qr"}, Counters()).project(
         times[0], np.asarray(state.q, float), np.asarray(state.qd, float))
-    form = Index1(model, options, cnt)
+    form = Index1Loop(model, options, cnt)
     assert form.compiled_candidate(method, None)
     kernels.ensure_compiled()
     y = form.init(times[0], q0, qd0)
@@ -106,7 +107,7 @@ def test_forces_of_2d_model_and_unknown_force_models():
     nm = _case("five_bar")[1]
     custom = Custom(**{f.name: getattr(nm, f.name) for f in dataclasses.fields(nm)})
     assert compiled_forces(custom) is None
-    assert not Index1(custom, {}, Counters()).compiled_candidate("dop853", None)
+    assert not Index1Loop(custom, {}, Counters()).compiled_candidate("dop853", None)
     bad = dataclasses.replace(nm, torques=(("135", np.ones(3)),))  # 3-D torque in 2-D
     assert compiled_forces(bad) is None
 
@@ -117,7 +118,7 @@ def test_general_path_matches_python_qr_mode(name):
     constraint manifold (drift 1e-10, as after a step)."""
     _, model, st = _case(name)
     frc = compiled_forces(model)
-    form = Index1(model, {"linsolve": "qr"}, Counters())
+    form = Index1Loop(model, {"linsolve": "qr"}, Counters())
     form.mode = "qr"
     rng = np.random.default_rng(3)
     for _ in range(10):
@@ -134,17 +135,17 @@ def test_general_path_matches_python_qr_mode(name):
 
 def test_compiled_candidate_takes_natural_models_and_refuses_the_rest():
     _, model, _ = _case("five_bar")
-    assert Index1(model, {}, Counters()).compiled_candidate("dop853", None)
-    assert Index1(model, {"linsolve": "qr"}, Counters()).compiled_candidate("dopri5", None)
-    assert not Index1(model, {}, Counters()).compiled_candidate("dopri5", 1e-3)  # fixed h
-    assert not Index1(model, {}, Counters()).compiled_candidate("rk4", None)
-    assert not Index1(model, {"stabilization": "baumgarte"},
+    assert Index1Loop(model, {}, Counters()).compiled_candidate("dop853", None)
+    assert Index1Loop(model, {"linsolve": "qr"}, Counters()).compiled_candidate("dopri5", None)
+    assert not Index1Loop(model, {}, Counters()).compiled_candidate("dopri5", 1e-3)  # fixed h
+    assert not Index1Loop(model, {}, Counters()).compiled_candidate("rk4", None)
+    assert not Index1Loop(model, {"stabilization": "baumgarte"},
                       Counters()).compiled_candidate("dop853", None)
-    assert not Index1(model, {"compiled": False}, Counters()).compiled_candidate("dop853", None)
+    assert not Index1Loop(model, {"compiled": False}, Counters()).compiled_candidate("dop853", None)
     driven = build_model(casefile.load_case(CASES / "slider_crank_driven.toml"))
-    assert not Index1(driven, {}, Counters()).compiled_candidate("dop853", None)
+    assert not Index1Loop(driven, {}, Counters()).compiled_candidate("dop853", None)
     plain = build_model(casefile.load_case(CASES / "four_bar.toml"))
-    form = Index1(plain, {}, Counters())
+    form = Index1Loop(plain, {}, Counters())
     assert form.compiled_candidate("dop853", None)
     st = initial_state(plain)
     form.init(0.0, st.q, st.qd)
@@ -163,7 +164,7 @@ def test_compiled_general_loop_matches_python_loop(name):
     assert cnt.steps > 0 and abs(cnt.steps - ref.counters["steps"]) <= 0.05 * cnt.steps + 2
     assert np.max(np.abs(Q - ref.q)) < 3e-9
     assert np.max(np.abs(QD - ref.qd)) < 1e-8
-    cs = Index1(model, {}, Counters()).cs
+    cs = Index1Loop(model, {}, Counters()).cs
     assert max(np.max(np.abs(cs.phi(q, 0.0))) for q in Q) < 1e-12  # samples are projected
     assert max(np.max(np.abs(cs.jacobian(q, 0.0) @ v))
                for q, v in zip(Q, QD, strict=True)) < 1e-11
@@ -183,7 +184,8 @@ def test_five_bar_passes_its_singular_positions():
 def test_integrate_runs_natural_models_compiled(name):
     _, model, st = _case(name)
     _, _, method, rtol = RUNS[name]
-    sol = integrate(model, st, _times(name), method=method, rtol=rtol, atol=rtol * 1e-2)
+    sol = integrate(model, st, _times(name), Solver(method=method,
+                                                    step=Adaptive(rtol, rtol * 1e-2)))
     ref = _python_loop(name)
     assert sol.counters["compiled"]
     assert np.max(np.abs(sol.q - ref.q)) < 3e-9

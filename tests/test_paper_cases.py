@@ -8,6 +8,7 @@ import natcoord
 from natcoord import reactions
 from natcoord.dynamics import Solution, accelerations, integrate
 from natcoord.kinematics import mobility
+from natcoord.solver import Fixed, Solver
 from tests import paper_models as paper
 from tests.models import body_angle, build_model, initial_state
 
@@ -20,7 +21,8 @@ def five_bar_run():
     # and the coupler forces go through +-infinity. Fixed steps of 1 ms (5th order, q and
     # qd projected after every step) cross them reliably; the adaptive step control can
     # stall there depending on where the samples fall (reported to the dynamics owner).
-    sol = integrate(pm.model, pm.state, np.linspace(0.0, 1.8, 361), method="dopri5", h=1e-3)
+    sol = integrate(pm.model, pm.state, np.linspace(0.0, 1.8, 361),
+                    Solver(method="dopri5", step=Fixed(1e-3)))
     return pm, sol, {k: pm.outputs(sol, k) for k in pm.methods}
 
 

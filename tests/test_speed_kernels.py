@@ -10,8 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord import load_case
+from natcoord import CaseError, load_case
 from natcoord.dynamics import integrate
+from natcoord.solver import Adaptive, Fixed, Index1, Index3, Solver
 from tests.models import body_angle, build_model, initial_state
 
 from .conftest import CASES, REFERENCES, ROOT
@@ -29,8 +30,8 @@ def _theta_error(name, sol, model):
 def test_compiled_loop_reaches_the_reference(name, method, rtol, bound):
     case = load_case(CASES / f"{name}.toml")
     model = build_model(case)
-    sol = integrate(model, initial_state(model), case.times, method=method, rtol=rtol,
-                    atol=rtol * 1e-2)
+    sol = integrate(model, initial_state(model), case.times,
+                    Solver(method=method, step=Adaptive(rtol, rtol * 1e-2)))
     c = sol.counters
     assert c["compiled"] and c["steps"] < len(case.times)  # steps cross the samples
     assert _theta_error(name, sol, model) < bound
@@ -41,9 +42,10 @@ def test_compiled_and_python_loops_agree():
     case = load_case(CASES / "four_bar.toml")
     model = build_model(case)
     times = case.times[:51]
-    kw = dict(method="dop853", rtol=1e-11, atol=1e-13)
-    fast = integrate(model, initial_state(model), times, **kw)
-    slow = integrate(model, initial_state(model), times, compiled=False, **kw)
+    step = Adaptive(1e-11, 1e-13)
+    fast = integrate(model, initial_state(model), times, Solver(step=step))
+    slow = integrate(model, initial_state(model), times, Solver(Index1(compiled=False),
+                                                                step=step))
     assert fast.counters["compiled"] and not slow.counters["compiled"]
     assert np.max(np.abs(fast.q - slow.q)) < 1e-9
     assert np.max(np.abs(fast.qd - slow.qd)) < 1e-8
@@ -53,16 +55,36 @@ def test_compiled_and_python_loops_agree():
 def test_drivers_fall_back_to_the_python_loop():
     case = load_case(CASES / "slider_crank_driven.toml")
     model = build_model(case)
-    sol = integrate(model, initial_state(model), case.times[:11], method="dop853",
-                    rtol=1e-9, atol=1e-11)
+    sol = integrate(model, initial_state(model), case.times[:11],
+                    Solver(step=Adaptive(1e-9, 1e-11)))
     assert not sol.counters["compiled"] and np.all(np.isfinite(sol.q))
 
 
-def test_dop853_is_adaptive_only():
-    case = load_case(CASES / "slider_crank.toml")
-    model = build_model(case)
+def test_invalid_solver_combinations_cannot_be_made():
+    """The combination is refused when the Solver is made, before any model or time loop."""
     with pytest.raises(ValueError, match="adaptive"):
-        integrate(model, initial_state(model), case.times[:3], method="dop853", h=1e-3)
+        Solver(method="dop853", step=Fixed(1e-3))
+    with pytest.raises(ValueError, match="fixed-step"):
+        Solver(method="rk4")
+    with pytest.raises(ValueError, match="does not run with"):
+        Solver(Index3(), "dop853")
+    with pytest.raises(ValueError, match="not an option of index1"):
+        Solver.from_settings({"penalty": 1e5})
+    with pytest.raises(ValueError, match="positive"):
+        Adaptive(rtol=-1.0)
+
+
+def test_case_file_asking_for_an_invalid_solver_is_refused(tmp_path):
+    text = (CASES / "slider_crank.toml").read_text()
+    for setting, why in (('method = "rk4"', "fixed-step"), ('h = 1e-3', "adaptive"),
+                         ('formulation = "index3", method = "dop853"', "does not run")):
+        bad = text.replace("[engines.natcoord]\n",
+                           f"[engines.natcoord]\nsettings = {{ {setting} }}\n", 1)
+        assert bad != text
+        p = tmp_path / "slider_crank.toml"
+        p.write_text(bad)
+        with pytest.raises(CaseError, match=f"engines.natcoord.settings: .*{why}"):
+            load_case(p)
 
 
 def test_compile_time_is_reported_apart_and_cached():
