@@ -20,10 +20,10 @@ detailed where each element is built:
   +lambda_0 times the first body's normal, lambda_0 read by a sensor user function. A
   particle in one becomes a 2-D rigid node with its rotation locked.
 * 3-D prismatic, cylindrical, universal: ``ObjectJointGeneric`` with constrained axes per
-  joint type in a joint frame with x on the case's axis.
+  joint type in a joint frame with x on the case's axis; reaction as the 3-D revolute's.
 * Massless rods ``ObjectConnectorDistance`` (exact), spring-dampers
   ``ObjectConnectorSpringDamper``; drivers ``CoordinateConstraint`` with an
-  ``offsetUserFunction`` (exact rheonomic), effort = its Force output.
+  ``offsetUserFunction`` (exact rheonomic), effort = -Force output.
 * Redundant constraints (rods closing a loop, every 3-D case): the Jacobian is singular,
   so the linear solver is ``EigenDense`` with ``ignoreSingularJacobian`` (the split of the
   redundant multipliers is whatever its pivoting picks).

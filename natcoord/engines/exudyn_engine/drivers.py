@@ -8,8 +8,9 @@ The constraint acts on the node coordinate without its reference value, so the o
 node position coordinate: only at a point at the centre of mass (a particle's point); at
 any other point the world coordinate is nonlinear in the node's coordinates and is not
 modelled. Sign (measured on tests/data/driven_rod.toml against its closed form): the
-constraint's Force output is the generalized force the constraint applies to the node
-coordinate, i.e. the driver's effort on the body (N m about z, or N along the axis).
+constraint's Force output is the opposite of the generalized force it applies to the node
+coordinate, so the driver's effort on the body (N m about z, or N along the axis) is its
+negative.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from .bodies import centre_state
 from .system import Build
 
 AXES = {"x": 0, "y": 1, "z": 2}
-EFFORT_SIGN = 1.0  # see the module docstring (measured)
+EFFORT_SIGN = -1.0  # see the module docstring (measured)
 
 
 def check(case: Case) -> None:
@@ -62,5 +63,5 @@ def add(build: Build, d: Driver):
         offsetUserFunction=offset))
     sf = build.object_sensor(co, build.exu.OutputVariableType.Force)
     build.note_once("drivers: CoordinateConstraint on the node coordinate with an "
-                    "offsetUserFunction (exact rheonomic constraint); effort = its Force output")
+                    "offsetUserFunction (exact rheonomic constraint); effort = -Force output")
     return lambda get: EFFORT_SIGN * get(sf)[:, 0]

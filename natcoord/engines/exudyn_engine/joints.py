@@ -102,12 +102,16 @@ def _frame_x(axis, y=None) -> np.ndarray:
     return np.column_stack([x, y, np.cross(x, y)])
 
 
-def _framed(build: Build, j: Joint, A0: np.ndarray) -> list[int]:
+def _framed(build: Build, j: Joint, A0: np.ndarray, slides: bool = False) -> list[int]:
     """Rigid markers at the joint points carrying the joint frame ``A0`` (given in the first
-    body's frame) on both bodies: the second's ``A1`` is the same frame at t = 0."""
+    body's frame) on both bodies: the second's ``A1`` is the same frame at t = 0. A joint
+    that ``slides`` keeps its points' offset across the axis as it was at t = 0 (Exudyn
+    makes the marker origins meet): its first marker sits where the second body's point
+    is at t = 0."""
     (a, b), (pa, pb) = j.bodies, j.points
     A1 = build.rotation0(b).T @ build.rotation0(a) @ A0
-    return [build.marker(a, pa, A0), build.marker(b, pb, A1)]
+    at = build.world0(b, pb) if slides else None
+    return [build.marker(a, pa, A0, at=at), build.marker(b, pb, A1)]
 
 
 def _local_reaction(sf: int, a: str, A0: np.ndarray):
@@ -157,7 +161,8 @@ def generic(build: Build, j: Joint):
         y = build.rotation0(a).T @ build.rotation0(b) @ np.asarray(j.axis2, float)
     A0 = _frame_x(j.axis, y)
     jo = build.mbs.AddObject(build.ei.ObjectJointGeneric(
-        markerNumbers=_framed(build, j, A0), constrainedAxes=GENERIC_AXES[j.type]))
+        markerNumbers=_framed(build, j, A0, slides=j.type != "universal"),
+        constrainedAxes=GENERIC_AXES[j.type]))
     build.note_once(f"{j.type} joints: ObjectJointGeneric, constrained axes "
                     f"{GENERIC_AXES[j.type]} in a joint frame with x along the axis; reaction "
                     "= -(rotation of the first body) x (joint frame) x ForceLocal; the moment "

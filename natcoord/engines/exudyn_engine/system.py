@@ -53,16 +53,35 @@ class Build:
         b = self.case.body(body)
         return v3(b.points[point] - b.com)
 
-    def marker(self, body: str, point: str, rotation=None, rigid: bool = False) -> int:
+    def marker(self, body: str, point: str, rotation=None, rigid: bool = False,
+               at=None) -> int:
         """A marker at a body point: position only, or rigid (``rigid`` or a joint frame
-        ``rotation`` (3, 3) in the body frame, given as the marker's localHT)."""
+        ``rotation`` (3, 3) in the body frame, given as the marker's localHT). ``at``: the
+        marker sits instead where this world point (d,) is at t = 0."""
         ei, num = self.ei, self.ground if body == GROUND else self.objs[body]
+        local = self.local(body, point) if at is None else self.local_of(body, at)
         if rotation is not None:
-            ht = self.exu.HT(rotation=np.asarray(rotation, float),
-                             translation=self.local(body, point))
+            ht = self.exu.HT(rotation=np.asarray(rotation, float), translation=local)
             return self.mbs.AddMarker(ei.MarkerBodyRigid(bodyNumber=num, localHT=ht))
         kind = ei.MarkerBodyRigid if rigid else ei.MarkerBodyPosition
-        return self.mbs.AddMarker(kind(bodyNumber=num, localPosition=self.local(body, point)))
+        return self.mbs.AddMarker(kind(bodyNumber=num, localPosition=local))
+
+    def world0(self, body: str, point: str) -> np.ndarray:
+        """World position (d,) of a body point at t = 0, m."""
+        if body == GROUND:
+            return np.asarray(self.case.ground[point], float)
+        st = self.init[body]
+        return np.asarray(st.origin, float) + np.asarray(st.rotation, float) @ \
+            self.case.body(body).points[point]
+
+    def local_of(self, body: str, world) -> list[float]:
+        """The body-fixed point at world position ``world`` (d,) at t = 0, relative to the
+        centre of mass, body axes, m."""
+        if body == GROUND:
+            return v3(world)
+        st = self.init[body]
+        p = np.asarray(st.rotation, float).T @ (np.asarray(world, float) - st.origin)
+        return v3(p - self.case.body(body).com)
 
     def node_coordinate(self, body: str | None, i: int) -> int:
         """A marker on coordinate ``i`` of a body's node (``None``: a fixed zero coordinate,
