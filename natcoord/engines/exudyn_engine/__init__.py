@@ -160,6 +160,9 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                {n: f["velocity"] for n, f in frames.items()},
                {n: f["omega"] for n, f in frames.items()},
                {n: read(get, frames) for n, read in reactions.items()},
+               acceleration={n: f["acceleration"] for n, f in frames.items()
+                             if "acceleration" in f},
+               alpha={n: f["alpha"] for n, f in frames.items() if "alpha" in f},
                driver_effort={n: read(get) for n, read in efforts.items()},
                rotation={n: f["rotation"] for n, f in frames.items() if "rotation" in f},
                rod_force={n: read(get) for n, read in tensions.items()})

@@ -90,23 +90,26 @@ class Planar:
     @staticmethod
     def sensors(build: Build, b: Body) -> list[int]:
         OV = build.exu.OutputVariableType
-        kinds = (OV.Position, OV.Velocity)
+        kinds = (OV.Position, OV.Velocity, OV.Acceleration)
         if b.kind != "particle":
-            kinds += (OV.Rotation, OV.AngularVelocity)
+            kinds += (OV.Rotation, OV.AngularVelocity, OV.AngularAcceleration)
         return [build.node_sensor(b.name, v) for v in kinds]
 
     @staticmethod
     def read(get, b: Body, sensors: list[int]) -> dict[str, np.ndarray]:
-        """The body frame's motion: origin, velocity (T, 2), angle, omega (T,), R (T, 2, 2)."""
-        pc, vc = get(sensors[0])[:, :2], get(sensors[1])[:, :2]
-        if len(sensors) == 2:  # a particle (or a locked rotation): its frame never turns
-            phi = w = np.zeros(len(pc))
+        """The body frame's motion: origin, velocity, acceleration (T, 2), angle, omega,
+        alpha (T,), R (T, 2, 2). The accelerations are those generalized-alpha solves the
+        equations of motion for at each step."""
+        pc, vc, ac = (get(x)[:, :2] for x in sensors[:3])
+        if len(sensors) == 3:  # a particle (or a locked rotation): its frame never turns
+            phi = w = alpha = np.zeros(len(pc))
         else:
-            phi, w = get(sensors[2])[:, 2], get(sensors[3])[:, 2]
+            phi, w, alpha = (get(x)[:, 2] for x in sensors[3:])
         c, s = np.cos(phi), np.sin(phi)
         R = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
         rc = R @ b.com
         return {"origin": pc - rc, "velocity": vc - spin(w, rc), "angle": phi, "omega": w,
+                "acceleration": ac - spin(alpha, rc) + (w * w)[:, None] * rc, "alpha": alpha,
                 "R": R}
 
 
