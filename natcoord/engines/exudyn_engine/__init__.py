@@ -10,7 +10,7 @@ Conventions handled here (measured with exudyn 1.13.6, see tests/test_engine_exu
 detailed where each element is built:
 
 * 2-D cases keep Exudyn's 2-D elements (:class:`.bodies.Planar`): building them with the
-  3-D ones was measured to cost 4-6x per step and, on ``pendulum`` (a body without
+  3-D ones was measured to cost 4-11x per step and, on ``pendulum`` (a body without
   inertia, which a 3-D rigid body cannot take unpadded), to triple the reaction error
   (O_x 3.3e-3 -> 1.0e-2 N, over its 7e-3 N tolerance); four_bar came out the same
   (7.6e-5 vs 7.7e-5 rad).
