@@ -15,7 +15,7 @@ import pytest
 
 from natcoord.casefile import load_case
 from natcoord.engines import adapter
-from natcoord.engines.base import BodyState, InitialState, initial_body_states
+from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
 from natcoord.result import evaluate_channels
 
@@ -311,19 +311,6 @@ def test_parallelogram_rigid_rods_split_and_signs():
 
 
 # ---- closed forms: a 3-D prismatic joint, an angle driver, the other 3-D joints ------------
-def _frames_at_world(case, omega=None) -> InitialState:
-    """The t = 0 state of a reference-frame case built by hand: every body frame is the
-    world frame (origin 0, identity rotation), at rest but for ``omega`` (body -> rate, 2-D
-    rad/s). natcoord's own assembly (initial_body_states) does not yet take prismatic 3-D
-    joints or drivers' rates, and the closed forms start from exactly this state."""
-    d = case.dimension
-    omega = omega or {}
-    return InitialState(np.zeros(0), np.zeros(0), {
-        b.name: BodyState(np.zeros(d), 0.0, np.zeros(d),
-                          omega.get(b.name, 0.0) if d == 2 else np.zeros(3), np.eye(d))
-        for b in case.bodies})
-
-
 def test_incline_3d_closed_form():
     """A block sliding down a prismatic joint along (1, 1, 1)/sqrt(3) from rest: s = (g . u)
     t^2 / 2 along the axis from (0.3, 0.2, 0.1), constant reaction -m (g - (g . u) u).
@@ -331,7 +318,7 @@ def test_incline_3d_closed_form():
     acceleration exactly), reaction 5.5e-8 N of 13 N (the Newton tolerance, 2.3e-7 N at
     h 5e-4: not a truncation error); bounds: round-off margin and ~10x."""
     case = _case(str(DATA / "incline_3d.toml"))
-    run = adapter("exudyn").run(case, _frames_at_world(case), {})
+    run = adapter("exudyn").run(case, initial_body_states(case), {})
     table = evaluate_channels(case, run.motion)
     t, m, g = table["t"].to_numpy(), 2.0, np.array([0.0, 0.0, -9.81])
     u = np.ones(3) / np.sqrt(3.0)
@@ -351,7 +338,7 @@ def test_driven_rod_closed_form():
     N m and 1.7e-5 N after 0.1 s; Rx 1.3e-6 N; bounds ~2x."""
     case = _case(str(DATA / "driven_rod.toml"))
     w, m, g, L = np.pi / 2, 2.0, 9.81, 1.0
-    run = adapter("exudyn").run(case, _frames_at_world(case, {"rod": w}), {})
+    run = adapter("exudyn").run(case, initial_body_states(case), {})
     table = evaluate_channels(case, run.motion)
     t = table["t"].to_numpy()
     th = w * t
@@ -374,7 +361,7 @@ def test_generic_joints_keep_their_constraints(tmp_path, joint):
     text = {"universal": 'type = "universal"\naxis = [1.0, 0.0, 0.0]\naxis2 = [0.0, 1.0, 0.0]',
             "cylindrical": 'type = "cylindrical"\naxis = [1.0, 0.0, 0.0]'}[joint]
     case = ec.data_case(tmp_path, "pivoted_3d", {"JOINT": text})
-    run = adapter("exudyn").run(case, _frames_at_world(case), {})
+    run = adapter("exudyn").run(case, initial_body_states(case), {})
     table = evaluate_channels(case, run.motion)
     R = run.motion.rotation["b"]
     pivot = run.motion.origin["b"]  # point O is the body frame's origin

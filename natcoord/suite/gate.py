@@ -94,7 +94,10 @@ def baseline_of(summary: dict) -> dict:
 
 
 def update_baseline(summary: dict, path: Path) -> None:
-    write_json(path, {"generated": summary.get("generated"), "errors": baseline_of(summary)})
+    """Store the errors of every cell this summary ran over the stored baseline: cells the
+    run did not touch keep their entries (a subset run never shrinks the baseline)."""
+    errors = (load_baseline(path) or {}) | baseline_of(summary)
+    write_json(path, {"generated": summary.get("generated"), "errors": errors})
 
 
 def load_baseline(path: Path) -> dict | None:
