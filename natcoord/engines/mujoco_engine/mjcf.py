@@ -19,6 +19,9 @@ from .lift import GROUND_FRAME, Frame
 
 # a connect equality holds a point: it can close a loop only where a joint is a point joint
 POINT_JOINTS = ("revolute", "spherical")
+# how the joints a connect cannot close are built in the tree
+TREE_FORM = {"prismatic": "slide joints", "cylindrical": "slide and hinge joints",
+             "universal": "hinge pairs"}
 # zero inertia of a point mass is replaced by this fraction of m r^2 (r: its farthest point)
 ZERO_INERTIA_SUBSTITUTE = 1e-10
 
@@ -58,10 +61,10 @@ def split_tree(case: Case) -> tuple[list[Joint], list[Joint], list[str]]:
     if bad:
         raise Unsupported(f"{_named(bad)} must close a loop: MuJoCo has no point-on-line "
                           "equality (a connect equality holds a point only)")
-    kinds = sorted({j.type for j in recut})
-    return tree, loops, [
-        f"loop cut at {_named(loops)} instead of {_named(recut)} (MuJoCo has no point-on-line "
-        f"equality); {', '.join(kinds)} joints are tree joints"]
+    kinds = "; ".join(f"{k} joints are tree {TREE_FORM[k]}"
+                      for k in sorted({j.type for j in recut}))
+    return tree, loops, [f"loop cut at {_named(loops)} instead of {_named(recut)} (MuJoCo has "
+                         f"no point-on-line equality); {kinds}"]
 
 
 @dataclasses.dataclass
@@ -324,8 +327,7 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     notes += w.notes
     notes += [f"connect equality (3 rows) for loop {j.type} joint {j.name} (site1 on "
               f"{j.bodies[0]}, site2 on {j.bodies[1]}), solref {fmt(*solref)}, solimp {solimp}"
-              + ("; the hinge's axis alignment is left to the tree" if j.type == "revolute"
-                 else "") for j in loops]
+              for j in loops]
     notes += w.particle_notes()
     xml = document(case, s, sites, w.lines, spatial, eq + equality)
     return Built(xml, tree, loops, parent, w.qvel, notes, solref)
