@@ -153,15 +153,15 @@ class _Writer:
                           f'pos="{fmt(*pos)}" axis="{fmt(*axis)}"/>')
 
     def tree_joints(self, name: str, pad: str) -> None:
-        """The joint(s) between ``name`` and its tree parent, and their initial velocities."""
+        """The joint(s) between ``name`` and its tree parent, and their initial velocities
+        (rates of the child against its parent at t = 0)."""
         b = self.case.body(name)
         pname, cj = self.parent[name]
         f, pf = self.frame(name), self.frame(pname)
         k = 1 if cj.bodies[1] == name else 0  # the child's end of the joint
         pc = point(self.case, name, cj.points[k])
-        pp = point(self.case, pname, cj.points[1 - k])
         wrel = f.omega - pf.omega
-        if cj.type in ("revolute", "spherical", "universal") and b.kind == "particle":
+        if b.kind == "particle" and cj.type in ("revolute", "spherical", "universal"):
             self.welded[name] = cj.type  # the joint passes through its mass: nothing to turn
             return
         if cj.type == "spherical":
@@ -169,31 +169,33 @@ class _Writer:
                               f'pos="{fmt(*pc)}"/>')
             self.qvel.extend((f.rotation.T @ wrel).tolist())
             return
-        if cj.type == "universal":
-            # two hinges in one body compose as parent * Rot(a, q1) * Rot(b, q2): the first
-            # axis stays fixed on the parent, the second on the child (a Cardan joint)
-            a0, a1 = (cj.axis, cj.axis2) if k == 1 else (cj.axis2, cj.axis)
-            for suffix, u in (("", pf.rotation @ a0), ("_2", f.rotation @ a1)):
-                self.joint(pad, cj.name + suffix, "hinge", pc, f.rotation.T @ u)
-                self.qvel.append(float(wrel @ u))
-            return
-        u = self.frame(cj.bodies[0]).rotation @ cj.axis  # world
-        if cj.type == "revolute":
-            self.joint(pad, cj.name, "hinge", pc, f.rotation.T @ u)
-            self.qvel.append(float(wrel @ u))
-            return
-        # prismatic, cylindrical: slide of the second body against the first along u; the
-        # velocity of the child's joint point against the parent's, along u, is its rate
-        sign = 1.0 if k == 1 else -1.0
+        # velocity of the child's joint point against the parent's: a slide's rate along u
+        pp = point(self.case, pname, cj.points[1 - k])
         vrel = (f.velocity + np.cross(f.omega, f.rotation @ pc)
                 - pf.velocity - np.cross(pf.omega, pf.rotation @ pp))
-        self.joint(pad, cj.name, "slide", pc, sign * (f.rotation.T @ u))
-        self.qvel.append(float(vrel @ (sign * u)))
+        for jname, kind, u in self.dofs(cj, k, pf):
+            if kind == "hinge" and b.kind == "particle":
+                continue  # a particle's turn carries no energy
+            self.joint(pad, jname, kind, pc, f.rotation.T @ u)
+            self.qvel.append(float((wrel if kind == "hinge" else vrel) @ u))
         if b.kind == "particle":
             self.slid.append(name)
-        elif cj.type == "cylindrical":
-            self.joint(pad, cj.name + "_rot", "hinge", pc, sign * (f.rotation.T @ u))
-            self.qvel.append(float(wrel @ (sign * u)))
+
+    def dofs(self, cj: Joint, k: int, pf: Frame) -> list[tuple[str, str, np.ndarray]]:
+        """The MuJoCo joints (name, hinge | slide, world axis (3,) at t = 0) that make the
+        case's joint ``cj`` whose end ``k`` is the child (``pf``: the parent's frame)."""
+        if cj.type == "universal":
+            # two hinges in one body compose as parent x Rot(a, q1) x Rot(b, q2): the first
+            # axis stays on the parent, the second on the child (a Cardan joint, exact)
+            on_parent, on_child = (cj.axis, cj.axis2) if k == 1 else (cj.axis2, cj.axis)
+            return [(cj.name, "hinge", pf.rotation @ on_parent),
+                    (cj.name + "_2", "hinge", self.frame(cj.bodies[k]).rotation @ on_child)]
+        u = self.frame(cj.bodies[0]).rotation @ cj.axis  # world, on the first body
+        if cj.type == "revolute":
+            return [(cj.name, "hinge", u)]
+        u = u if k == 1 else -u  # the slide of the second body against the first
+        return [(cj.name, "slide", u)] + ([(cj.name + "_rot", "hinge", u)]
+                                          if cj.type == "cylindrical" else [])
 
     def float_joints(self, name: str, pad: str) -> None:
         """A body the tree does not reach: in a planar case it stays in the plane (slide x,
