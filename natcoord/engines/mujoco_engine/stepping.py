@@ -1,0 +1,119 @@
+"""Compile, start, step and sample a MuJoCo model; refuse a run MuJoCo silently reset or
+whose soft constraints let go."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ...mechanism import Case
+from .forces import Reactions, applied_loads
+from .lift import Frame, Samples
+
+
+def load_model(mujoco, case: Case, build):
+    """(built, model, data, build time, s): ``build()`` compiled, started at the built
+    velocities with the lifted case's constant loads applied."""
+    t0 = time.perf_counter()
+    built = build()
+    m = mujoco.MjModel.from_xml_string(built.xml)
+    d = mujoco.MjData(m)
+    seconds = time.perf_counter() - t0
+    if len(built.qvel) != m.nv:
+        raise RuntimeError(f"internal: {len(built.qvel)} initial velocities for nv = {m.nv}")
+    d.qpos[:] = m.qpos0  # the XML places every body at its assembled pose
+    d.qvel[:] = built.qvel
+    d.xfrc_applied[:] = applied_loads(mujoco, m, case)
+    return built, m, d, seconds
+
+
+def forward(mujoco, m, d) -> int:
+    """Positions, velocities, constraint and interaction forces at the current state (not
+    those of the step that produced it); the solver's iteration count."""
+    mujoco.mj_forward(m, d)
+    mujoco.mj_rnePostConstraint(m, d)
+    return int(d.solver_niter[0])
+
+
+def check_state(mujoco, d, t_expected: float) -> None:
+    """MuJoCo resets an unstable simulation and only warns: turn that into a failure."""
+    bad = [mujoco.mjtWarning(i).name for i in range(int(mujoco.mjtWarning.mjNWARNING))
+           if d.warning[i].number > 0]
+    if bad:
+        raise RuntimeError(f"MuJoCo warned ({', '.join(bad)}) by t = {t_expected:.6g} s: the "
+                           "simulation became unstable and MuJoCo reset its state")
+    if not (np.all(np.isfinite(d.qpos)) and np.all(np.isfinite(d.qvel))
+            and np.all(np.isfinite(d.qacc))):
+        raise RuntimeError(f"MuJoCo state is not finite at t = {d.time:.6g} s")
+    if abs(d.time - t_expected) > 1e-6 * max(1.0, t_expected):
+        raise RuntimeError(f"MuJoCo time {d.time:.6g} s, expected {t_expected:.6g} s: the "
+                           "state was reset")
+
+
+class Sampler:
+    """Fills :class:`.lift.Samples` from an MjData, one sample at a time.
+
+    A particle's frame keeps the rotation it started with (identity) and no angular
+    velocity, its origin following its point: MuJoCo turns a welded particle with its parent.
+    """
+
+    def __init__(self, mujoco, m, d, case: Case, built):
+        self.mujoco, self.m, self.d, self.case = mujoco, m, d, case
+        self.reactions = Reactions(mujoco, m, case, built)
+        self.bid = self.reactions.bid
+        self.out = Samples.empty(case, len(case.times))
+        self.drift = 0.0  # m, the largest loop or rod violation so far
+        self.max_iter = 0
+        self._vel6 = np.zeros(6)
+
+    def sample(self, i: int) -> None:
+        mj, d, out = self.mujoco, self.d, self.out
+        self.max_iter = max(self.max_iter, forward(mj, self.m, d))
+        for b in self.case.bodies:
+            j = self.bid[b.name]
+            R = d.xmat[j].reshape(3, 3)
+            mj.mj_objectVelocity(self.m, d, mj.mjtObj.mjOBJ_XBODY, j, self._vel6, 0)
+            w, v = self._vel6[:3], self._vel6[3:]
+            if b.kind == "particle":
+                p = next(iter(b.points.values()))
+                rp = R @ p
+                out.origin[b.name][i] = d.xpos[j] + rp - p
+                out.rotation[b.name][i] = np.eye(3)
+                out.velocity[b.name][i] = v + np.cross(w, rp)
+            else:
+                out.origin[b.name][i] = d.xpos[j]
+                out.rotation[b.name][i] = R
+                out.velocity[b.name][i] = v
+                out.omega[b.name][i] = w
+        self.drift = max(self.drift, self.reactions.read(d, out.forces, out.rod_force, i))
+
+
+def check_start(case: Case, frames: dict[str, Frame], out: Samples, tol: float = 1e-9) -> None:
+    """The MuJoCo model must start exactly at natcoord's assembled state (a particle's
+    rotation and angular velocity are not states)."""
+    for b in case.bodies:
+        f, n = frames[b.name], b.name
+        errs = [np.max(np.abs(out.origin[n][0] - f.origin)),
+                np.max(np.abs(out.velocity[n][0] - f.velocity))]
+        if b.kind != "particle":
+            errs += [np.max(np.abs(out.rotation[n][0] - f.rotation)),
+                     np.max(np.abs(out.omega[n][0] - f.omega))]
+        if max(errs) > tol * (1.0 + max(np.max(np.abs(f.origin)), np.max(np.abs(f.velocity)))):
+            raise RuntimeError(f"internal: MuJoCo's initial state of body {n} differs "
+                               f"from the assembled one by {max(errs):.3g}")
+
+
+def step_samples(mujoco, m, d, T: int, k: int, at_sample) -> tuple[float, int]:
+    """Samples 1 .. T-1, ``k`` steps apart, ``at_sample(i)`` after each; (wall time of the
+    steps, s, number of steps)."""
+    wall = 0.0
+    n_steps = 0
+    for i in range(1, T):
+        w0 = time.perf_counter()
+        for _ in range(k):
+            mujoco.mj_step(m, d)
+        wall += time.perf_counter() - w0
+        n_steps += k
+        at_sample(i)
+    return wall, n_steps
