@@ -117,49 +117,82 @@ def _prismatic(pin, axis: np.ndarray):
     return pin.JointModelPrismaticUnaligned(a), a
 
 
-def _joint_edge(pin, lifted: Lifted, j, parent: str, child: str) -> Edge:
-    """The Pinocchio joint of a case tree joint, from both bodies' frames at t = 0."""
+@dataclass(frozen=True)
+class _Relative:
+    """A tree joint at t = 0, world axes: parent point rP (3,), child point rC (3,) m, the
+    child's angular velocity relative to the parent wrel (3,) rad/s, the rate of the child
+    point's offset along a sliding axis sdot (3,) m/s (to project), the joint axes (3,) in
+    world (None when absent) and the case joint's orientation sign."""
+
+    rP: np.ndarray
+    rC: np.ndarray
+    wrel: np.ndarray
+    sdot: np.ndarray
+    axis: np.ndarray | None
+    axis2: np.ndarray | None
+    sign: int
+
+
+def _relative(lifted: Lifted, j, parent: str, child: str) -> _Relative:
     sign = tree_orientation(j, parent)
-    (pp, pc) = j.points[::sign]
+    pp, pc = j.points[::sign]
     fp, fc = lifted.frames[parent], lifted.frames[child]
     rP, rC = lifted.world_point(parent, pp), lifted.world_point(child, pc)
-    wrel = fc.w - fp.w
+    # the relative point velocity less the parent's rotation carrying the offset rC - rP
+    sdot = lifted.world_velocity(child, pc) - lifted.world_velocity(parent, pp) \
+        - cross(fp.w, rC - rP)
     a1, a2 = (None if a is None else lifted.frames[b].R @ a
               for a, b in zip(lifted.axes[j.name], j.bodies, strict=True))
-    pc3 = lifted.points[child][pc]
+    return _Relative(rP, rC, fc.w - fp.w, sdot, a1, a2, sign)
+
+
+# Each maker: (joint model, joint origin (3,) world, q0, v0, turns). A sliding joint sits at
+# the child's point (it need not lie on the parent point's line) and q counts from t = 0;
+# the others sit at the parent's point.
+def _make_revolute(pin, r: _Relative):
+    jm, a = _revolute(pin, r.axis)
+    return jm, r.rP, [0.0], [float(a @ r.wrel)], a
+
+
+def _make_prismatic(pin, r: _Relative):
+    jm, a = _prismatic(pin, r.axis)
+    return jm, r.rC, [0.0], [float(a @ r.sdot)], None
+
+
+def _make_cylindrical(pin, r: _Relative):
+    jm = pin.JointModelComposite()  # slide, then turn about the same axis
+    jp, a = _prismatic(pin, r.axis)
+    jr, b = _revolute(pin, r.axis)
+    jm.addJoint(jp)
+    jm.addJoint(jr)
+    return jm, r.rC, [0.0, 0.0], [float(a @ r.sdot), float(b @ r.wrel)], b
+
+
+def _make_spherical(pin, r: _Relative):
+    return pin.JointModelSpherical(), r.rP, [0.0, 0.0, 0.0, 1.0], list(r.wrel), ANY
+
+
+def _make_universal(pin, r: _Relative):
+    u1, u2 = (_unit(r.axis), _unit(r.axis2))[::r.sign]  # first axis on the parent
+    rates = np.linalg.lstsq(np.c_[u1, u2], r.wrel, rcond=None)[0]
+    return pin.JointModelUniversal(u1, u2), r.rP, [0.0, 0.0], list(rates), ANY
+
+
+_MAKERS = {"revolute": _make_revolute, "prismatic": _make_prismatic,
+           "cylindrical": _make_cylindrical, "spherical": _make_spherical,
+           "universal": _make_universal}
+
+
+def _joint_edge(pin, lifted: Lifted, j, parent: str, child: str) -> Edge:
+    """The Pinocchio joint of a case tree joint, from both bodies' frames at t = 0."""
+    if j.type not in _MAKERS:
+        raise Unsupported(f"joint {j.name!r} of type {j.type!r}")
+    r = _relative(lifted, j, parent, child)
+    jm, at, q0, v0, turns = _MAKERS[j.type](pin, r)
+    fc, pc = lifted.frames[child], lifted.points[child][j.points[::r.sign][1]]
     # the child's point sits exactly on the joint origin (the assembly residual is dropped)
-    X = pin.SE3(fc.R, -fc.R @ pc3)
-    if j.type in ("prismatic", "cylindrical"):
-        # placed at the child's point: the joint origin need not lie on the parent point's
-        # line; q counts from t = 0, its rate is the relative point velocity along the axis
-        # less the parent's rotation carrying the offset d
-        d = rC - rP
-        sdot = fc.point_velocity(pc3) - fp.point_velocity(lifted.points[parent][pp]) \
-            - cross(fp.w, d)
-        if j.type == "prismatic":
-            jm, a = _prismatic(pin, a1)
-            return Edge(parent, child, j.name, jm, rC, X, [0.0], [float(a @ sdot)], "joint",
-                        None, sign)
-        jm = pin.JointModelComposite()  # slide then turn about the same axis
-        jp, a = _prismatic(pin, a1)
-        jr, b = _revolute(pin, a1)
-        jm.addJoint(jp)
-        jm.addJoint(jr)
-        return Edge(parent, child, j.name, jm, rC, X, [0.0, 0.0],
-                    [float(a @ sdot), float(b @ wrel)], "joint", b, sign)
-    if j.type == "revolute":
-        jm, a = _revolute(pin, a1)
-        return Edge(parent, child, j.name, jm, rP, X, [0.0], [float(a @ wrel)], "joint", a,
-                    sign)
-    if j.type == "spherical":
-        return Edge(parent, child, j.name, pin.JointModelSpherical(), rP, X, [0.0, 0.0, 0.0, 1.0],
-                    list(wrel), "joint", ANY, sign)
-    if j.type == "universal":  # first axis on the parent, second on the child
-        u1, u2 = (_unit(a1), _unit(a2))[::sign]
-        rates = np.linalg.lstsq(np.c_[u1, u2], wrel, rcond=None)[0]
-        return Edge(parent, child, j.name, pin.JointModelUniversal(u1, u2), rP, X, [0.0, 0.0],
-                    list(rates), "joint", ANY, sign)
-    raise Unsupported(f"joint {j.name!r} of type {j.type!r}")
+    X = pin.SE3(fc.R, -fc.R @ pc)
+    return Edge(parent, child, j.name, jm, at, X, q0, v0, "joint", turns, r.sign)
 
 
 def _free_edges(pin, lifted: Lifted, name: str) -> tuple[list[Edge], str]:
