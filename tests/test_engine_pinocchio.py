@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 from natcoord.engines import adapter
-from natcoord.engines.base import initial_body_states
+from natcoord.engines.base import BodyState, InitialState, initial_body_states
 from natcoord.errors import Unsupported
+from natcoord.mechanism import Channel, Joint
 from natcoord.result import evaluate_channels
 from natcoord.suite.references import load_reference
 
@@ -119,7 +120,7 @@ def test_dt_must_divide_the_output_interval():
     ec.assert_step_must_divide_the_output_interval("pinocchio", 0.003, "must divide")
 
 
-# ---- reference-frame cases: 3-D, massless rods, spring-dampers (pinocchio_3d) -------------
+# ---- reference-frame cases: 3-D, massless rods, spring-dampers ------------------------------
 # Max |pinocchio - reference| measured with each case's [engines.pinocchio] settings (pin
 # 4.1), bounds about 5x. Determined reactions only: the undetermined ones (five_bar N34,
 # N56, R1_x, R2_x; four_bar_3d O_x, D_x; parallelogram A1, C2, E3, G4) are the proximal
@@ -276,3 +277,101 @@ def test_branched_tree_is_built_depth_first(tmp_path):
     _, a, b = ec.channel_tables("pinocchio", case)
     bad = ec.channel_mismatches(case, a, b, {}, 1e-8)
     assert not bad, "; ".join(bad)
+
+
+# ---- joint types and features added with the single builder --------------------------------
+def _reference_init(case, omega=None) -> InitialState:
+    """Every body frame at the world frame at t = 0 (a reference-frame case), at rest or
+    turning at ``omega`` (body -> rad/s, or (3,) world). Built by hand from the test file's
+    closed form: natcoord's own assembly of these cases (initial_body_states) may still
+    refuse 3-D prismatic joints and ignore drivers."""
+    d = case.dimension
+    rest = 0.0 if d == 2 else np.zeros(3)
+    return InitialState(np.zeros(0), np.zeros(0), {
+        b.name: BodyState(np.zeros(d), 0.0, np.zeros(d), (omega or {}).get(b.name, rest),
+                          np.eye(d)) for b in case.bodies})
+
+
+def _incline_closed_form(table):
+    """incline_3d's closed form (see the file): positions (T, 3) of c, m; reaction (3,), N."""
+    g, u, m = np.array([0.0, 0.0, -9.81]), np.ones(3) / np.sqrt(3.0), 2.0
+    t = table["t"].to_numpy()
+    return np.array([0.3, 0.2, 0.1]) + ((g @ u) * t**2 / 2)[:, None] * u, -m * (g - (g @ u) * u)
+
+
+# A constant acceleration is integrated exactly by RK4, so what remains is rounding:
+# measured 1.6e-15 m and 1.8e-15 N over 0.5 s (dt 1e-3; 5.3e-15 N as a cylindrical joint);
+# bounds 1e-13 leave ~20x for platform differences, while a modelling error (axis,
+# placement, sign) would show at the 1e-2 level.
+INCLINE_BOUND = {"position": 1e-13, "reaction": 1e-13}
+
+
+@pytest.mark.parametrize("joint", ["prismatic", "cylindrical"])
+def test_incline_3d_slides_along_its_axis_with_the_closed_form_reaction(tmp_path, joint):
+    """A 3-D prismatic joint along (1, 1, 1)/sqrt(3); as a cylindrical joint it also spins
+    freely about that axis (2 rad/s, the centre of mass on the axis), which changes neither
+    the slide nor the force: measured 1.6e-15 m, 5.3e-15 N, the spin 1e-15 rad."""
+    subs = {} if joint == "prismatic" else {'type = "prismatic"': 'type = "cylindrical"'}
+    case = ec.data_case(tmp_path, "incline_3d", subs)
+    u = np.ones(3) / np.sqrt(3.0)
+    spin = 0.0 if joint == "prismatic" else 2.0
+    run = _run_from(case, _reference_init(case, {"block": spin * u}))
+    table = evaluate_channels(case, run.motion)
+    pos, force = _incline_closed_form(table)
+    for k, axis in enumerate("xyz"):
+        assert np.max(np.abs(table[axis] - pos[:, k])) <= INCLINE_BOUND["position"], axis
+        assert np.max(np.abs(table[f"R{axis}"] - force[k])) <= INCLINE_BOUND["reaction"], axis
+    R = run.motion.rotation["block"]
+    np.testing.assert_allclose(R @ u, np.broadcast_to(u, (len(R), 3)), rtol=0, atol=1e-13)
+    e = np.cross(u, [1.0, 0.0, 0.0])
+    e /= np.linalg.norm(e)
+    turned = np.arctan2(np.einsum("i,tij,j->t", np.cross(u, e), R, e),
+                        np.einsum("i,tij,j->t", e, R, e))
+    np.testing.assert_allclose(np.unwrap(turned), spin * table["t"], rtol=0, atol=1e-12)
+
+
+def _run_from(case, init, settings=None):
+    return adapter("pinocchio").run(case, init, settings or {})
+
+
+def test_driven_rod_is_unsupported_with_its_reason():
+    """Drivers are not modelled: constraintDynamics has only contact constraints. The
+    driven crank angle would be a tree joint coordinate here, but prescribing it needs a
+    partitioned solve this adapter does not implement."""
+    case = ec.data_case(None, "driven_rod")
+    init = _reference_init(case, {"rod": np.pi / 2})
+    with pytest.raises(Unsupported, match=r"driver\(s\) motor \(angle of rod\).*rheonomic"):
+        _run_from(case, init)
+
+
+def test_planar_body_joined_by_a_rod_only_floats_in_the_plane():
+    """hang_2d: the body no joint reaches floats on JointModelPlanar, the rod is a light
+    body; against natcoord: measured 1.4e-14 N, 0 m."""
+    case = ec.data_case(None, "hang_2d")
+    run, a, b = ec.channel_tables("pinocchio", case)
+    assert not ec.channel_mismatches(case, a, b, {"axial": 1e-9}, 1e-12)
+    assert any("JointModelPlanar" in n for n in run.notes)
+
+
+def test_universal_joint_swinging_about_one_axis_is_a_revolute(tmp_path):
+    """hang_3d's body on a universal joint (x on the ground, y on the body) instead of its
+    rod, released swinging about x: the y rotation is never excited, so it must follow the
+    same body on a revolute about x. Measured identical (0 m, 0 N)."""
+    case = ec.data_case(None, "hang_3d")
+    ground_joint = Joint("U", "universal", ("ground", "plate"), ("O", "O"),
+                         np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]))
+    bodies = (dataclasses.replace(case.bodies[0], points={**case.bodies[0].points,
+                                                          "O": np.zeros(3)}),)
+    channels = (Channel("yc", "position", body="plate", point="c", axis="y"),
+                Channel("zc", "position", body="plate", point="c", axis="z"),
+                Channel("U_y", "reaction", joint="U", axis="y"),
+                Channel("U_z", "reaction", joint="U", axis="z"))
+    uni = dataclasses.replace(case, bodies=bodies, joints=(ground_joint,), rods=(),
+                              channels=channels, duration=0.5)
+    rev = dataclasses.replace(uni, joints=(dataclasses.replace(
+        ground_joint, type="revolute", axis2=None),))
+    init = _reference_init(uni, {"plate": np.array([1.5, 0.0, 0.0])})
+    a = evaluate_channels(uni, _run_from(uni, init).motion)
+    b = evaluate_channels(rev, _run_from(rev, init).motion)
+    assert not ec.channel_mismatches(uni, a, b, {"reaction": 1e-10}, 1e-12)
+    assert np.ptp(a["yc"]) > 0.5  # it does swing

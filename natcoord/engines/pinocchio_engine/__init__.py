@@ -1,0 +1,154 @@
+"""Pinocchio as an engine: a kinematic tree of joints, loops closed by rigid point
+constraints, integrated by our own RK4 (or Radau).
+
+Every case goes through one builder: a 2-D case is lifted into 3-D (:mod:`.lift`: points
+(x, y, 0), revolutes about z, prismatic axes (ax, ay, 0), gravity (gx, gy, 0)) and its
+outputs are dropped back to 2-D in the same module. Body points are in the body's own
+frame; its pose and rates at t = 0 come from ``init[body]``, posed and reference-frame cases
+alike.
+
+Model (:mod:`.model`)
+---------------------
+* Tree: :func:`natcoord.engines.tree.point_loop_tree`. A loop-closing *prismatic* joint
+  cannot be a ``CONTACT_3D`` constraint (that pins a point), so when the natural tree leaves
+  one, the tree is rebuilt with prismatic joints tried first; the joint cut instead is a
+  revolute one. For a non-redundant loop the reactions do not depend on where it is cut.
+  Joints are added depth-first: Pinocchio's algorithms (crba, Jacobians) assume the joints
+  of every subtree contiguous, which breadth-first order breaks as soon as the tree branches
+  below its root (wrong mass matrix, no error).
+* Every joint frame is world-aligned at t = 0 (q neutral), at its joint point. Revolute ->
+  ``JointModelRX/RY/RZ`` or ``JointModelRevoluteUnaligned`` along its axis. Prismatic ->
+  ``JointModelPX/PY/PZ`` or ``JointModelPrismaticUnaligned``, placed at the child's point,
+  q = displacement since t = 0; the child keeps its assembled rotation relative to the
+  parent. Cylindrical -> ``JointModelComposite`` (prismatic then revolute along the axis).
+  Universal -> ``JointModelUniversal`` (first axis on the parent). Spherical ->
+  ``JointModelSpherical``.
+* A body no joint reaches: ``JointModelPlanar`` in a planar case (it stays in the plane),
+  else ``JointModelTranslation`` + ``JointModelSphericalZYX`` (six scalar dofs, so the state
+  stays a vector: ZYX angles are singular at 90 deg pitch, far from anything here).
+* Each body's natcoord frame is a fixed placement ``X`` in its joint frame; its mass and
+  inertia are appended there. A planar body's Izz is lifted as Izz * I3: every joint of a
+  planar case turns about z, so the other moments never act. Izz = 0 is a point mass at the
+  centre of mass: exact, and the joint still sees m r^2 as long as the mass is off its axis.
+  A 3-D slender rod keeps its exact singular inertia (the joints never turn it about its
+  axis). A particle gets a tiny inertia (``particle_inertia`` kg m^2 per kg) that nothing
+  can torque, so its absolute rotation does not feed back; its output frame never turns.
+* Massless rod (``constraintDynamics`` has no distance constraint): a *light body*, a
+  slender rod of mass ``rod_mass`` kg on a revolute (planar case: about the normal) or
+  universal (3-D: two axes normal to the rod, so it cannot spin about itself) joint at one
+  end (the end whose body is nearer the ground), closed at the other end by CONTACT_3D. Its
+  inertia is the substitute's cost, bounded in the tests. The axial force (tension
+  positive) is the constraint force at the closing end along the rod.
+* Applied loads (torque, force at a point, constant in world axes) and spring-dampers:
+  external forces in ``aba``, or ``tau += J^T f`` for ``constraintDynamics`` (which takes
+  no ``fext``; constant when every rotation is about one fixed axis and the loads are pure
+  moments).
+* Drivers (prescribed motions) are not modelled: Unsupported.
+
+Loops (:mod:`.loops`): ``RigidConstraintModel(CONTACT_3D)`` at the joint point, ``LOCAL``;
+a loop-closing revolute only when the tree path between its bodies turns about parallel
+axes (else CONTACT_6D would also lock its rotation: Unsupported). Planar motion leaves the
+contact's z row all zero, hence ``mu > 0``.
+
+Integration (:mod:`.dynamics`): classic RK4 on (q, v), four ``constraintDynamics`` (``aba``
+without loops) calls a step (``pinocchio.integrate`` for spherical and planar joints), or
+scipy's Radau IIA (``method = "radau"``, unconstrained models only).
+
+Reactions (:mod:`.readout`): ``rnea`` with the constraint forces and applied loads as
+external forces.
+"""
+
+from __future__ import annotations
+
+import time
+
+from ..base import EngineRun, merged, steps_per_sample
+
+NAME = "pinocchio"
+PACKAGE = "pin"
+DEFAULTS = {
+    "dt": 1e-3,  # RK4 step, s; must divide the case's output_dt
+    "mu": 1e-8,  # proximal regularisation of constraintDynamics (> 0: planar zero rows)
+    "accuracy": 1e-12,  # proximal absolute accuracy
+    "max_iter": 20,  # proximal iteration cap
+    "baumgarte_kp": 0.0,  # Baumgarte gains on the loop constraints (1/s^2, 1/s)
+    "baumgarte_kd": 0.0,
+    "max_drift": 1e-3,  # m: a loop opening more than this is reported as divergence
+    "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
+    "rod_mass": 1e-6,  # kg: mass of the light body that stands for a massless rod
+    "method": "rk4",  # rk4 | radau (scipy Radau IIA on aba: stiff springs, no loops)
+    "rtol": 1e-8,  # Radau tolerances
+    "atol": 1e-10,
+}
+
+
+def version() -> str:
+    import pinocchio
+
+    return pinocchio.__version__
+
+
+def _integrate(pin, case, b, dyn, s: dict, notes: list[str]):
+    """(Q, V, A, L, steps, counters) at the case's sample times, by ``s["method"]``."""
+    from ...errors import Unsupported
+    from .dynamics import integrate_radau, integrate_rk4
+
+    method = str(s["method"]).lower()
+    times = case.times
+    if method == "rk4":
+        dt = float(s["dt"])
+        context = f", mu {s['mu']:g}" if dyn.looped else ""
+        Q, V, A, L, n = integrate_rk4(pin, b, dyn, times, steps_per_sample(case, dt), dt,
+                                      context)
+        call = "constraintDynamics" if dyn.looped else "aba"
+        notes.append(f"classic RK4, dt {dt:g} s, 4 {call} calls a step")
+        return Q, V, A, L, n, {"steps": n, "rhs": 4 * n + 1}
+    if method == "radau":
+        if dyn.looped:
+            raise Unsupported("method radau: the constrained (constraintDynamics) model "
+                              "uses RK4")
+        Q, V, A, L, n, counters = integrate_radau(b, dyn, times, s)
+        notes.append(f"scipy Radau IIA on pinocchio.aba, rtol {s['rtol']:g}, "
+                     f"atol {s['atol']:g}")
+        return Q, V, A, L, n, counters | {"steps": n}
+    raise ValueError(f"pinocchio: unknown method {s['method']!r} (rk4 | radau)")
+
+
+def run(case, init, settings: dict) -> EngineRun:
+    """Build, integrate and sample ``case`` from ``init`` (see the module docstring)."""
+    import pinocchio as pin
+
+    from . import lift, loops, model, readout
+    from .dynamics import Dynamics
+
+    s = merged(DEFAULTS, settings)
+    t0 = time.perf_counter()
+    lifted = lift.lift(case, init)
+    b = model.build(pin, lifted, s)
+    cmodels, closures = loops.close(pin, b, b.loop_joints, s)
+    dyn = Dynamics(pin, b, cmodels, s)
+    build_time = time.perf_counter() - t0
+    notes = list(b.notes)
+    t0 = time.perf_counter()
+    Q, V, A, L, n, counters = _integrate(pin, case, b, dyn, s, notes)
+    wall = time.perf_counter() - t0
+    origin, rotation, velocity, omega, forces, rod_force, drift = readout.sample(
+        pin, b, dyn, closures, Q, V, A, L)
+    if drift[0] > s["max_drift"]:
+        raise RuntimeError(f"pinocchio: a loop opened by {drift[0]:.3g} m (> max_drift "
+                           f"{s['max_drift']:g} m); reduce dt or add Baumgarte gains")
+    counters |= {"prox_iter_max": dyn.iters, "drift_max_m": float(drift[0]),
+                 "velocity_drift_max_m_s": float(drift[1])}
+    if closures:
+        notes.append(f"proximal constraintDynamics: mu {s['mu']:g}, accuracy "
+                     f"{s['accuracy']:g}, at most {s['max_iter']} iterations "
+                     f"(reached {dyn.iters})")
+        if dyn.iters >= int(s["max_iter"]):
+            notes.append(f"the proximal solver hit its cap of {s['max_iter']} iterations "
+                         "(redundant loops?): constraint forces may be unconverged")
+    motion = lift.drop(lifted, case.times, origin, rotation, velocity, omega, forces,
+                       rod_force)
+    return EngineRun(motion, build_time, wall, n, s, counters, notes)
+
+
+__all__ = ["DEFAULTS", "NAME", "PACKAGE", "run", "version"]
