@@ -395,12 +395,14 @@ class BodyState:
 
 @dataclass(frozen=True)
 class InitialState(Mapping):
-    """The case assembled at t = 0: natcoord's coordinates ``q``, ``qd`` (n,) and every
-    body's frame state; ``init[body]`` is that body's :class:`BodyState`."""
+    """The case assembled at t = 0: natcoord's coordinates ``q``, ``qd`` (n,) in the model
+    written with ``coordinates`` (see :func:`build`), and every body's frame state;
+    ``init[body]`` is that body's :class:`BodyState`."""
 
     q: np.ndarray
     qd: np.ndarray
     bodies: dict[str, BodyState]
+    coordinates: str = "joints"
 
     def __getitem__(self, body: str) -> BodyState:
         return self.bodies[body]
@@ -415,10 +417,11 @@ class InitialState(Mapping):
 def initial_body_states(case: Case) -> InitialState:
     """Assemble the case once (natcoord's model, :func:`initial_state`) and return q, qd and
     every body frame's state at t = 0: what every engine starts from."""
-    cm = build(case, case.engine("natcoord").settings.get("coordinates", "joints"))
+    coordinates = case.engine("natcoord").settings.get("coordinates", "joints")
+    cm = build(case, coordinates)
     s = initial_state(cm)
     fr = frames(cm, s.q[None], s.qd[None])
-    return InitialState(s.q, s.qd, {
+    return InitialState(s.q, s.qd, coordinates=coordinates, bodies={
         b: BodyState(fr.origin[b][0], float(fr.angle(b)[0]) if cm.dim == 2 else 0.0,
                      fr.velocity[b][0],
                      float(fr.omega[b][0]) if cm.dim == 2 else fr.omega[b][0],

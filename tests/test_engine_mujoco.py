@@ -22,7 +22,7 @@ import pytest
 
 from natcoord.casefile import load_case
 from natcoord.engines import adapter
-from natcoord.engines.base import BodyState, InitialState
+from natcoord.engines.base import BodyState, InitialState, initial_body_states
 from natcoord.errors import Unsupported
 from natcoord.result import evaluate_channels
 
@@ -331,8 +331,7 @@ def test_force_away_from_the_centre_of_mass_is_unsupported():
 def _world_frames(case, velocity=None, omega=None) -> InitialState:
     """The t = 0 state of a reference-frame case built by hand: every body frame is the world
     frame, moving with ``velocity`` (d,) and ``omega`` (scalar in 2-D, (3,) in 3-D) or at
-    rest. natcoord's own assembly (initial_body_states) cannot assemble a 3-D prismatic,
-    universal or cylindrical joint yet, and leaves a driver's rate out of the velocities."""
+    rest: a moving start that the case file itself does not give."""
     d = case.dimension
     v = np.zeros(d) if velocity is None else np.asarray(velocity, float)
     w = (0.0 if d == 2 else np.zeros(3)) if omega is None else omega
@@ -351,7 +350,7 @@ def test_incline_3d_prismatic_matches_its_closed_form():
     centre = np.array([0.3, 0.2, 0.1]) + np.outer((g @ u) * t**2 / 2, u)
     R = -m * (g - (g @ u) * u)
     for c, sign in ((case, 1.0), (flipped, -1.0)):
-        table = evaluate_channels(c, _run_from(c, _world_frames(c)).motion)
+        table = evaluate_channels(c, _run_from(c, initial_body_states(c)).motion)
         for i, k in enumerate("xyz"):
             np.testing.assert_allclose(table[k], centre[:, i], rtol=0, atol=1e-12)
         for i, k in enumerate(("Rx", "Ry", "Rz")):
@@ -363,8 +362,8 @@ def test_incline_3d_prismatic_matches_its_closed_form():
     ('type = "universal"\naxis = [1.0, 0.0, 0.0]\naxis2 = [0.0, 1.0, 0.0]', 0.0, [1.0, 2.0, 0.0]),
     ('type = "cylindrical"\naxis = [0.6, 0.8, 0.0]', 0.4, [0.9, 1.2, 0.0])])
 def test_universal_and_cylindrical_tree_joints_keep_their_constraints(tmp_path, joint, v, w):
-    """No closed form and no natcoord assembly yet: the joint's own constraints hold along the
-    motion, from a moving start (initial velocity conversion), and the energy is conserved.
+    """No closed form: the joint's own constraints hold along the motion, from a moving start
+    (the adapter's initial velocity conversion), and the energy is conserved.
     Measured: constraints 3.5e-18 / 2.2e-16, energy 8.9e-15 / 3.6e-15 J."""
     case = ec.data_case(tmp_path, "pivoted_3d", {"JOINT": joint})
     a = case.joint("O").axis
@@ -385,7 +384,7 @@ def test_universal_and_cylindrical_tree_joints_keep_their_constraints(tmp_path, 
 def test_driven_rod_is_unsupported_with_the_reason():
     case = ec.data_case(None, "driven_rod")
     with pytest.raises(Unsupported, match="drivers.*no rheonomic constraint"):
-        _run_from(case, _world_frames(case, omega=np.pi / 2))
+        _run_from(case, initial_body_states(case))
 
 
 # ------------------------------------------------------------------------------ refusals, failures

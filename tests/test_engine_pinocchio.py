@@ -282,9 +282,8 @@ def test_branched_tree_is_built_depth_first(tmp_path):
 # ---- joint types and features added with the single builder --------------------------------
 def _reference_init(case, omega=None) -> InitialState:
     """Every body frame at the world frame at t = 0 (a reference-frame case), at rest or
-    turning at ``omega`` (body -> rad/s, or (3,) world). Built by hand from the test file's
-    closed form: natcoord's own assembly of these cases (initial_body_states) may still
-    refuse 3-D prismatic joints and ignore drivers."""
+    turning at ``omega`` (body -> rad/s, or (3,) world): a spinning start that the case
+    file does not give."""
     d = case.dimension
     rest = 0.0 if d == 2 else np.zeros(3)
     return InitialState(np.zeros(0), np.zeros(0), {
@@ -315,7 +314,8 @@ def test_incline_3d_slides_along_its_axis_with_the_closed_form_reaction(tmp_path
     case = ec.data_case(tmp_path, "incline_3d", subs)
     u = np.ones(3) / np.sqrt(3.0)
     spin = 0.0 if joint == "prismatic" else 2.0
-    run = _run_from(case, _reference_init(case, {"block": spin * u}))
+    init = initial_body_states(case) if not spin else _reference_init(case, {"block": spin * u})
+    run = _run_from(case, init)
     table = evaluate_channels(case, run.motion)
     pos, force = _incline_closed_form(table)
     for k, axis in enumerate("xyz"):
@@ -339,7 +339,7 @@ def test_driven_rod_is_unsupported_with_its_reason():
     driven crank angle would be a tree joint coordinate here, but prescribing it needs a
     partitioned solve this adapter does not implement."""
     case = ec.data_case(None, "driven_rod")
-    init = _reference_init(case, {"rod": np.pi / 2})
+    init = initial_body_states(case)
     with pytest.raises(Unsupported, match=r"driver\(s\) motor \(angle of rod\).*rheonomic"):
         _run_from(case, init)
 

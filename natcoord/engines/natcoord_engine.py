@@ -35,12 +35,14 @@ def version() -> str:
 
 
 def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
-    """Integrate the case from ``init`` (assembled here when None)."""
+    """Integrate the case from ``init`` (assembled here when None, or when settings ask
+    for other coordinates than ``init`` was assembled in)."""
     solver = case_solver(settings)
     coordinates = settings.get("coordinates", "joints")
     t0 = time.perf_counter()
     cm = casemodel.build(case, coordinates)
-    state = State(init.q, init.qd) if init is not None else casemodel.initial_state(cm)
+    fits = init is not None and init.coordinates == coordinates
+    state = State(init.q, init.qd) if fits else casemodel.initial_state(cm)
     build = time.perf_counter() - t0
     sol = integrate(cm.model, state, case.times, solver)
     build += sol.counters["compile_time_s"]  # a cold compile or cache load: build, not wall
