@@ -1,6 +1,7 @@
 """DART adapter: reaction sign on a hanging rod, parity with natcoord on the closed loops,
 first-order convergence, conversions (joint orientation, initial velocities, particles,
-slides on a turning body, free bodies) and refusals/failures.
+slides on a turning body, free bodies, 3-D frames posed by ``init``), a 3-D prismatic joint
+and an angle driver against their closed forms, and refusals/failures.
 
 DART integrates with semi-implicit Euler only, so every error here is first-order model error
 of the integrator (deterministic, not noise). Bounds are the errors measured at the adapter
@@ -268,6 +269,16 @@ def test_cylindrical_joint_is_unsupported(tmp_path):
     case = ec.data_case(tmp_path, "pivoted_3d", {"JOINT": 'type = "cylindrical"\n'
                                                           'axis = [0.0, 0.0, 1.0]'})
     with pytest.raises(Unsupported, match="no cylindrical joint"):
+        adapter("dart").run(case, {}, {})
+
+
+def test_universal_loop_joint_is_unsupported():
+    """DART has no universal joint constraint: four_bar_3d closed by a universal joint at D."""
+    case = ec.case("four_bar_3d")
+    d = dataclasses.replace(case.joint("D"), type="universal", axis2=np.array([0.0, 1.0, 0.0]))
+    case = dataclasses.replace(case, joints=tuple(d if j.name == "D" else j
+                                                  for j in case.joints))
+    with pytest.raises(Unsupported, match="universal joint 'D' closes a loop"):
         adapter("dart").run(case, {}, {})
 
 

@@ -84,17 +84,17 @@ def build(dart, case: Case, frames: dict[str, Frame], s: dict, normal, notes: li
 
 
 def _tree_joint(dart, sk: Skeleton, case: Case, frames, j: Joint, parent: str, child: str):
-    """Joint and body node of ``child``. The joint frame sits at the joint point with the
-    child's axes at t = 0 on both sides, so every rotation coordinate starts at 0."""
+    """Joint and body node of ``child``, at the assembled state. The joint frame sits at the
+    joint point with the child's axes at t = 0 on both sides, so every rotation coordinate
+    starts at 0 (a prismatic one at the points' offset along the axis)."""
     P, C = frame_of(frames, parent), frames[child]
     p_p = point(case, parent, j.points[j.bodies.index(parent)])
     p_c = point(case, child, j.points[j.bodies.index(child)])
-    pnode = None if parent == GROUND else sk.nodes[parent]
     create = {"revolute": sk.skel.createRevoluteJointAndBodyNodePair,
               "prismatic": sk.skel.createPrismaticJointAndBodyNodePair,
               "spherical": sk.skel.createBallJointAndBodyNodePair,
               "universal": sk.skel.createUniversalJointAndBodyNodePair}[j.type]
-    joint, node = create(pnode)
+    joint, node = create(None if parent == GROUND else sk.nodes[parent])
     if j.type == "prismatic":  # the parent side of the line the child point slides on
         a_w, d = world_axis(j, frames), C.point(p_c) - P.point(p_p)
         p_p = p_p + P.R.T @ (d - (a_w @ d) * a_w)
@@ -103,17 +103,27 @@ def _tree_joint(dart, sk: Skeleton, case: Case, frames, j: Joint, parent: str, c
     joint.setName(j.name)
     node.setName(child)
     sk.nodes[child] = node
+    _set_axes_and_rates(joint, j, frames, P, C, (P.point(p_p), C.point(p_c)), parent)
+    return joint
+
+
+def _set_axes_and_rates(joint, j: Joint, frames, P: Frame, C: Frame, x, parent: str) -> None:
+    """Axes (joint = child axes), the prismatic coordinate and every joint rate from the
+    parent and child frames at t = 0; ``x`` holds the parent- and child-side joint points
+    in world (3,) m."""
     w_rel = C.R.T @ (C.omega - P.omega)  # relative angular velocity, child (= joint) axes
     if j.type in ("revolute", "prismatic"):
-        a = C.R.T @ world_axis(j, frames)
+        a_w = world_axis(j, frames)
+        a = C.R.T @ a_w
         joint.setAxis(a)
         if j.type == "revolute":
             joint.setVelocity(0, float(a @ w_rel))
-        else:
-            x_p, x_c = P.point(p_p), C.point(p_c)
-            v_rel = C.point_velocity(p_c) - P.point_velocity(p_p) - np.cross(P.omega, x_c - x_p)
-            joint.setPosition(0, float(a_w @ (x_c - x_p)))
-            joint.setVelocity(0, float(a_w @ v_rel))
+            return
+        d = x[1] - x[0]
+        v_rel = (C.point_velocity(C.R.T @ (x[1] - C.origin))
+                 - P.point_velocity(P.R.T @ (x[0] - P.origin)) - np.cross(P.omega, d))
+        joint.setPosition(0, float(a_w @ d))
+        joint.setVelocity(0, float(a_w @ v_rel))
     elif j.type == "universal":  # DART: R(axis1, q1) R(axis2, q2), axis1 on the parent
         first = j.bodies[0] == parent
         a1 = C.R.T @ world_axis(j, frames, 0 if first else 1)
@@ -123,7 +133,6 @@ def _tree_joint(dart, sk: Skeleton, case: Case, frames, j: Joint, parent: str, c
         joint.setVelocities(np.array([a1 @ w_rel, a2 @ w_rel]))
     else:
         joint.setVelocities(w_rel)
-    return joint
 
 
 def _free_body(dart, sk: Skeleton, st: Frame, body, normal, notes: list[str]) -> None:
