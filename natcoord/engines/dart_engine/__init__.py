@@ -1,0 +1,151 @@
+"""DART (dartpy) as an engine: a kinematic tree in joint coordinates plus loop-closing joint
+constraints, integrated by DART's semi-implicit (symplectic) Euler.
+
+One model for every case: a 2-D case is lifted to its planar 3-D case in one place
+(:mod:`.lift`), built by one skeleton builder (:mod:`.skeleton`), stepped and read in 3-D
+(:mod:`.stepping`) and dropped back to 2-D outputs in one place. Modelling, in short (every
+choice is also written into ``EngineRun.notes``):
+
+* Body frames at t = 0 are natcoord's assembled ones (``init``); each tree joint's frame sits
+  at the joint point with the child's axes at t = 0 on both sides, so rotation coordinates
+  start at 0 and a prismatic coordinate at the joints' offset along the axis.
+* One ``Skeleton`` holds the spanning tree of :func:`natcoord.engines.tree.point_loop_tree`:
+  ``RevoluteJoint`` (a 2-D revolute turns about z), ``PrismaticJoint``, ``BallJoint``,
+  ``UniversalJoint``. DART has no prismatic joint *constraint*, so when the plain tree leaves
+  a prismatic joint to close a loop the tree is recomputed with the prismatic joints tried
+  first and the loop is cut at a revolute joint instead (same motion; only which joint is
+  "cut" changes). A loop-closing prismatic, universal or cylindrical joint is unsupported,
+  and so is a cylindrical joint anywhere (DART has no such joint).
+* Bodies the tree does not reach: in a 2-D case they stay in the plane (``PlanarJoint``; a
+  ``TranslationalJoint2D`` for a particle), in 3-D they get a ``FreeJoint``.
+* A loop-closing spherical joint is a ``BallJointConstraint``; so is a loop-closing revolute
+  joint when every revolute axis of the case is parallel (every 2-D case: the tree already
+  keeps the loop's bodies turning about that axis, the z row is empty because every body
+  keeps z = 0, and the constraint's rotation rows would be redundant). Otherwise (or with
+  ``loop_constraint = "revolute"``) it is a ``RevoluteJointConstraint``.
+* The loop constraints' error-reduction parameter (ERP) is a process-wide static of
+  ``DynamicJointConstraint`` (``JointConstraint.setErrorReductionParameter`` is a different
+  static, for joint limits, and has no effect here); it is set for the run and restored
+  afterwards. Measured on the four-bar at dt 1e-4: ERP 0.01 (DART's default) leaves a loop
+  gap of 2.2e-5 m, 0.2 -> 1.1e-6 m, 1.0 -> 2.2e-7 m (~20 dt^2); the angle error is 1.1-1.2e-3
+  rad for all of them. ``RevoluteJointConstraint`` diverges within 0.01 s for ERP >= 0.05
+  and costs about twice as much per step; at ERP 0.01 it matches the ball constraint.
+* Particles are point masses with a tiny rotational inertia about their point
+  (``particle_radius_of_gyration``); their frame is reported at angle 0 (identity rotation),
+  the origin following their point (natcoord's convention). A 2-D rigid body's I_zz is
+  raised to that radius of gyration when smaller; its out-of-plane moments (I_zz / 2 each)
+  only have to make a valid rigid body. A slender rod (``uniform_rod``) has no inertia about
+  its own axis; DART needs a positive definite inertia, so ``axial_inertia`` times its
+  transverse inertia is added about it (no effect on planar motion).
+* A massless rod (``[[rods]]``) becomes a light uniform rod of ``rod_mass`` kg: a tree joint
+  at its first end (revolute about z in 2-D, ball in 3-D; the ground end first when there is
+  one) and a ``BallJointConstraint`` at its other end. Its axial force is the force its tree
+  joint applies to it, projected on the rod, plus half its own inertial load
+  (``-F_joint . u + m/2 (a_G - g) . u``: the mid-length value).
+* Spring-dampers (``[[springs]]``) are external forces (``addExtForce``) computed from the
+  state at the start of every step: explicit in DART's semi-implicit Euler, so the step has
+  to resolve the damping (h c / m well below 2).
+* Drivers: a ``VELOCITY`` actuator on the tree joint whose coordinate is the driven value
+  (:mod:`.drivers`); the driver's effort is read from that joint's transmitted wrench.
+* Tree-joint reactions come from ``Joint.getWrenchToParentBodyNode(World)`` (layout moment,
+  force; its force part is the force of the tree parent on the child, whatever the reference
+  point). DART computes it inside the step that *starts* at the sample time (with the
+  constraint impulses of that step folded in), so it is read after that step, with the
+  skeleton put back for the read at the state of the sample time (it is zero before the
+  first step).
+* DART does not expose constraint impulses to Python, so a loop joint's force follows from
+  the Newton-Euler balance of one body it joins, at the same instant and with the same
+  discrete acceleration DART used: ``F_loop = m a_G - m g - F_applied - F_parent + sum
+  F_children``. A loop joint whose bodies both close other loops too is left out (its
+  channels are NaN).
+* At t = 0 a moving loop's first two steps are transients (step 0 enforces the loop at
+  velocity level only, step 1 overshoots), so the t = 0 reactions are extrapolated from
+  steps 2 and 3.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ...errors import Unsupported
+from ...mechanism import Case
+from ..base import EngineRun, merged, steps_per_sample
+
+NAME = "dart"
+PACKAGE = "dartpy"
+DEFAULTS = {
+    "dt": 1e-4,  # s; must divide the case's output interval
+    "erp": 1.0,  # error-reduction parameter of the loop-joint constraints (DART static)
+    "loop_constraint": "ball",  # "ball" or "revolute"
+    "max_error_reduction_velocity": 10.0,  # m/s, DART's default cap on the correction
+    "particle_radius_of_gyration": 1e-3,  # m: a particle's tiny rotational inertia
+    "max_drift": 1e-2,  # m: loop-joint gap above which the run counts as diverged
+    "rod_mass": 1e-5,  # kg: a massless rod's light-body substitute (loads.LightRod)
+    "axial_inertia": 1e-3,  # slender rod: inertia about its axis / transverse inertia
+}
+
+
+def version() -> str:
+    import dartpy
+
+    return dartpy.__version__
+
+
+def check_supported(case: Case) -> None:
+    """Refuse, with the reason, what the adapter does not model."""
+    for b in case.bodies:
+        if not b.mass > 0:
+            raise Unsupported(f"body {b.name!r} has no mass; DART bodies need a positive mass")
+    for j in case.joints:
+        if j.type == "cylindrical":
+            raise Unsupported(f"cylindrical joint {j.name!r}: DART has no cylindrical joint")
+
+
+def run(case: Case, init, settings: dict) -> EngineRun:
+    import dartpy as dart
+
+    from .drivers import make_drivers
+    from .lift import drop, lift, plane_normal
+    from .loads import make_loads
+    from .skeleton import add_loop_constraints, build, choose_tree
+    from .stepping import Sampler, loop_bodies, make_world, simulate, simulate_with_erp, stepper
+
+    s = merged(DEFAULTS, settings)
+    if s["loop_constraint"] not in ("ball", "revolute"):
+        raise ValueError(f"loop_constraint must be 'ball' or 'revolute', got "
+                         f"{s['loop_constraint']!r}")
+    check_supported(case)
+    choose_tree(case, [])  # refuse unclosable loops before the state is used
+    dt = float(s["dt"])
+    k = steps_per_sample(case, dt)
+
+    t0 = time.perf_counter()
+    case3, frames, notes = lift(case, init, float(s["particle_radius_of_gyration"]))
+    normal = plane_normal(case)
+    sk = build(dart, case3, frames, s, normal, notes)
+    drivers = make_drivers(case3, sk, frames, notes)
+    world, solver = make_world(dart, sk.skel, np.asarray(case3.gravity, float), dt)
+    add_loop_constraints(dart, case3, sk, frames, s, solver, notes)
+    loop_body = loop_bodies(sk.loops, sk.rods, notes)
+    loads = make_loads(case3, sk.nodes)
+    if case3.springs:
+        notes.append("spring-dampers " + ", ".join(sp.name for sp in case3.springs) + ": "
+                     "external forces from the state at the start of each step (explicit)")
+    sampler = Sampler(dart, case3, sk, loop_body, drivers, loads)
+
+    def before_step():
+        loads[0]()
+        for d in drivers:
+            d.command(world.getTime(), dt)
+
+    steps, clock = stepper(world, before_step)
+    build_time = time.perf_counter() - t0
+    extrapolate0 = bool(sk.loops or sk.rods) and k >= 4
+    samples, force, axial, effort, counters = simulate_with_erp(
+        dart, s, notes, dt, extrapolate0, lambda: simulate(
+            case3, world, sk, sampler, steps, clock, loads[2], k, float(s["max_drift"]),
+            extrapolate0))
+    motion = drop(case, case.times.copy(), samples, force, axial, effort)
+    return EngineRun(motion, build_time, clock["wall"], clock["steps"], s, counters, notes)
