@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from natcoord.engines import adapter
+from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
 from natcoord.result import evaluate_channels
 
@@ -205,9 +206,6 @@ def test_three_dimensional_frames_posed_by_init(tmp_path, joint):
 
 
 # ------------------------------------------------------------------------------ new joints, drivers
-# natcoord's own assembly (initial_body_states) does not handle these two files yet (incline_3d:
-# prismatic joint in 3-D; driven_rod: the driver's rate), so their states at t = 0 are written
-# here from the closed forms in the files.
 
 def _state(origin, omega, rotation):
     d = len(origin)
@@ -221,7 +219,7 @@ def test_incline_3d_slides_as_the_closed_form(tmp_path):
     is x_n = a t_n^2 / 2 + a t_n h / 2: the position error is first order, a t h / 2 along the
     axis (8.17e-5 m per component at t = 0.5 s, dt 1e-4, as measured); the reaction is exact."""
     case = ec.data_case(tmp_path, "incline_3d")
-    init = {"block": _state(np.zeros(3), np.zeros(3), np.eye(3))}
+    init = initial_body_states(case)
     u, g, m = np.ones(3) / np.sqrt(3), np.array([0.0, 0.0, -G]), 2.0
     errors = {}
     for dt in (2e-4, 1e-4):
@@ -243,7 +241,7 @@ def test_driven_rod_torque_and_reaction_match_the_closed_form(tmp_path):
     (the rate is constant: no inertial torque)."""
     case = ec.data_case(tmp_path, "driven_rod")
     w, m, L = np.pi / 2, 2.0, 1.0
-    run = _dart(case, {"rod": _state(np.zeros(2), w, np.eye(2))})
+    run = _dart(case, initial_body_states(case))
     table = evaluate_channels(case, run.motion)
     th = w * table["t"].to_numpy()
     # measured: theta 1.5e-13 rad, torque 3.0e-8 N m, Rx 4.4e-8 N, Ry 1.2e-8 N (round-off
@@ -261,8 +259,8 @@ def test_driver_off_a_tree_coordinate_is_unsupported(tmp_path):
     tip_x = dataclasses.replace(case.drivers[0], type="coordinate", point="tip", axis="x",
                                 v0=1.0)
     case = dataclasses.replace(case, drivers=(tip_x,))
-    with pytest.raises(Unsupported, match="tree-joint coordinate"):
-        _dart(case, {"rod": _state(np.zeros(2), np.pi / 2, np.eye(2))})
+    with pytest.raises(Unsupported, match="tree-joint coordinate"):  # refused before any use
+        _dart(case, {"rod": _state(np.zeros(2), np.pi / 2, np.eye(2))})  # of the start state
 
 
 def test_cylindrical_joint_is_unsupported(tmp_path):
@@ -313,9 +311,9 @@ def test_version_and_lazy_import():
 
 
 # ------------------------------------------------------------------------------ paper cases
-# References: natcoord.paper (the paper's own natural coordinates) until references/<case>.csv
-# exist. Initial states: what natcoord assembles for these reference-frame files (every frame
-# at the world frame; five_bar turning both bodies at +1 rad/s about their pivots).
+# References: tests/paper_models.py (the paper's own natural coordinates). Initial states:
+# what natcoord assembles for these reference-frame files (every frame at the world frame;
+# five_bar turning both bodies at +1 rad/s about their pivots).
 
 def _rest(case):
     d = case.dimension
@@ -340,12 +338,13 @@ def _dart(case, init, settings=None):
 @pytest.fixture(scope="module")
 def five_bar_ref():
     """Through the singular position phi = 0 (t ~ 1.03 s) and on to t = 1.2 s."""
-    from natcoord import paper
     from natcoord.dynamics import integrate
+    from natcoord.solver import Fixed, Solver
+    from tests import paper_models as paper
 
     pm = paper.five_bar()
     t = np.arange(0.0, 1.2 + 1e-9, 0.005)
-    sol = integrate(pm.model, pm.state, t, method="dopri5", h=1e-3)
+    sol = integrate(pm.model, pm.state, t, Solver(method="dopri5", step=Fixed(1e-3)))
     out = pm.outputs(sol, "min_norm")
     a3 = np.gradient(sol.qd[:, 0:2], t, axis=0, edge_order=2)  # point 3 = centre of 135
     a4 = np.gradient(sol.qd[:, 2:4], t, axis=0, edge_order=2)
@@ -392,8 +391,8 @@ def test_five_bar_is_first_order_and_the_light_rods_cost_little(five_bar_ref):
 
 
 def test_four_bar_3d_matches_the_paper_model():
-    from natcoord import paper
     from natcoord.dynamics import integrate
+    from tests import paper_models as paper
 
     case = dataclasses.replace(ec.case("four_bar_3d"), duration=1.0)
     pm = paper.four_bar_3d()
@@ -417,8 +416,8 @@ def test_four_bar_3d_matches_the_paper_model():
 
 @pytest.mark.parametrize("flexible", [False, True])
 def test_parallelogram_3d(flexible):
-    from natcoord import paper
     from natcoord.dynamics import integrate
+    from tests import paper_models as paper
 
     name = "parallelogram_3d" + ("_flexible" if flexible else "")
     case = dataclasses.replace(ec.case(name), duration=0.3)
