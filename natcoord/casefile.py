@@ -3,11 +3,19 @@
 Every mistake is reported as :class:`~natcoord.errors.CaseError` naming the file, the field
 and the reason. Quantities are SI numbers, or strings with a unit such as ``"45 deg"`` or
 ``"300 mm"``; a unit of the wrong dimension is an error.
+
+Budgets, so that no file can exhaust the machine or write outside the output folder: a
+file of at most ``MAX_FILE_BYTES``, tables nested at most ``MAX_DEPTH`` deep, at most
+``MAX_SAMPLES`` output samples, a run of at most ``MAX_DURATION_S``; every name (case,
+bodies, points, joints, rods, springs, drivers, channels) a short safe identifier
+(``NAME_PATTERN``, at most ``MAX_NAME`` characters), and free text (descriptions, reasons)
+printable and at most ``MAX_TEXT`` characters.
 """
 
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from pathlib import Path
 
@@ -52,7 +60,14 @@ UNITS = {
 }
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
-            "drivers", "rods", "springs", "reactions", "comparison"}
+            "drivers", "rods", "springs", "reactions", "comparison", "timeout"}
+MAX_FILE_BYTES = 1 << 20
+MAX_DEPTH = 8
+MAX_SAMPLES = 1_000_000
+MAX_DURATION_S = 1e5
+MAX_NAME = 64
+MAX_TEXT = 10_000
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 
 
 class _Reader:
@@ -82,10 +97,23 @@ class _Reader:
             return default
         v = self.get(table, key, path)
         if not isinstance(v, str) or not v:
-            self.fail(_join(path, key), f"must be a non-empty string, got {v!r}")
+            self.fail(_join(path, key), f"must be a non-empty string, got {_short(v)}")
         if choices and v not in choices:
             self.fail(_join(path, key),
-                      f"unknown value {v!r}; expected one of {', '.join(choices)}")
+                      f"unknown value {_short(v)}; expected one of {', '.join(choices)}")
+        if len(v) > MAX_TEXT or any(not (c.isprintable() or c in "\n\t") for c in v):
+            self.fail(_join(path, key), f"must be printable text of at most {MAX_TEXT} "
+                      "characters")
+        return v
+
+    def name(self, table, key, path) -> str:
+        """A name: a short safe identifier (it becomes a file name or a CSV column)."""
+        return self.identifier(self.string(table, key, path), _join(path, key))
+
+    def identifier(self, v, field: str) -> str:
+        if not isinstance(v, str) or len(v) > MAX_NAME or not NAME_PATTERN.fullmatch(v):
+            self.fail(field, f"{_short(v)} is not a name: use at most {MAX_NAME} letters, "
+                      "digits and _ . + - (not starting with . + or -)")
         return v
 
     def quantity(self, value, field: str, dimension: str, *, positive=False) -> float:
@@ -131,6 +159,28 @@ def _join(path: str, key) -> str:
     return f"{path}.{key}" if path else str(key)
 
 
+def _short(v, n: int = 60) -> str:
+    """repr of a value, cut to n characters (a 50 000-character name is not echoed)."""
+    s = repr(v)
+    return s if len(s) <= n else s[:n] + f"... ({len(s)} characters)"
+
+
+def _depth(x, limit: int) -> int:
+    """Nesting depth of tables and arrays (iterative: no recursion limit), stopping past
+    ``limit``."""
+    depth, level = 0, [x]
+    while level and depth <= limit:
+        nxt = []
+        for v in level:
+            if isinstance(v, dict):
+                nxt.extend(v.values())
+            elif isinstance(v, list):
+                nxt.extend(v)
+        level = nxt
+        depth += 1 if nxt else 0
+    return depth
+
+
 def load_case(path: str | Path) -> Case:
     """Parse and validate one case file.
 
@@ -142,23 +192,33 @@ def load_case(path: str | Path) -> Case:
     path = Path(path)
     r = _Reader(str(path))
     try:
+        if path.stat().st_size > MAX_FILE_BYTES:
+            r.fail("", f"larger than {MAX_FILE_BYTES} bytes; a case file is a short text")
         data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
+    except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         r.fail("", "no such case file")
+    except PermissionError:
+        r.fail("", "cannot be read (permission denied)")
     except UnicodeDecodeError as e:
         r.fail("", f"not UTF-8 text ({e.reason})")
     except tomllib.TOMLDecodeError as e:
         r.fail("", f"not valid TOML: {e}")
+    except RecursionError:
+        r.fail("", f"nested too deeply (more than {MAX_DEPTH} levels)")
+    if _depth(data, MAX_DEPTH) > MAX_DEPTH:
+        r.fail("", f"nested too deeply (more than {MAX_DEPTH} levels of tables or arrays)")
     unknown = sorted(set(data) - TOP_KEYS)
     if unknown:
-        r.fail(unknown[0], f"unknown field; expected some of {', '.join(sorted(TOP_KEYS))}")
+        r.fail(unknown[0] if len(unknown[0]) <= 60 and unknown[0].isprintable()
+               else _short(unknown[0]), f"unknown field; expected some of "
+               f"{', '.join(sorted(TOP_KEYS))}")
 
-    name = r.string(data, "name", "")
+    name = r.name(data, "name", "")
     if name != path.stem:
-        r.fail("name", f"{name!r} must equal the file name {path.stem!r}")
+        r.fail("name", f"{name!r} must equal the file name {_short(path.stem)}")
     dim = r.get(data, "dimension", "")
-    if dim not in (2, 3) or isinstance(dim, bool):
-        r.fail("dimension", f"must be 2 or 3, got {dim!r}")
+    if type(dim) is not int or dim not in (2, 3):
+        r.fail("dimension", f"must be the integer 2 or 3, got {_short(dim)}")
     init = r.table(data, "initial", "", required=False)
     reference_frame = "pose" not in init
     if dim == 3 and not reference_frame:
@@ -166,13 +226,20 @@ def load_case(path: str | Path) -> Case:
                "t = 0; remove [initial.pose]")
     gravity = r.vector(r.get(data, "gravity", ""), "gravity", dim, "acceleration")
     duration = r.number(data, "duration", "", "time", positive=True)
+    if duration > MAX_DURATION_S:
+        r.fail("duration", f"{duration:g} s is beyond the budget of {MAX_DURATION_S:g} s")
     output_dt = r.number(data, "output_dt", "", "time", positive=True)
+    if duration / output_dt > MAX_SAMPLES:
+        r.fail("output_dt", f"{duration / output_dt:.3g} samples are beyond the budget of "
+               f"{MAX_SAMPLES} (raise output_dt)")
     if output_dt > duration or abs(duration / output_dt - round(duration / output_dt)) > 1e-9:
         r.fail("output_dt", f"must divide duration {duration} s, got {output_dt} s")
+    timeout = r.number(data, "timeout", "", "time", required=False, positive=True)
 
     ground = {}
     gtable = r.table(data, "ground", "", required=False)
     for pname, value in r.table(gtable, "points", "ground", required=False).items():
+        r.identifier(pname, "ground.points")
         ground[pname] = r.vector(value, f"ground.points.{pname}", dim, "length")
 
     bodies = tuple(_body(r, b, i, dim) for i, b in enumerate(_array(r, data, "bodies")))
@@ -255,7 +322,11 @@ def load_case(path: str | Path) -> Case:
             reason=r.string(spec, "reason", p, required=bool(tol), default=""),
             unsupported=r.string(spec, "unsupported", p, required=False, default=""),
         )
-    tags = tuple(r.get(data, "tags", "", required=False, default=[]))
+    tags = r.get(data, "tags", "", required=False, default=[])
+    if not isinstance(tags, list) or not all(isinstance(t, str) and len(t) <= MAX_NAME
+                                             for t in tags):
+        r.fail("tags", f"must be a list of short strings, got {_short(tags)}")
+    tags = tuple(tags)
     reactions = _reactions(r, r.table(data, "reactions", "", required=False), links, names)
     comparison = _comparison(r, r.table(data, "comparison", "", required=False), channels)
     case = Case(name=name, description=r.string(data, "description", ""), file=str(path),
@@ -264,7 +335,7 @@ def load_case(path: str | Path) -> Case:
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
-                comparison=comparison)
+                comparison=comparison, timeout=timeout)
     return case
 
 
@@ -331,7 +402,7 @@ def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:
 def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
           reference_frame: bool) -> Rod | Spring:
     """A ``[[rods]]`` or ``[[springs]]`` entry: two body points, length at t = 0."""
-    name = r.string(x, "name", p)
+    name = r.name(x, "name", p)
     p = f"{p} ({name})"
     allowed = {"name", "ends"} | ({"stiffness", "damping"} if key == "springs" else set())
     unknown = sorted(set(x) - allowed)
@@ -411,12 +482,13 @@ def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
 
 def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
     p = f"bodies[{i}]"
-    name = r.string(b, "name", p)
+    name = r.name(b, "name", p)
     p = f"bodies[{i}] ({name})"
     kind = r.string(b, "kind", p, choices=BODY_KINDS)
     mass = r.number(b, "mass", p, "mass", positive=True)
     pts = r.table(b, "points", p)
-    points = {k: r.vector(v, f"{p}.points.{k}", dim, "length") for k, v in pts.items()}
+    points = {r.identifier(k, f"{p}.points"): r.vector(v, f"{p}.points.{k}", dim, "length")
+              for k, v in pts.items()}
     need = 1 if kind == "particle" else 2
     if len(points) < need:
         r.fail(f"{p}.points", f"a {kind} needs at least {need} named point(s)")
@@ -470,7 +542,7 @@ def _inertia(r: _Reader, value, field: str, dim: int):
 
 def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
     p = f"joints[{i}]"
-    name = r.string(j, "name", p)
+    name = r.name(j, "name", p)
     p = f"joints[{i}] ({name})"
     jtype = r.string(j, "type", p, choices=JOINT_TYPES)
     bodies = r.get(j, "bodies", p)
@@ -522,7 +594,7 @@ def _unit(r: _Reader, value, field: str, dim: int) -> np.ndarray:
 
 def _driver(r: _Reader, d: dict, i: int, bodies, points_of, dim: int) -> Driver:
     p = f"drivers[{i}]"
-    name = r.string(d, "name", p)
+    name = r.name(d, "name", p)
     p = f"drivers[{i}] ({name})"
     unknown = sorted(set(d) - {"name", "type", "body", "angle0", "rate", "accel", "point",
                                "axis", "value0"})
@@ -557,6 +629,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
     jnames = [j.name for j in joints]
     axes = ("x", "y", "z")[:dim]
     for name, c in table.items():
+        r.identifier(name, "channels")
         p = f"channels.{name}"
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")

@@ -1,19 +1,30 @@
-"""The ``natcoord`` command line: cases, run, report, gate, bench, suite, reference update."""
+"""The ``natcoord`` command line: cases, run, report, gate, bench, suite, reference update.
+
+Every command works from any directory: cases, references and reports are found in the
+project folder (:mod:`natcoord.project`) unless an option names them. Results go to a fresh
+folder per command (``reports/runs/<time>-<command>``) and are published whole when the
+command completes; ``reports/latest`` points at the last complete ``suite``, which
+``report`` and ``gate`` read by default. Ctrl-C ends every engine process and exits 130,
+SIGTERM (a cancelled CI job) 143; bad input exits 2 with one line naming the problem.
+"""
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
 from .casefile import load_case
 from .engines import ENGINES
 from .errors import CaseError, NatcoordError
+from .project import resolve
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Natural-coordinate multibody solver and cross-engine validation suite.")
@@ -22,21 +33,45 @@ app.add_typer(reference_app, name="reference")
 out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
 
-DEFAULT_OUT = Path("reports/latest")
-CasesDir = Annotated[Path, typer.Option("--cases-dir", help="Folder of case files.")]
-RefDir = Annotated[Path, typer.Option("--references", help="Folder of reference solutions.")]
+DEFAULT_TIMEOUT_S = 600.0
+CasesDir = Annotated[Path | None, typer.Option(
+    "--cases-dir", help="Folder of case files [default: <project>/cases].", show_default=False)]
+RefDir = Annotated[Path | None, typer.Option(
+    "--references", help="Folder of reference solutions [default: <project>/references].",
+    show_default=False)]
+OutDir = Annotated[Path | None, typer.Option(
+    "--out", help="Results folder [default: a fresh <project>/reports/runs/<time>-<command>].",
+    show_default=False)]
+ResultsDir = Annotated[Path | None, typer.Option(
+    "--results", help="Results folder [default: <project>/reports/latest, the last suite].",
+    show_default=False)]
+Timeout = Annotated[float, typer.Option(
+    min=0.001, help="Seconds per engine run (a case file's `timeout` takes precedence).")]
+Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 CaseArgs = Annotated[list[str] | None, typer.Argument(
     help="Case names (or paths to case files); default: every case.", show_default=False)]
 
 
+class Stopped(BaseException):
+    """Ctrl-C (SIGINT) or SIGTERM received: unwinds the command (every worker is killed on
+    the way) to :func:`main`, which exits 128 + the signal number. Not a KeyboardInterrupt,
+    which the command-line library would turn into exit 1."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
 def _fail(message: str, code: int = 2):
-    err.print(f"[bold red]error:[/] {message}", highlight=False)
+    err.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code)
 
 
-def _cases(names: list[str] | None, cases_dir: Path):
-    """Load the named cases (all when none); bad input exits 2 with file, field, reason."""
+def _cases(names: list[str] | None, cases_dir: Path | None):
+    """Load (exit 2 naming file, field and reason) and assemble once the selected cases:
+    a list of :class:`natcoord.suite.worker.Job`."""
     try:
+        cases_dir = resolve(cases_dir, "cases")
         if not names:
             files = sorted(Path(cases_dir).glob("*.toml"))
             if not files:
@@ -47,10 +82,11 @@ def _cases(names: list[str] | None, cases_dir: Path):
                 p = Path(n) if n.endswith(".toml") else Path(cases_dir) / f"{n}.toml"
                 if not p.exists():
                     known = ", ".join(sorted(f.stem for f in Path(cases_dir).glob("*.toml")))
-                    _fail(f"unknown case {n!r}; cases are: {known}")
+                    _fail(f"unknown case {n!r} (looked in {cases_dir}); cases are: "
+                          f"{known or 'none'}")
                 files.append(p)
         cases = [load_case(f) for f in files]
-    except CaseError as e:
+    except NatcoordError as e:
         _fail(str(e))
     return [_prepared(case) for case in cases]
 
@@ -67,13 +103,21 @@ def _prepared(case):
 
 
 def _engines(spec: str | None) -> list[str]:
-    if not spec:
+    if spec is None:
         return list(ENGINES)
     names = [s.strip() for s in spec.split(",") if s.strip()]
+    if not names:
+        _fail(f"--engines: no engine named in {spec!r}; engines are {', '.join(ENGINES)}")
     bad = [n for n in names if n not in ENGINES]
     if bad:
         _fail(f"--engines: unknown engine {bad[0]!r}; engines are {', '.join(ENGINES)}")
-    return names
+    return list(dict.fromkeys(names))
+
+
+def _out_dir(given: Path | None, kind: str) -> Path:
+    from .suite.outdir import stamped
+
+    return given if given is not None else stamped(resolve(None, "reports/runs"), kind)
 
 
 def _progress_printer(total: int):
@@ -94,73 +138,104 @@ def _progress_printer(total: int):
     return show
 
 
+def counts_line(records: list[dict]) -> str:
+    """What a run's records say, counted honestly: passes, tolerance failures, engine
+    failures, cells with nothing to judge."""
+    n = len(records)
+    c = {k: 0 for k in ("pass", "fail", "failed", "unsupported", "skipped", "not judged")}
+    for r in records:
+        if r["status"] != "ok":
+            c[r["status"] if r["status"] in c else "failed"] += 1
+        elif r.get("verdict") in ("pass", "fail"):
+            c[r["verdict"]] += 1
+        else:
+            c["not judged"] += 1
+    parts = [f"{c['pass']} within tolerance", f"{c['fail']} over tolerance",
+             f"{c['failed']} failed"]
+    parts += [f"{c[k]} {k}" for k in ("unsupported", "skipped", "not judged") if c[k]]
+    return f"{n} run(s): " + ", ".join(parts)
+
+
 @app.command("cases")
-def cases_cmd(cases_dir: CasesDir = Path("cases")):
+def cases_cmd(cases_dir: CasesDir = None):
     """List the cases with a one-line description and the engines that support each."""
-    table = Table(title=f"cases in {cases_dir}")
+    jobs = _cases(None, cases_dir)
+    table = Table(title=f"cases in {escape(str(resolve(cases_dir, 'cases')))}")
     table.add_column("case")
     table.add_column("description")
     table.add_column("engines")
-    for c in (job.case for job in _cases(None, cases_dir)):
+    for c in (job.case for job in jobs):
         eng = [e if not c.engine(e).unsupported else f"[dim strike]{e}[/]" for e in ENGINES]
-        table.add_row(c.name, c.description, " ".join(eng))
+        table.add_row(escape(c.name), escape(c.description), " ".join(eng))
     out.print(table)
 
 
 @app.command("run")
-def run_cmd(cases: CaseArgs = None,
-            engines: Annotated[str | None, typer.Option(help="Comma-separated engines.")] = None,
-            out_dir: Annotated[Path, typer.Option("--out", help="Results folder.")] = DEFAULT_OUT,
-            timeout: Annotated[float, typer.Option(help="Seconds per engine run.")] = 600.0,
-            cases_dir: CasesDir = Path("cases"), references: RefDir = Path("references")):
+def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = None,
+            timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
+            references: RefDir = None):
     """Run cases in engines; write results/<case>/<engine>.csv and summary.json."""
+    from .suite.outdir import publishing
     from .suite.runner import run_suite
 
-    selected, names = _cases(cases, cases_dir), _engines(engines)
-    total = len(selected) * len(names)
-    out.print(f"running {len(selected)} case(s) x {len(names)} engine(s) -> {out_dir}")
-    summary = run_suite(selected, names, out_dir, references=references, timeout_s=timeout,
-                        progress=_progress_printer(total))
-    n_ok = sum(r["status"] == "ok" for r in summary["records"])
-    out.print(f"{n_ok}/{total} runs ok; summary: {out_dir / 'summary.json'}")
+    names = _engines(engines)
+    target = _out_dir(out_dir, "run")
+    with publishing(target) as staging:  # a refused input publishes nothing
+        selected = _cases(cases, cases_dir)
+        total = len(selected) * len(names)
+        out.print(f"running {len(selected)} case(s) x {len(names)} engine(s) -> {target}")
+        summary = run_suite(selected, names, staging, references=resolve(references,
+                                                                         "references"),
+                            timeout_s=timeout, progress=_progress_printer(total))
+    out.print(f"{counts_line(summary['records'])}; summary: {target / 'summary.json'}")
+    out.print(f"judge it with: natcoord gate --results {target}")
 
 
 @app.command("report")
-def report_cmd(results: Annotated[Path, typer.Option(help="Results folder.")] = DEFAULT_OUT,
-               references: RefDir = Path("references")):
+def report_cmd(results: ResultsDir = None, references: RefDir = None):
     """Write RESULTS/index.html from a results folder."""
     from .report.html import write_report
 
+    results = resolve(results, "reports/latest")
     if not (results / "summary.json").exists():
-        _fail(f"{results}: no summary.json; run `natcoord run` first")
-    path = write_report(results, references)
+        _fail(f"{results}: no summary.json; run `natcoord run` or `natcoord suite` first")
+    path = write_report(results, resolve(references, "references"))
     out.print(f"report: {path.resolve()}")
 
 
 @app.command("gate")
-def gate_cmd(results: Annotated[Path, typer.Option(help="Results folder.")] = DEFAULT_OUT,
+def gate_cmd(results: ResultsDir = None,
              require: Annotated[str | None, typer.Option(
-                 help="Engines that must run (default: all that were asked for).")] = None,
-             baseline: Annotated[Path, typer.Option(help="Stored baseline errors.")] = Path(
-                 "references/baseline.json"),
+                 help="Engines that must have run every case (default: those asked for).")
+             ] = None,
+             baseline: Annotated[Path | None, typer.Option(
+                 help="Stored baseline errors [default: <project>/references/baseline.json].",
+                 show_default=False)] = None,
              update_baseline: Annotated[bool, typer.Option(
-                 help="Store this run's errors as the new baseline (after it passes).")] = False):
+                 help="Store this run's errors in the baseline, cell by cell (after it "
+                      "passes).")] = False):
     """Compare results with tolerances and the stored baseline.
 
-    Exit 0 when all hold, 1 on a regression, 2 on bad input, 3 when nothing ran or a
-    required engine failed.
+    Exit 0 when all hold, 1 on a regression, 2 on bad input, 3 when nothing ran, or a
+    required engine or case has no record or failed.
     """
     from .suite import gate
 
+    results = resolve(results, "reports/latest")
+    baseline = resolve(baseline, "references/baseline.json")
     try:
         summary = gate.load_summary(results)
         base = gate.load_baseline(baseline)
     except ValueError as e:
         _fail(str(e))
     required = set(_engines(require)) if require else None
-    verdict = gate.judge(summary, required=required, baseline=base)
+    try:
+        verdict = gate.judge(summary, required=required, baseline=base)
+    except (KeyError, TypeError, ValueError, AttributeError) as e:
+        _fail(f"{results / 'summary.json'}: malformed ({type(e).__name__}: {e})")
     for line in verdict.lines:
-        err.print(f"[red]REGRESSION[/] {line}" if verdict.code == 1 else line, highlight=False)
+        err.print(("[red]REGRESSION[/] " if verdict.code == 1 else "") + escape(line),
+                  highlight=False)
     n = len(summary["records"])
     if verdict.code == 0:
         gated = sum(r["verdict"] == "pass" for r in summary["records"])
@@ -168,35 +243,24 @@ def gate_cmd(results: Annotated[Path, typer.Option(help="Results folder.")] = DE
                   "tolerance" + ("" if base else " (no baseline stored)"))
         if update_baseline:
             gate.update_baseline(summary, baseline)
-            out.print(f"baseline written: {baseline}")
+            out.print(f"baseline updated for the {n} cells of this run: {escape(str(baseline))}")
     else:
         err.print(f"[bold red]gate failed[/] (exit {verdict.code})")
     raise typer.Exit(verdict.code)
 
 
-@app.command("bench")
-def bench_cmd(cases: CaseArgs = None,
-              engines: Annotated[str | None, typer.Option(help="Comma-separated engines.")] = None,
-              repeats: Annotated[int, typer.Option(min=1, help="Repeats (best is kept).")] = 3,
-              out_dir: Annotated[Path, typer.Option("--out", help="Results folder.")] = DEFAULT_OUT,
-              history: Annotated[Path, typer.Option(help="Where dated copies go.")] = Path(
-                  "reports/bench"),
-              work_precision: Annotated[bool, typer.Option(
-                  help="Also sweep step sizes / tolerances: angle error against CPU time, "
-                       "and the time each engine needs to reach 1e-6 and 1e-9 rad.")] = False,
-              cases_dir: CasesDir = Path("cases"), references: RefDir = Path("references")):
-    """Measure step cost per case x engine (best of repeats, single-threaded BLAS)."""
+def _bench(selected, names, repeats, work_precision, references, timeout, target):
     from .suite import bench
 
-    selected, names = _cases(cases, cases_dir), _engines(engines)
     total = len(selected) * len(names)
     out.print(f"benchmarking {total} case x engine pairs, best of {repeats}")
-    result = bench.bench(selected, names, repeats=repeats, progress=_progress_printer(total))
+    result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
+                         progress=_progress_printer(total))
     if work_precision:
         n = sum(len(bench.SWEEPS.get(e, [])) for e in names) * len(selected)
         out.print(f"work-precision: {n} runs")
         points = bench.work_precision(selected, names, references=references,
-                                      progress=_progress_printer(n))
+                                      timeout_s=timeout, progress=_progress_printer(n))
         result["work_precision"] = points
         result["time_to_accuracy"] = bench.time_to_accuracy(points)
         table = Table(title="CPU time (s) to reach an angle error")
@@ -204,59 +268,99 @@ def bench_cmd(cases: CaseArgs = None,
             table.add_column(col)
         for row in result["time_to_accuracy"]:
             cells = [row[f"time_to_{t:g}"] for t in bench.TARGETS]
-            table.add_row(row["case"], row["engine"],
+            table.add_row(escape(row["case"]), row["engine"],
                           *("not reached" if c is None else f"{c:.3g}" for c in cells))
         out.print(table)
-    path = bench.store(result, out_dir, history)
-    out.print(f"benchmark: {path}")
+    return result
+
+
+@app.command("bench")
+def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
+              repeats: Annotated[int, typer.Option(min=1, help="Repeats (best is kept).")] = 3,
+              out_dir: OutDir = None,
+              history: Annotated[Path | None, typer.Option(
+                  help="Where dated copies go [default: <project>/reports/bench].",
+                  show_default=False)] = None,
+              work_precision: Annotated[bool, typer.Option(
+                  help="Also sweep step sizes / tolerances: angle error against CPU time, "
+                       "and the time each engine needs to reach 1e-6 and 1e-9 rad.")] = False,
+              timeout: Timeout = DEFAULT_TIMEOUT_S,
+              cases_dir: CasesDir = None, references: RefDir = None):
+    """Measure step cost per case x engine (best of repeats, single-threaded BLAS)."""
+    from .suite import bench
+    from .suite.outdir import publishing
+
+    names = _engines(engines)
+    target = _out_dir(out_dir, "bench")
+    with publishing(target) as staging:
+        selected = _cases(cases, cases_dir)
+        result = _bench(selected, names, repeats, work_precision,
+                        resolve(references, "references"), timeout, staging)
+        bench.store(result, staging, resolve(history, "reports/bench"))
+    out.print(f"benchmark: {target / 'bench.json'}")
 
 
 @app.command("suite")
-def suite_cmd(engines: Annotated[str | None, typer.Option(help="Comma-separated engines.")] = None,
-              out_dir: Annotated[Path, typer.Option("--out", help="Results folder.")] = DEFAULT_OUT,
+def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               repeats: Annotated[int, typer.Option(min=0, help="Bench repeats (0: no bench).")] = 3,
-              cases_dir: CasesDir = Path("cases"), references: RefDir = Path("references"),
-              history: Annotated[Path, typer.Option(help="History file.")] = Path(
-                  "reports/history.jsonl")):
-    """The nightly job: run all, bench, report, gate, record history. Exits with the gate's
-    code."""
+              timeout: Timeout = DEFAULT_TIMEOUT_S,
+              cases_dir: CasesDir = None, references: RefDir = None,
+              history: Annotated[Path | None, typer.Option(
+                  help="History file [default: <project>/reports/history.jsonl].",
+                  show_default=False)] = None):
+    """The nightly job: run all, bench, report, gate, record history; reports/latest then
+    points at it. Exits with the gate's code."""
     from .report.html import write_report
     from .suite import bench, gate
     from .suite import history as hist
+    from .suite.outdir import point_latest, publishing
     from .suite.runner import run_suite
 
-    selected, names = _cases(None, cases_dir), _engines(engines)
-    total = len(selected) * len(names)
-    out.print(f"[bold]natcoord suite[/]: {len(selected)} cases x {len(names)} engines")
-    summary = run_suite(selected, names, out_dir, references=references,
-                        progress=_progress_printer(total))
-    bench_result = None
-    if repeats:
-        out.print(f"[bold]bench[/]: best of {repeats}")
-        bench_result = bench.bench(selected, names, repeats=repeats,
-                                   progress=_progress_printer(total))
-        bench.store(bench_result, out_dir, Path(history).parent / "bench")
-    report = write_report(out_dir, references)
-    try:
-        base = gate.load_baseline(references / "baseline.json")
-    except ValueError as e:
-        _fail(str(e))
-    verdict = gate.judge(summary, baseline=base)
+    names = _engines(engines)
+    references = resolve(references, "references")
+    history = resolve(history, "reports/history.jsonl")
+    target = _out_dir(out_dir, "suite")
+    latest = resolve(None, "reports/latest")
+    if out_dir is None and latest.is_symlink():  # until this suite completes, no suite is
+        latest.unlink()                          # "the latest": a gate finds no summary
+    with publishing(target) as staging:
+        selected = _cases(None, cases_dir)
+        try:
+            base = gate.load_baseline(references / "baseline.json")
+        except ValueError as e:
+            _fail(str(e))
+        total = len(selected) * len(names)
+        out.print(f"[bold]natcoord suite[/]: {len(selected)} cases x {len(names)} engines "
+                  f"-> {escape(str(target))}")
+        summary = run_suite(selected, names, staging, references=references,
+                            timeout_s=timeout, progress=_progress_printer(total))
+        bench_result = None
+        if repeats:
+            out.print(f"[bold]bench[/]: best of {repeats}")
+            bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
+                                       progress=_progress_printer(total))
+            bench.store(bench_result, staging, history.parent / "bench")
+        write_report(staging, references)
+        verdict = gate.judge(summary, baseline=base)
+    if out_dir is None:
+        point_latest(latest, target)
     for line in verdict.lines:
-        err.print(line, highlight=False)
+        err.print(escape(line), highlight=False)
     hist.append(history, hist.entry(summary, verdict.code, bench_result))
-    out.print(f"report: {report.resolve()}")
+    out.print(counts_line(summary["records"]))
+    out.print(f"report: {(target / 'index.html').resolve()}")
     out.print("[green]gate passed[/]" if verdict.code == 0
               else f"[bold red]gate failed[/] (exit {verdict.code})")
     raise typer.Exit(verdict.code)
 
 
 @reference_app.command("update")
-def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = Path("cases"),
-                     references: RefDir = Path("references")):
+def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = None,
+                     references: RefDir = None):
     """Regenerate stored references (natcoord at tight tolerance), with provenance."""
     from .suite.references import update_reference
 
+    references = resolve(references, "references")
     for job in _cases(cases, cases_dir):
         case = job.case
         prov = update_reference(case, references, job.init)
@@ -265,12 +369,25 @@ def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = Path("cases")
                   f"{prov['counters'].get('steps', '?')} steps)")
 
 
+def _stop(signum, frame):
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the clean-up
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise Stopped(signum)
+
+
 def main():  # pragma: no cover - console entry
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
     try:
         app()
     except NatcoordError as e:
-        err.print(f"[bold red]error:[/] {e}", highlight=False)
+        err.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)
+    except Stopped as e:
+        what = "interrupted" if e.signum == signal.SIGINT else "terminated"
+        err.print(f"{what}: every engine process stopped; no results of this command "
+                  "published")
+        sys.exit(128 + e.signum)
 
 
 if __name__ == "__main__":  # pragma: no cover

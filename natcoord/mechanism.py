@@ -217,6 +217,7 @@ class Case:
     point from where ``guess`` puts it (see the module docstring).
     ``comparison``: ``{"singular": {channel, angles (rad), within (rad)}}``, samples where
     force channels are not compared (see :func:`natcoord.suite.compare.channel_errors`).
+    ``timeout``: the case's own time limit for one engine run, s (None: the command's).
     """
 
     name: str
@@ -241,6 +242,7 @@ class Case:
     springs: tuple[Spring, ...] = ()
     reactions: dict[str, dict] = field(default_factory=dict)
     pose_tolerance: float = float("inf")
+    timeout: float | None = None  # s: the case's own time limit per engine run
     comparison: dict = field(default_factory=dict)
 
     @property

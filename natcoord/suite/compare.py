@@ -18,7 +18,8 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
     Returns ``(channels, verdict, reason)``; ``channels[name]`` holds kind, unit,
     ``max_abs`` (max |engine - reference| over the reference's samples), ``max_rel``
     (``max_abs`` over the reference channel's range), ``tolerance`` and ``pass`` (None when
-    not gated: no tolerance, channel undetermined, or not reported by the engine).
+    not gated: no tolerance, or channel undetermined). A gated channel that the engine's
+    output lacks, or that is NaN or infinite anywhere, fails with the reason in ``note``.
     ``undetermined``: channels a self-equilibrating set of the redundant constraints
     changes (from N = ker Phi_q^T, stored with the reference): never gated, whatever the
     case file's tolerances say. Verdict: ``pass``, ``fail``, ``no-reference`` or ``not-gated``.
@@ -35,21 +36,29 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
     keep, why_skip = _comparable(case, reference)
     for ch in case.channels:
         ref = reference[ch.name].to_numpy() if ch.name in reference else None
-        val = table[ch.name].to_numpy()
+        val = table[ch.name].to_numpy(dtype=float) if ch.name in table else None
         tol = spec.tolerance_for(ch)
         determined = ch.name not in undetermined
         entry = {"kind": ch.kind, "unit": ch.unit, "max_abs": None, "max_rel": None,
                  "tolerance": tol, "pass": None, "determined": determined, "note": ""}
+        bad = ("missing from this engine's results" if val is None else
+               "not reported by this engine (all NaN)" if np.all(np.isnan(val)) else "")
         if ref is None:
             entry["note"] = "channel missing from the reference"
-        elif np.all(np.isnan(val)):
-            entry["note"] = "not reported by this engine"
+        elif bad:
+            entry["note"] = bad
+            if determined and tol is not None:  # a gated channel must be there
+                entry["pass"] = False
+                gated += 1
+                failed += 1
         else:
             err = np.abs(val - ref)
             if ch.kind in FORCE_KINDS and not keep.all():
                 err = err[keep]
                 entry["note"] = why_skip
             max_abs = float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
+            if not np.isfinite(max_abs):
+                entry["note"] = "non-finite values (NaN or inf) in this engine's results"
             span = float(np.ptp(ref)) or float(np.max(np.abs(ref))) or 1.0
             entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
             if not determined:

@@ -29,7 +29,8 @@ def _fmt(x: float | None, unit: str = "") -> str:
 
 
 def load_summary(results: Path) -> dict:
-    """Read and check ``results/summary.json``; raises ValueError naming the problem."""
+    """Read and check ``results/summary.json`` (every field the gate reads, with its type);
+    raises ValueError naming the problem."""
     path = Path(results) / "summary.json"
     if not path.exists():
         raise ValueError(f"{path}: no summary (run `natcoord run` first; an interrupted run "
@@ -45,6 +46,21 @@ def load_summary(results: Path) -> dict:
         missing = [k for k in REQUIRED_FIELDS if not isinstance(r, dict) or k not in r]
         if missing:
             raise ValueError(f"{path}: records[{i}]: missing field {missing[0]!r}")
+        for k in ("case", "engine", "status", "verdict"):
+            if not isinstance(r[k], str):
+                raise ValueError(f"{path}: records[{i}].{k}: not a string")
+        if not isinstance(r["channels"], dict) or not all(
+                isinstance(c, dict) for c in r["channels"].values()):
+            raise ValueError(f"{path}: records[{i}].channels: not a table of channels")
+        for name, c in r["channels"].items():
+            for k in ("max_abs", "tolerance"):
+                if c.get(k) is not None and (isinstance(c[k], bool)
+                                             or not isinstance(c[k], (int, float))):
+                    raise ValueError(f"{path}: records[{i}].channels.{name}.{k}: not a number")
+    for k in ("cases", "engines"):
+        if k in summary and not (isinstance(summary[k], list)
+                                 and all(isinstance(x, str) for x in summary[k])):
+            raise ValueError(f"{path}: {k}: not a list of names")
     return summary
 
 
@@ -57,6 +73,13 @@ def judge(summary: dict, *, required: set[str] | None = None, baseline: dict | N
         v.code = NOT_RUN
         v.lines.append("nothing ran: no case x engine finished with status ok")
         return v
+    have = {(r["case"], r["engine"]) for r in records}
+    engines = set(summary.get("engines", ())) | (required or set())
+    for case in summary.get("cases", ()):  # every cell asked for must have its record
+        for engine in sorted(engines):
+            if (case, engine) not in have:
+                v.code = max(v.code, NOT_RUN)
+                v.lines.append(f"{case}/{engine}: no record (required, not run)")
     for r in records:
         key = f"{r['case']}/{r['engine']}"
         if r["status"] in ("failed", "skipped") and (required is None or r["engine"] in required):
@@ -70,9 +93,13 @@ def judge(summary: dict, *, required: set[str] | None = None, baseline: dict | N
         for name, c in r["channels"].items():
             if c.get("pass") is False:
                 v.code = max(v.code, REGRESSION)
+                if c.get("max_abs") is None or c["max_abs"] == float("inf"):
+                    v.lines.append(f"{key}: {name}: {c.get('note') or 'no value'}")
+                    continue
                 ratio = c["max_abs"] / c["tolerance"] if c["tolerance"] else float("inf")
-                v.lines.append(f"{key}: {name} max error {_fmt(c['max_abs'], c['unit'])} > "
-                               f"tolerance {_fmt(c['tolerance'], c['unit'])} ({ratio:.3g}x)")
+                unit = c.get("unit", "")
+                v.lines.append(f"{key}: {name} max error {_fmt(c['max_abs'], unit)} > "
+                               f"tolerance {_fmt(c['tolerance'], unit)} ({ratio:.3g}x)")
             base = (baseline or {}).get(key, {}).get(name)
             err = c.get("max_abs")
             tol = c.get("tolerance")
@@ -80,9 +107,9 @@ def judge(summary: dict, *, required: set[str] | None = None, baseline: dict | N
             if c.get("determined", True) and base is not None and err is not None and \
                     tol is not None and err > max(baseline_factor * base, floor, 0.1 * tol):
                 v.code = max(v.code, REGRESSION)
-                v.lines.append(f"{key}: {name} error {_fmt(err, c['unit'])} grew "
+                v.lines.append(f"{key}: {name} error {_fmt(err, c.get('unit', ''))} grew "
                                f"{err / max(base, floor):.3g}x over the baseline "
-                               f"{_fmt(base, c['unit'])} (limit {baseline_factor:g}x)")
+                               f"{_fmt(base, c.get('unit', ''))} (limit {baseline_factor:g}x)")
     return v
 
 

@@ -2,7 +2,9 @@
 
 A crash, hang or NaN in one engine becomes status ``failed`` with a reason; the rest of the
 suite completes. ``summary.json`` is written last and atomically, and removed when a run
-starts, so a gate never trusts a summary from an interrupted run.
+starts, so a gate never trusts a summary from an interrupted run. An interruption of this
+process (Ctrl-C, SIGTERM, an error) kills the engine process it waits for, and an engine
+process dies with this one (it is asked to on Linux), so no worker outlives the command.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from .. import __version__
@@ -68,20 +71,21 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     with open(job_file, "wb") as f:
         pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {})), f)
     cmd = [sys.executable, "-m", "natcoord.suite.worker", str(job_file), str(out)]
+    timeout_s = case.timeout or timeout_s
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=env, start_new_session=True)
+                            env=env, start_new_session=True, preexec_fn=_die_with_parent)
     try:
         _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
+        _kill(proc)
         proc.communicate()
         job_file.unlink(missing_ok=True)
         return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
-    except KeyboardInterrupt:
-        os.killpg(proc.pid, signal.SIGKILL)
+    except BaseException:  # Ctrl-C, SIGTERM (see natcoord.cli), an error: no orphan worker
+        _kill(proc)
         job_file.unlink(missing_ok=True)
         raise
     job_file.unlink(missing_ok=True)
@@ -98,6 +102,27 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     return record
 
 
+def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
+    """Ask Linux to SIGKILL this child when its parent dies (even by SIGKILL)."""
+    try:
+        import ctypes
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _kill(proc: subprocess.Popen) -> None:
+    """SIGKILL the worker's process group; it may already be gone."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except (ProcessLookupError, PermissionError):
+        pass
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:  # pragma: no cover - the kernel reaps it
+        pass
+
+
 def _failed(case: Case, engine: str, reason: str) -> dict:
     return {"case": case.name, "engine": engine, "engine_version": "", "status": "failed",
             "reason": reason, "wall_time_s": None, "build_time_s": None, "n_steps": 0,
@@ -112,10 +137,21 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
     csv = out / "results" / case.name / f"{record['engine']}.csv"
     if record["status"] != "ok" or not csv.exists():
         return {**record, "channels": {}, "verdict": "n/a"}
-    provenance = load_provenance(case.name, references) or {}
-    channels, verdict, why = channel_errors(case, record["engine"], pd.read_csv(csv),
-                                            load_reference(case.name, references),
-                                            provenance.get("undetermined", ()))
+    try:
+        table = pd.read_csv(csv)
+        t = table["t"].to_numpy(dtype=float) if "t" in table else np.zeros(0)
+        if len(t) != len(case.times) or not np.allclose(t, case.times, atol=1e-9):
+            raise ValueError(f"{len(t)} samples at other times than the case's "
+                             f"{len(case.times)}")
+        provenance = load_provenance(case.name, references) or {}
+        channels, verdict, why = channel_errors(case, record["engine"], table,
+                                                load_reference(case.name, references),
+                                                provenance.get("undetermined", ()))
+    except (OSError, ValueError, KeyError, pd.errors.ParserError) as e:
+        # one unreadable result fails its own cell, never the whole run
+        return {**record, "status": "failed", "channels": {}, "verdict": "n/a",
+                "reason": f"results of this run could not be compared: "
+                          f"{type(e).__name__}: {e}"}
     return {**record, "channels": channels, "verdict": verdict, "verdict_reason": why}
 
 
