@@ -143,7 +143,9 @@ def lift_init(case: Case, init) -> dict[str, Frame]:
     out = {}
     for b in case.bodies:
         st = init[b.name]
-        R = st.rotation3().astype(float)
+        r = np.asarray(st.rotation, dtype=float)  # (d, d); a 2-D frame turns about z
+        R = np.eye(3)
+        R[:len(r), :len(r)] = r
         R[np.abs(R) < ROTATION_ROUND_OFF] = 0.0
         w = float(st.omega) * Z if np.ndim(st.omega) == 0 else v3(st.omega)
         out[b.name] = Frame(v3(st.origin), R, v3(st.velocity), w)
