@@ -2,8 +2,9 @@
 constraints, integrated by DART's semi-implicit (symplectic) Euler.
 
 One model for every case: a 2-D case is lifted to its planar 3-D case in one place
-(:mod:`.lift`), built by one skeleton builder (:mod:`.skeleton`), stepped and read in 3-D
-(:mod:`.stepping`) and dropped back to 2-D outputs in one place. Modelling, in short (every
+(:mod:`natcoord.engines.planar`, shared with MuJoCo and Pinocchio), built by one skeleton
+builder (:mod:`.skeleton`), stepped and read in 3-D (:mod:`.stepping`) and dropped back to
+2-D outputs in one place (again :mod:`natcoord.engines.planar`). Modelling, in short (every
 choice is also written into ``EngineRun.notes``):
 
 * Body frames at t = 0 are natcoord's assembled ones (``init``); each tree joint's frame sits
@@ -33,10 +34,11 @@ choice is also written into ``EngineRun.notes``):
 * Particles are point masses with a tiny rotational inertia about their point
   (``particle_radius_of_gyration``); their frame is reported at angle 0 (identity rotation),
   the origin following their point (natcoord's convention). A 2-D rigid body's I_zz is
-  raised to that radius of gyration when smaller; its out-of-plane moments (I_zz / 2 each)
-  only have to make a valid rigid body. A slender rod (``uniform_rod``) has no inertia about
-  its own axis; DART needs a positive definite inertia, so ``axial_inertia`` times its
-  transverse inertia is added about it (no effect on planar motion).
+  lifted as I_zz * I3 (only I_zz acts in planar motion) and raised to that radius of
+  gyration when smaller (:func:`floor_planar_inertia`). A slender rod (``uniform_rod``)
+  has no inertia about its own axis; DART needs a positive definite inertia, so
+  ``axial_inertia`` times its transverse inertia is added about it (no effect on planar
+  motion).
 * A massless rod (``[[rods]]``) becomes a light uniform rod of ``rod_mass`` kg: a tree joint
   at its first end (revolute about z in 2-D, ball in 3-D; the ground end first when there is
   one) and a ``BallJointConstraint`` at its other end. Its axial force is the force its tree
@@ -65,6 +67,7 @@ choice is also written into ``EngineRun.notes``):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -93,6 +96,23 @@ def version() -> str:
     return dartpy.__version__
 
 
+def floor_planar_inertia(case3: Case, r_gyr: float, notes: list[str]) -> Case:
+    """A lifted 2-D case (``Izz * I3`` per body, :func:`natcoord.engines.planar.lift_case`)
+    with every rigid body's Izz raised to ``mass * r_gyr**2`` (``r_gyr`` m) when smaller: DART
+    needs a positive definite inertia. Particles and slender rods get theirs in the skeleton
+    builder."""
+    bodies = []
+    for b in case3.bodies:
+        izz = float(b.inertia[2, 2])
+        if b.kind not in ("uniform_rod", "particle") and izz < b.mass * r_gyr**2:
+            izz = b.mass * r_gyr**2
+            notes.append(f"body {b.name!r}: inertia raised to {izz:.3g} kg m^2 (DART needs "
+                         "it > 0)")
+            b = dataclasses.replace(b, inertia=izz * np.eye(3))
+        bodies.append(b)
+    return dataclasses.replace(case3, bodies=tuple(bodies))
+
+
 def check_supported(case: Case) -> None:
     """Refuse, with the reason, what the adapter does not model."""
     for b in case.bodies:
@@ -106,8 +126,8 @@ def check_supported(case: Case) -> None:
 def run(case: Case, init, settings: dict) -> EngineRun:
     import dartpy as dart
 
+    from ..planar import drop, lift_case, lift_init, plane_normal
     from .drivers import make_drivers
-    from .lift import drop, lift, plane_normal
     from .loads import make_loads
     from .skeleton import add_loop_constraints, build, choose_tree
     from .stepping import Sampler, loop_bodies, make_world, simulate, simulate_with_erp, stepper
@@ -122,7 +142,11 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     k = steps_per_sample(case, dt)
 
     t0 = time.perf_counter()
-    case3, frames, notes = lift(case, init, float(s["particle_radius_of_gyration"]))
+    notes: list[str] = []
+    case3 = lift_case(case)
+    if case.dimension == 2:
+        case3 = floor_planar_inertia(case3, float(s["particle_radius_of_gyration"]), notes)
+    frames = lift_init(case, init)
     normal = plane_normal(case)
     sk = build(dart, case3, frames, s, normal, notes)
     drivers = make_drivers(case3, sk, frames, notes)
@@ -147,5 +171,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
         dart, s, notes, dt, extrapolate0, lambda: simulate(
             case3, world, sk, sampler, steps, clock, loads[2], k, float(s["max_drift"]),
             extrapolate0))
-    motion = drop(case, case.times.copy(), samples, force, axial, effort)
+    motion = drop(case, case.times.copy(), samples["origin"], samples["R"],
+                  samples["velocity"], samples["omega"], force,
+                  acceleration=samples["acceleration"], alpha=samples["alpha"],
+                  driver_effort=effort, rod_force=axial)
     return EngineRun(motion, build_time, clock["wall"], clock["steps"], s, counters, notes)

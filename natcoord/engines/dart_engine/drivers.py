@@ -14,8 +14,7 @@ import numpy as np
 
 from ...errors import Unsupported
 from ...mechanism import GROUND, Case, Driver
-from .lift import Frame, Z
-from .loads import point
+from ..planar import Frame, Z, node_point
 from .skeleton import Skeleton, world_axis
 
 AXES = {"x": 0, "y": 1, "z": 2}
@@ -39,9 +38,9 @@ class DrivenJoint:
         self.s = float(np.sign(a @ self.dir))  # joint coordinate per unit of the driven value
         if d.type == "angle":
             x0 = float(np.arctan2(st.R[1, 0], st.R[0, 0]))
-            self.p = point(case, d.body, j.points[j.bodies.index(d.body)])  # joint point
+            self.p = node_point(case, d.body, j.points[j.bodies.index(d.body)])  # joint point
         else:
-            x0 = float(st.point(point(case, d.body, d.point))[AXES[d.axis]])
+            x0 = float(st.point(node_point(case, d.body, d.point))[AXES[d.axis]])
         if abs(np.remainder(x0 - d.v0 + np.pi, 2 * np.pi) - np.pi) > 1e-7:
             raise RuntimeError(f"driver {d.name!r}: the assembled state has {x0:.9g}, the "
                                f"driver {d.v0:.9g} at t = 0")

@@ -1,13 +1,13 @@
 """What acts on the skeleton besides its joints: constant forces and torques, spring-dampers
 (external forces from the state at the start of each step) and massless rods built as light
-bodies. Everything is 3-D (see :mod:`.lift`)."""
+bodies. Everything is 3-D (see :mod:`natcoord.engines.planar`)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ...mechanism import GROUND, Case
-from .lift import GROUND_FRAME, Frame
+from ..planar import Frame, frame_of, node_point
 
 ROD_NOTE = ("massless rod(s) {names}: light uniform rods of {m:g} kg (DART has no distance "
             "constraint; bodies need mass), {joint} joint at one end and a "
@@ -34,16 +34,6 @@ def slender_inertia(mass: float, a: np.ndarray, b: np.ndarray, axial: float) -> 
     return mass * L**2 / 12 * (np.eye(3) - (1.0 - axial) * np.outer(e, e))
 
 
-def point(case: Case, body: str, name: str) -> np.ndarray:
-    """A named point (3,) in its body's frame (a ground point in world)."""
-    return np.asarray(case.ground[name] if body == GROUND else case.body(body).points[name],
-                      dtype=float)
-
-
-def frame_of(frames: dict[str, Frame], body: str) -> Frame:
-    return GROUND_FRAME if body == GROUND else frames[body]
-
-
 # ---- massless rods as light bodies --------------------------------------------------------
 class LightRod:
     """A ``[[rods]]`` entry built as a light body: tree joint at ``ends[0]``, ball constraint
@@ -56,7 +46,7 @@ class LightRod:
     def __init__(self, rod, case: Case, frames: dict[str, Frame]):
         ends = rod.ends if rod.ends[1][0] != GROUND else rod.ends[::-1]
         self.name, self.ends = rod.name, ends
-        self.p = [point(case, *e) for e in ends]  # each end in its body's frame
+        self.p = [node_point(case, *e) for e in ends]  # each end in its body's frame
         self.f = [frame_of(frames, e[0]) for e in ends]
         self.x0, self.x1 = (f.point(p) for f, p in zip(self.f, self.p, strict=True))
         self.node = self.joint = None
@@ -192,14 +182,14 @@ def make_loads(case: Case, nodes):
 
     W = dart.dynamics.Frame.World()
     const = [(nodes[f.body], f.type, np.asarray(f.value, float) * np.ones(3),
-              None if f.point is None else point(case, f.body, f.point))
+              None if f.point is None else node_point(case, f.body, f.point))
              for f in case.forces]
     names = [b.name for b in case.bodies]
     sp_list = list(case.springs)
     # per end side: body index (-1 ground) and the point in body axes
     side = [(np.array([-1 if sp.ends[e][0] == GROUND else names.index(sp.ends[e][0])
                        for sp in sp_list], int),
-             np.array([point(case, *sp.ends[e]) for sp in sp_list]).reshape(-1, 3))
+             np.array([node_point(case, *sp.ends[e]) for sp in sp_list]).reshape(-1, 3))
             for e in (0, 1)]
     k_, c_ = (np.array([getattr(sp, a) for sp in sp_list]) for a in ("stiffness", "damping"))
     l0 = np.array([sp.length for sp in sp_list])

@@ -10,9 +10,9 @@ import numpy as np
 
 from ...errors import Unsupported
 from ...mechanism import GROUND, Case, Joint
+from ..planar import Frame, frame_of, node_point
 from ..tree import point_loop_tree, tree_orientation, tree_parents
-from .lift import Frame
-from .loads import ROD_NOTE, LightRod, frame_of, iso, point, slender_inertia
+from .loads import ROD_NOTE, LightRod, iso, slender_inertia
 
 TREE_JOINTS = ("revolute", "prismatic", "spherical", "universal")
 
@@ -88,8 +88,8 @@ def _tree_joint(dart, sk: Skeleton, case: Case, frames, j: Joint, parent: str, c
     joint point with the child's axes at t = 0 on both sides, so every rotation coordinate
     starts at 0 (a prismatic one at the points' offset along the axis)."""
     P, C = frame_of(frames, parent), frames[child]
-    p_p = point(case, parent, j.points[j.bodies.index(parent)])
-    p_c = point(case, child, j.points[j.bodies.index(child)])
+    p_p = node_point(case, parent, j.points[j.bodies.index(parent)])
+    p_c = node_point(case, child, j.points[j.bodies.index(child)])
     create = {"revolute": sk.skel.createRevoluteJointAndBodyNodePair,
               "prismatic": sk.skel.createPrismaticJointAndBodyNodePair,
               "spherical": sk.skel.createBallJointAndBodyNodePair,
@@ -224,7 +224,7 @@ def add_loop_constraints(dart, case: Case, sk: Skeleton, frames, s: dict, solver
             "different axes close the loop, a BallJointConstraint would drop their rotation "
             "rows (setting loop_constraint = 'revolute' uses DART's RevoluteJointConstraint)")
     for j in sk.loops:
-        pos = frame_of(frames, j.bodies[1]).point(point(case, j.bodies[1], j.points[1]))
+        pos = frame_of(frames, j.bodies[1]).point(node_point(case, j.bodies[1], j.points[1]))
         ends = [sk.nodes[x] for x in j.bodies if x != GROUND]
         if j in ball:
             c = dart.constraint.BallJointConstraint(*ends, pos)

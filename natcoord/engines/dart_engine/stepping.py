@@ -1,6 +1,7 @@
 """Stepping a DART world and reading it at the case's sample times: body frames, reactions
 (tree joints from DART's joint wrenches, loop joints by Newton-Euler), light-rod and spring
-forces, driver efforts. All arrays are 3-D (see :mod:`.lift` for the drop to 2-D)."""
+forces, driver efforts. All arrays are 3-D (:func:`natcoord.engines.planar.drop` takes
+them to the case's dimension)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import time
 import numpy as np
 
 from ...mechanism import GROUND, Case
-from .loads import point
+from ..planar import node_point
 
 
 def make_world(dart, skel, gravity: np.ndarray, dt: float):
@@ -134,7 +135,7 @@ class Sampler:
         # a particle's frame follows its point: that point's motion, angle 0
         self.particle = {b.name: next(iter(b.points.values())) for b in case.bodies
                          if b.kind == "particle"}
-        self.loop_pts = [(j.bodies, [point(case, b, p) for b, p in
+        self.loop_pts = [(j.bodies, [node_point(case, b, p) for b, p in
                                      zip(j.bodies, j.points, strict=True)])
                          for j in sk.loops]
 

@@ -1,8 +1,9 @@
 """MuJoCo as an engine: a kinematic tree of hinge, slide and ball joints plus soft equalities.
 
-One model for every case: a 2-D case is lifted into 3-D (:mod:`.lift`), built by one MJCF
-builder (:mod:`.mjcf`), stepped and sampled (:mod:`.stepping`) with its forces read in
-3-D (:mod:`.forces`), and dropped back to a planar Motion at the end. Every body is placed
+One model for every case: a 2-D case is lifted into 3-D (:mod:`natcoord.engines.planar`),
+built by one MJCF builder (:mod:`.mjcf`), stepped and sampled (:mod:`.stepping`) with its
+forces read in 3-D (:mod:`.forces`), and dropped back to a planar Motion at the end (again
+:mod:`natcoord.engines.planar`). Every body is placed
 at its frame at t = 0 (``init[body]``), so MuJoCo starts at natcoord's assembled state
 (checked to 1e-9).
 
@@ -104,7 +105,8 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     """Simulate ``case`` from ``init`` at the case's sample times (see the module)."""
     import mujoco
 
-    from . import lift, mjcf, stepping
+    from ..planar import drop, lift_case, lift_init
+    from . import mjcf, stepping
 
     s = merged(DEFAULTS, settings)
     dt = float(s["dt"])
@@ -112,9 +114,9 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     if float(s["solref_steps"]) < 2.0:
         raise ValueError("solref_steps below 2 is clamped by MuJoCo's refsafe; use >= 2")
     _refuse(case)
-    space = lift.lift_case(case)
+    space = lift_case(case)
     mjcf.split_tree(space)  # an unsupported loop is refused before the state is read
-    frames = lift.lift_init(case, init)
+    frames = lift_init(case, init)
     planar = case.dimension == 2
     built, m, d, build = stepping.load_model(
         mujoco, space, lambda: mjcf.build(space, frames, s, planar))
@@ -139,5 +141,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                 "max_solver_iterations": sampler.max_iter}
     notes = built.notes + [f"integrator {s['integrator']}, solver {s['solver']}, tolerance "
                            f"{s['tolerance']}, contacts disabled, dt {dt} s"]
-    return EngineRun(lift.to_motion(case, sampler.out), build, wall, n_steps, s, counters,
-                     notes)
+    out = sampler.out
+    motion = drop(case, times, out.origin, out.rotation, out.velocity, out.omega, out.forces,
+                  rod_force=out.rod_force)
+    return EngineRun(motion, build, wall, n_steps, s, counters, notes)

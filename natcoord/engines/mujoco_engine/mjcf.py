@@ -1,4 +1,5 @@
-"""The MJCF model of a lifted case (:func:`.lift.lift_case`): one builder for every case.
+"""The MJCF model of a lifted case (:func:`natcoord.engines.planar.lift_case`): one builder
+for every case.
 
 Each body is placed at its assembled frame at t = 0 (relative to its tree parent), so
 ``qpos0`` is the assembled state; the joints' initial velocities are returned in the XML's
@@ -14,8 +15,8 @@ import numpy as np
 
 from ...errors import Unsupported
 from ...mechanism import GROUND, Case, Joint
+from ..planar import GROUND_FRAME, Frame, frame_of, node_point
 from ..tree import spanning_tree, tree_parents
-from .lift import GROUND_FRAME, Frame
 
 # a connect equality holds a point: it can close a loop only where a joint is a point joint
 POINT_JOINTS = ("revolute", "spherical")
@@ -124,11 +125,6 @@ def _site(name: str, pos) -> str:
     return f"<site name={quoteattr(name)} pos=\"{fmt(*pos)}\"/>"
 
 
-def point(case: Case, body: str, p: str) -> np.ndarray:
-    """Body-frame coordinates (3,) of a named point of a lifted case."""
-    return case.ground[p] if body == GROUND else case.body(body).points[p]
-
-
 class _Writer:
     """Writes the bodies of the worldbody, depth first, and collects initial velocities."""
 
@@ -146,7 +142,7 @@ class _Writer:
         self.slid: list[str] = []
 
     def frame(self, name: str) -> Frame:
-        return GROUND_FRAME if name == GROUND else self.frames[name]
+        return frame_of(self.frames, name)
 
     def joint(self, pad: str, name: str, kind: str, pos, axis) -> None:
         self.lines.append(f'{pad}  <joint name={quoteattr(name)} type="{kind}" '
@@ -159,7 +155,7 @@ class _Writer:
         pname, cj = self.parent[name]
         f, pf = self.frame(name), self.frame(pname)
         k = 1 if cj.bodies[1] == name else 0  # the child's end of the joint
-        pc = point(self.case, name, cj.points[k])
+        pc = node_point(self.case, name, cj.points[k])
         wrel = f.omega - pf.omega
         if b.kind == "particle" and cj.type in ("revolute", "spherical", "universal"):
             self.welded[name] = cj.type  # the joint passes through its mass: nothing to turn
@@ -167,16 +163,16 @@ class _Writer:
         if cj.type == "spherical":
             self.lines.append(f'{pad}  <joint name={quoteattr(cj.name)} type="ball" '
                               f'pos="{fmt(*pc)}"/>')
-            self.qvel.extend((f.rotation.T @ wrel).tolist())
+            self.qvel.extend((f.R.T @ wrel).tolist())
             return
         # velocity of the child's joint point against the parent's: a slide's rate along u
-        pp = point(self.case, pname, cj.points[1 - k])
-        vrel = (f.velocity + np.cross(f.omega, f.rotation @ pc)
-                - pf.velocity - np.cross(pf.omega, pf.rotation @ pp))
+        pp = node_point(self.case, pname, cj.points[1 - k])
+        vrel = (f.velocity + np.cross(f.omega, f.R @ pc)
+                - pf.velocity - np.cross(pf.omega, pf.R @ pp))
         for jname, kind, u in self.dofs(cj, k, pf):
             if kind == "hinge" and b.kind == "particle":
                 continue  # a particle's turn carries no energy
-            self.joint(pad, jname, kind, pc, f.rotation.T @ u)
+            self.joint(pad, jname, kind, pc, f.R.T @ u)
             self.qvel.append(float((wrel if kind == "hinge" else vrel) @ u))
         if b.kind == "particle":
             self.slid.append(name)
@@ -188,9 +184,9 @@ class _Writer:
             # two hinges in one body compose as parent x Rot(a, q1) x Rot(b, q2): the first
             # axis stays on the parent, the second on the child (a Cardan joint, exact)
             on_parent, on_child = (cj.axis, cj.axis2) if k == 1 else (cj.axis2, cj.axis)
-            return [(cj.name, "hinge", pf.rotation @ on_parent),
-                    (cj.name + "_2", "hinge", self.frame(cj.bodies[k]).rotation @ on_child)]
-        u = self.frame(cj.bodies[0]).rotation @ cj.axis  # world, on the first body
+            return [(cj.name, "hinge", pf.R @ on_parent),
+                    (cj.name + "_2", "hinge", self.frame(cj.bodies[k]).R @ on_child)]
+        u = self.frame(cj.bodies[0]).R @ cj.axis  # world, on the first body
         if cj.type == "revolute":
             return [(cj.name, "hinge", u)]
         u = u if k == 1 else -u  # the slide of the second body against the first
@@ -204,11 +200,11 @@ class _Writer:
         axes = "xyz"[:2 if self.planar else 3]
         if b.kind == "particle" or self.planar:
             for i, ax in enumerate(axes):  # along the world axes, written in the body frame
-                self.joint(pad, f"{name}_{ax}", "slide", np.zeros(3), f.rotation[i])
+                self.joint(pad, f"{name}_{ax}", "slide", np.zeros(3), f.R[i])
                 self.qvel.append(float(f.velocity[i]))
             turn = "" if b.kind == "particle" else ", hinge z"
             if turn:
-                self.joint(pad, f"{name}_rz", "hinge", np.zeros(3), f.rotation[2])
+                self.joint(pad, f"{name}_rz", "hinge", np.zeros(3), f.R[2])
                 self.qvel.append(float(f.omega[2]))
             else:
                 self.slid.append(name)
@@ -217,14 +213,14 @@ class _Writer:
             return
         self.notes.append(f"body {name} is not joined to the ground: free joint")
         self.lines.append(f'{pad}  <freejoint name={quoteattr(name + "_free")}/>')
-        self.qvel.extend(f.velocity.tolist() + (f.rotation.T @ f.omega).tolist())
+        self.qvel.extend(f.velocity.tolist() + (f.R.T @ f.omega).tolist())
 
     def body(self, name: str, indent: int) -> None:
         """``<body>`` of ``name`` at its frame relative to its parent, and its subtree."""
         pad = " " * indent
         f = self.frame(name)
         pf = self.frame(self.parent[name][0]) if name in self.parent else GROUND_FRAME
-        rel, relR = pf.rotation.T @ (f.origin - pf.origin), pf.rotation.T @ f.rotation
+        rel, relR = pf.R.T @ (f.origin - pf.origin), pf.R.T @ f.R
         self.lines.append(f'{pad}<body name={quoteattr(name)} pos="{fmt(*rel)}" '
                           f'quat="{fmt(*_quat(relR))}">')
         if name in self.parent:
@@ -256,7 +252,7 @@ def tendons(case: Case, solref: tuple[float, float], solimp: str):
         for r in items:
             names = [f"{kind}_{r.name}_{k}" for k in (0, 1)]
             for s, (b, p) in zip(names, r.ends, strict=True):
-                sites.setdefault(b, []).append(_site(s, point(case, b, p)))
+                sites.setdefault(b, []).append(_site(s, node_point(case, b, p)))
             extra = ""
             if kind == "spring":
                 extra = (f' stiffness="{float(r.stiffness)!r}" damping="{float(r.damping)!r}" '
@@ -316,7 +312,7 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     for j in loops:
         for k in (0, 1):
             sites.setdefault(j.bodies[k], []).append(
-                _site(f"loop_{j.name}_{k}", point(case, j.bodies[k], j.points[k])))
+                _site(f"loop_{j.name}_{k}", node_point(case, j.bodies[k], j.points[k])))
     w = _Writer(case, frames, parent, sites, s, planar)
     for c in w.children.get(GROUND, []):
         w.body(c, 4)

@@ -1,11 +1,11 @@
 """Pinocchio as an engine: a kinematic tree of joints, loops closed by rigid point
 constraints, integrated by our own RK4 (or Radau).
 
-Every case goes through one builder: a 2-D case is lifted into 3-D (:mod:`.lift`: points
-(x, y, 0), revolutes about z, prismatic axes (ax, ay, 0), gravity (gx, gy, 0)) and its
-outputs are dropped back to 2-D in the same module. Body points are in the body's own
-frame; its pose and rates at t = 0 come from ``init[body]``, posed and reference-frame cases
-alike.
+Every case goes through one builder: a 2-D case is lifted into 3-D
+(:mod:`natcoord.engines.planar`: points (x, y, 0), revolutes about z, prismatic axes (ax, ay,
+0), gravity (gx, gy, 0)) and its outputs are dropped back to 2-D in the same module. Body
+points are in the body's own frame; its pose and rates at t = 0 come from ``init[body]``,
+posed and reference-frame cases alike.
 
 Model (:mod:`.model`)
 ---------------------
@@ -118,12 +118,13 @@ def run(case, init, settings: dict) -> EngineRun:
     """Build, integrate and sample ``case`` from ``init`` (see the module docstring)."""
     import pinocchio as pin
 
-    from . import lift, loops, model, readout
+    from ..planar import drop
+    from . import loops, model, readout
     from .dynamics import Dynamics
 
     s = merged(DEFAULTS, settings)
     t0 = time.perf_counter()
-    lifted = lift.lift(case, init)
+    lifted = model.Lifted.of(case, init)
     b = model.build(pin, lifted, s)
     cmodels, closures = loops.close(pin, b, b.loop_joints, s)
     dyn = Dynamics(pin, b, cmodels, s)
@@ -146,8 +147,8 @@ def run(case, init, settings: dict) -> EngineRun:
         if dyn.iters >= int(s["max_iter"]):
             notes.append(f"the proximal solver hit its cap of {s['max_iter']} iterations "
                          "(redundant loops?): constraint forces may be unconverged")
-    motion = lift.drop(lifted, case.times, origin, rotation, velocity, omega, forces,
-                       rod_force)
+    motion = drop(case, case.times, origin, rotation, velocity, omega, forces,
+                  rod_force=rod_force)
     return EngineRun(motion, build_time, wall, n, s, counters, notes)
 
 

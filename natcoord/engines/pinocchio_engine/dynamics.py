@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import Unsupported
-from .lift import cross
+from ..planar import cross
 from .model import Built
 
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...errors import Unsupported
-from .lift import cross
+from ..planar import cross
 from .model import Built
 
 
@@ -51,7 +51,7 @@ def _path(b: Built, j1: int, j2: int) -> list[int]:
 def _check_alignment(b: Built, joint, j1: int, j2: int) -> None:
     """Unsupported unless the tree already keeps a loop revolute's axis (world, t = 0)."""
     first = joint.bodies[0]
-    axis = b.lifted.frames[first].R @ b.lifted.axes[joint.name][0]
+    axis = b.lifted.frames[first].R @ joint.axis
     axis = axis / np.linalg.norm(axis)
     for jid in _path(b, j1, j2):
         turns = b.edges[jid].turns
@@ -80,7 +80,6 @@ def close(pin, b: Built, loop_joints, s: dict):
         cmodels.append(cm)
         loops.append(Loop(name, kind, j1, j2, M1, M2))
 
-    pts = b.lifted.points
     for j in loop_joints:
         if j.type not in ("revolute", "spherical"):
             raise Unsupported(f"loop-closing {j.type} joint {j.name!r}: a point contact "
@@ -89,11 +88,12 @@ def close(pin, b: Built, loop_joints, s: dict):
         (j1, X1), (j2, X2) = b.frame[a], b.frame[c]
         if j.type == "revolute":
             _check_alignment(b, j, j1, j2)
-        contact(j.name, "joint", j1, X1.act(pts[a][pa]), j2, X2.act(pts[c][pc]))
+        contact(j.name, "joint", j1, X1.act(b.lifted.point(a, pa)), j2,
+                X2.act(b.lifted.point(c, pc)))
     if loop_joints:
         b.notes.append(f"loop joint(s) {', '.join(j.name for j in loop_joints)} closed by "
                        "RigidConstraintModel CONTACT_3D (LOCAL)")
     for name, node, tip, body, point in b.rods:  # the light rod's free end
         (j1, _), (j2, X2) = b.frame[node], b.frame[body]
-        contact(name, "rod", j1, tip - b.edges[j1].at, j2, X2.act(pts[body][point]))
+        contact(name, "rod", j1, tip - b.edges[j1].at, j2, X2.act(b.lifted.point(body, point)))
     return cmodels, loops

@@ -13,11 +13,40 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ...errors import Unsupported
-from ...mechanism import GROUND
+from ...mechanism import GROUND, Case
+from ..planar import GROUND_FRAME, Frame, cross, lift_case, lift_init, node_point, plane_normal
 from ..tree import point_loop_tree, tree_orientation, tree_parents
-from .lift import Lifted, cross
 
 ANY = "any"  # a joint that turns its child about any axis (spherical, universal, free)
+
+
+@dataclass(frozen=True)
+class Lifted:
+    """A case in 3-D (:func:`natcoord.engines.planar.lift_case`) with its frames at t = 0:
+    ``frames`` node -> :class:`~natcoord.engines.planar.Frame` (ground included), ``plane``
+    the normal (3,) of a 2-D case's plane of motion, None in 3-D."""
+
+    case: Case
+    frames: dict[str, Frame]
+    plane: np.ndarray | None
+
+    @classmethod
+    def of(cls, case: Case, init) -> Lifted:
+        """``case`` (2-D or 3-D) and its state at t = 0 (``init[body]``) in 3-D."""
+        return cls(lift_case(case), {GROUND: GROUND_FRAME, **lift_init(case, init)},
+                   plane_normal(case))
+
+    def point(self, node: str, name: str) -> np.ndarray:
+        """A named point (3,) m in its node's frame (a ground point in world axes)."""
+        return node_point(self.case, node, name)
+
+    def world_point(self, node: str, name: str) -> np.ndarray:
+        """World position (3,) of a named point at t = 0, m."""
+        return self.frames[node].point(self.point(node, name))
+
+    def world_velocity(self, node: str, name: str) -> np.ndarray:
+        """World velocity (3,) of a named point at t = 0, m/s."""
+        return self.frames[node].point_velocity(self.point(node, name))
 
 
 @dataclass
@@ -140,10 +169,10 @@ def _relative(lifted: Lifted, j, parent: str, child: str) -> _Relative:
     rP, rC = lifted.world_point(parent, pp), lifted.world_point(child, pc)
     # the relative point velocity less the parent's rotation carrying the offset rC - rP
     sdot = lifted.world_velocity(child, pc) - lifted.world_velocity(parent, pp) \
-        - cross(fp.w, rC - rP)
+        - cross(fp.omega, rC - rP)
     a1, a2 = (None if a is None else lifted.frames[b].R @ a
-              for a, b in zip(lifted.axes[j.name], j.bodies, strict=True))
-    return _Relative(rP, rC, fc.w - fp.w, sdot, a1, a2, sign)
+              for a, b in zip((j.axis, j.axis2), j.bodies, strict=True))
+    return _Relative(rP, rC, fc.omega - fp.omega, sdot, a1, a2, sign)
 
 
 # Each maker: (joint model, joint origin (3,) world, q0, v0, turns). A sliding joint sits at
@@ -189,7 +218,7 @@ def _joint_edge(pin, lifted: Lifted, j, parent: str, child: str) -> Edge:
         raise Unsupported(f"joint {j.name!r} of type {j.type!r}")
     r = _relative(lifted, j, parent, child)
     jm, at, q0, v0, turns = _MAKERS[j.type](pin, r)
-    fc, pc = lifted.frames[child], lifted.points[child][j.points[::r.sign][1]]
+    fc, pc = lifted.frames[child], lifted.point(child, j.points[::r.sign][1])
     # the child's point sits exactly on the joint origin (the assembly residual is dropped)
     X = pin.SE3(fc.R, -fc.R @ pc)
     return Edge(parent, child, j.name, jm, at, X, q0, v0, "joint", turns, r.sign)
@@ -203,15 +232,16 @@ def _free_edges(pin, lifted: Lifted, name: str) -> tuple[list[Edge], str]:
     f = lifted.frames[name]
     X = pin.SE3(f.R, np.zeros(3))
     if lifted.plane is not None:
-        return [Edge(GROUND, name, name, pin.JointModelPlanar(), f.o, X, [0.0, 0.0, 1.0, 0.0],
-                     [f.v[0], f.v[1], f.w[2]], "free", lifted.plane)], \
+        return [Edge(GROUND, name, name, pin.JointModelPlanar(), f.origin, X,
+                     [0.0, 0.0, 1.0, 0.0], [f.velocity[0], f.velocity[1], f.omega[2]], "free",
+                     lifted.plane)], \
             f"body {name} joined by no joint: floating in the plane on JointModelPlanar (3 dof)"
     carrier = f"{name} translation"
     # ZYX rates at zero angles are (w_z, w_y, w_x)
-    return [Edge(GROUND, carrier, carrier, pin.JointModelTranslation(), f.o, pin.SE3.Identity(),
-                 [0.0] * 3, list(f.v), "carrier"),
-            Edge(carrier, name, name, pin.JointModelSphericalZYX(), f.o, X, [0.0] * 3,
-                 list(f.w[::-1]), "free", ANY)], \
+    return [Edge(GROUND, carrier, carrier, pin.JointModelTranslation(), f.origin,
+                 pin.SE3.Identity(), [0.0] * 3, list(f.velocity), "carrier"),
+            Edge(carrier, name, name, pin.JointModelSphericalZYX(), f.origin, X, [0.0] * 3,
+                 list(f.omega[::-1]), "free", ANY)], \
         (f"body {name} joined by no joint: floating on JointModelTranslation + "
          "JointModelSphericalZYX (6 dof, ZYX angles: singular at 90 deg pitch)")
 
@@ -238,7 +268,7 @@ def _rod_edge(pin, lifted: Lifted, rod, depth: dict) -> tuple[Edge, tuple]:
     L = float(np.linalg.norm(rQ - rP))
     d = (rQ - rP) / L
     fa = lifted.frames[ba]
-    wrel = cross(d, lifted.world_velocity(bb, pb) - lifted.world_velocity(ba, pa)) / L - fa.w
+    wrel = cross(d, lifted.world_velocity(bb, pb) - lifted.world_velocity(ba, pa)) / L - fa.omega
     node = f"rod {rod.name}"
     if lifted.plane is not None:
         jm, a = _revolute(pin, lifted.plane)
@@ -264,10 +294,10 @@ def _body_inertia(pin, lifted: Lifted, body, s: dict) -> tuple[object, bool]:
     """Spatial inertia about the body frame, and whether its nonzero 3x3 is singular (a
     slender rod in 3-D: zero about its own axis). A particle gets ``particle_inertia`` kg
     m^2 per kg (a rotation nothing torques)."""
-    com = lifted.com[body.name]
+    com = body.com
     if body.kind == "particle":
         return pin.Inertia(body.mass, com, s["particle_inertia"] * body.mass * np.eye(3)), False
-    I3 = lifted.inertia[body.name]
+    I3 = body.inertia
     tr = np.trace(I3)
     return pin.Inertia(body.mass, com, I3), bool(tr > 0 and np.linalg.eigvalsh(I3)[0] <= 1e-12 * tr)
 
@@ -305,7 +335,7 @@ def build(pin, lifted: Lifted, s: dict) -> Built:
     tree, loop_joints, notes = tree_of(case)
     children, _, closures = _edges(pin, lifted, tree, notes)
     model = pin.Model()
-    model.gravity = pin.Motion(np.r_[lifted.gravity, 0.0, 0.0, 0.0])
+    model.gravity = pin.Motion(np.r_[case.gravity, 0.0, 0.0, 0.0])
     frame = {GROUND: (0, pin.SE3.Identity())}
     at = {0: np.zeros(3)}  # joint id -> world position of its frame at t = 0
     edges, q0, v0, tree_out, singular = {}, [], [], [], []
@@ -337,7 +367,7 @@ def build(pin, lifted: Lifted, s: dict) -> Built:
     turns = [e.turns for e in edges.values() if e.turns is not None]
     one_axis = not any(isinstance(t, str) for t in turns) and all(
         np.linalg.norm(cross(t, turns[0])) < 1e-12 for t in turns)
-    particles = {b.name: (next(iter(lifted.points[b.name].values())), lifted.frames[b.name].R)
+    particles = {b.name: (next(iter(b.points.values())), lifted.frames[b.name].R)
                  for b in case.bodies if b.kind == "particle"}
     spinning = [n for n in particles if edges[frame[n][0]].turns is not None]
     if spinning:
@@ -363,10 +393,12 @@ def build(pin, lifted: Lifted, s: dict) -> Built:
 def _loads(lifted: Lifted, frame: dict) -> list:
     """(joint id, point in the joint frame (3,), force (3,), torque (3,)) per applied load."""
     out = []
-    for body, point, f, tq in lifted.loads:
-        jid, X = frame[body]
-        p = X.act(lifted.points[body][point]) if point is not None else np.zeros(3)
-        out.append((jid, p, f, tq))
+    zero = np.zeros(3)
+    for f in lifted.case.forces:
+        jid, X = frame[f.body]
+        p = X.act(lifted.point(f.body, f.point)) if f.point is not None else zero
+        out.append((jid, p, f.value if f.type == "force" else zero,
+                    f.value if f.type == "torque" else zero))
     return out
 
 
@@ -374,7 +406,7 @@ def _springs(lifted: Lifted, frame: dict) -> list:
     """(name, (jid, p), (jid, p), k, c, l0) per spring-damper, points in joint frames."""
     out = []
     for sp in lifted.case.springs:
-        ends = [(frame[b][0], frame[b][1].act(lifted.points[b][p])) for b, p in sp.ends]
+        ends = [(frame[b][0], frame[b][1].act(lifted.point(b, p))) for b, p in sp.ends]
         out.append((sp.name, ends[0], ends[1], float(sp.stiffness), float(sp.damping),
                     float(sp.length)))
     return out

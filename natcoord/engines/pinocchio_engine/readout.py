@@ -1,5 +1,5 @@
 """Sampled (q, v, a, lambda) back to natcoord quantities, in 3-D (dropped to the case's
-dimension by :func:`.lift.drop`).
+dimension by :func:`natcoord.engines.planar.drop`).
 
 Reactions: ``data.lambda_c`` is the force on joint1's contact frame (first body of the case
 joint), in that frame's axes: the force on the second body is ``-R_c1 lambda``. Tree joints:
@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .lift import cross
+from ..planar import cross
 from .model import Built
 
 
