@@ -14,6 +14,7 @@ printable and at most ``MAX_TEXT`` characters.
 
 from __future__ import annotations
 
+import hashlib
 import math
 import re
 import tomllib
@@ -335,7 +336,8 @@ def load_case(path: str | Path) -> Case:
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
-                comparison=comparison, timeout=timeout)
+                comparison=comparison, timeout=timeout,
+                digest=hashlib.sha256(path.read_bytes()).hexdigest())
     return case
 
 

@@ -48,6 +48,9 @@ ResultsDir = Annotated[Path | None, typer.Option(
 Timeout = Annotated[float, typer.Option(
     min=0.001, help="Seconds per engine run (a case file's `timeout` takes precedence).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
+HistoryDb = Annotated[Path | None, typer.Option(
+    "--history", help="History database [default: <project>/reports/history.db].",
+    show_default=False)]
 CaseArgs = Annotated[list[str] | None, typer.Argument(
     help="Case names (or paths to case files); default: every case.", show_default=False)]
 
@@ -213,13 +216,16 @@ def gate_cmd(results: ResultsDir = None,
                  show_default=False)] = None,
              update_baseline: Annotated[bool, typer.Option(
                  help="Store this run's errors in the baseline, cell by cell (after it "
-                      "passes).")] = False):
-    """Compare results with tolerances and the stored baseline.
+                      "passes).")] = False,
+             history: HistoryDb = None):
+    """Compare results with tolerances and the stored baseline, and their benchmark (when
+    the folder has one) with the history of the same cases on this machine.
 
-    Exit 0 when all hold, 1 on a regression, 2 on bad input, 3 when nothing ran, or a
-    required engine or case has no record or failed.
+    Exit 0 when all hold, 1 on an accuracy regression, 2 on bad input, 3 when nothing ran,
+    or a required engine or case has no record or failed, 4 on a significant slowdown
+    (accuracy regressions take precedence).
     """
-    from .suite import gate
+    from .suite import diff, gate
 
     results = resolve(results, "reports/latest")
     baseline = resolve(baseline, "references/baseline.json")
@@ -233,6 +239,16 @@ def gate_cmd(results: ResultsDir = None,
         verdict = gate.judge(summary, required=required, baseline=base)
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         _fail(f"{results / 'summary.json'}: malformed ({type(e).__name__}: {e})")
+    try:
+        bench_result = diff._bench(results)
+        slower = [s for s in diff.against_history(
+            bench_result, resolve(history, "reports/history.db"),
+            exclude_dir=str(results.resolve())) if s.slower] if bench_result else []
+    except (ValueError, KeyError, TypeError) as e:
+        _fail(f"{results / 'bench.json'}: malformed ({type(e).__name__}: {e})")
+    if verdict.code == 0 and slower:
+        verdict.code = diff.SLOWER
+    verdict.lines += [s.line() for s in slower]
     for line in verdict.lines:
         err.print(("[red]REGRESSION[/] " if verdict.code == 1 else "") + escape(line),
                   highlight=False)
@@ -276,7 +292,8 @@ def _bench(selected, names, repeats, work_precision, references, timeout, target
 
 @app.command("bench")
 def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
-              repeats: Annotated[int, typer.Option(min=1, help="Repeats (best is kept).")] = 3,
+              repeats: Annotated[int, typer.Option(
+                  min=1, help="Whole runs per cell, every wall time kept.")] = 7,
               out_dir: OutDir = None,
               history: Annotated[Path | None, typer.Option(
                   help="Where dated copies go [default: <project>/reports/bench].",
@@ -302,23 +319,24 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
 
 @app.command("suite")
 def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
-              repeats: Annotated[int, typer.Option(min=0, help="Bench repeats (0: no bench).")] = 3,
+              repeats: Annotated[int, typer.Option(
+                  min=0, help="Bench runs per cell (0: no bench).")] = 7,
               timeout: Timeout = DEFAULT_TIMEOUT_S,
               cases_dir: CasesDir = None, references: RefDir = None,
-              history: Annotated[Path | None, typer.Option(
-                  help="History file [default: <project>/reports/history.jsonl].",
-                  show_default=False)] = None):
-    """The nightly job: run all, bench, report, gate, record history; reports/latest then
-    points at it. Exits with the gate's code."""
+              history: HistoryDb = None):
+    """The nightly job: run all, bench, report, gate (accuracy, and speed against the
+    history), record history; reports/latest then points at it. Exits with the gate's code
+    (4: a significant slowdown)."""
     from .report.html import write_report
-    from .suite import bench, gate
+    from .suite import bench, diff, gate
     from .suite import history as hist
     from .suite.outdir import point_latest, publishing
     from .suite.runner import run_suite
 
     names = _engines(engines)
     references = resolve(references, "references")
-    history = resolve(history, "reports/history.jsonl")
+    history = resolve(history, "reports/history.db")
+    hist.import_jsonl(history, history.with_suffix(".jsonl"))
     target = _out_dir(out_dir, "suite")
     latest = resolve(None, "reports/latest")
     if out_dir is None and latest.is_symlink():  # until this suite completes, no suite is
@@ -334,24 +352,107 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                   f"-> {escape(str(target))}")
         summary = run_suite(selected, names, staging, references=references,
                             timeout_s=timeout, progress=_progress_printer(total))
-        bench_result = None
+        bench_result, slower = None, []
         if repeats:
-            out.print(f"[bold]bench[/]: best of {repeats}")
+            out.print(f"[bold]bench[/]: {repeats} runs per cell, every wall time kept")
             bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
                                        progress=_progress_printer(total))
+            slower = _slower_rechecked(bench_result, selected, repeats, timeout, history)
             bench.store(bench_result, staging, history.parent / "bench")
-        write_report(staging, references)
         verdict = gate.judge(summary, baseline=base)
+        if verdict.code == 0 and slower:
+            verdict.code = diff.SLOWER
+        verdict.lines += [s.line() for s in slower]
+        write_report(staging, references)
+        _ci_summary(staging, summary, verdict.code, slower, target / "index.html")
     if out_dir is None:
         point_latest(latest, target)
     for line in verdict.lines:
         err.print(escape(line), highlight=False)
-    hist.append(history, hist.entry(summary, verdict.code, bench_result))
+    hist.record(history, kind="suite", summary=summary, bench=bench_result,
+                gate=verdict.code, results_dir=str(target.resolve()),
+                commit=hist.git_commit(resolve(None, ".")))
     out.print(counts_line(summary["records"]))
     out.print(f"report: {(target / 'index.html').resolve()}")
     out.print("[green]gate passed[/]" if verdict.code == 0
               else f"[bold red]gate failed[/] (exit {verdict.code})")
     raise typer.Exit(verdict.code)
+
+
+def _slower_rechecked(result: dict, jobs, repeats: int, timeout: float,
+                      history: Path) -> list:
+    """Cells significantly slower than their history; each suspect is measured once more
+    (its new samples replace the first ones) before it is reported."""
+    from .suite import bench, diff
+
+    suspects = [s for s in diff.against_history(result, history) if s.slower]
+    if not suspects:
+        return []
+    out.print(f"re-measuring {len(suspects)} cell(s) that look slower than their history")
+    by_name = {j.case.name: j for j in jobs}
+    records = {(r["case"], r["engine"]): r for r in result["records"]}
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="natcoord-recheck-") as tmp:
+        for s in suspects:
+            records[(s.case, s.engine)].update(
+                bench.measure(by_name[s.case], s.engine, repeats, timeout, Path(tmp)))
+    return [s for s in diff.against_history(result, history) if s.slower]
+
+
+def _ci_summary(folder: Path, summary: dict, code: int, slower: list, report: Path) -> None:
+    """summary.md in the results folder, and appended to $GITHUB_STEP_SUMMARY when set."""
+    import os
+
+    from .suite import diff
+    from .suite.io import write_atomic
+
+    text = diff.markdown(summary, code, slower, str(report))
+    write_atomic(folder / "summary.md", text)
+    if os.environ.get("GITHUB_STEP_SUMMARY"):
+        with open(os.environ["GITHUB_STEP_SUMMARY"], "a", encoding="utf-8") as f:
+            f.write(text)
+
+
+@app.command("compare")
+def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results folder.")],
+                new: Annotated[Path, typer.Argument(help="The later results folder.")],
+                as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False):
+    """What changed in accuracy and speed between two results folders.
+
+    Exit 0 nothing significant, 1 an accuracy regression, 2 bad input, 4 a significant
+    slowdown (median past 1.25x and Mann-Whitney U at p < 0.002 on the raw samples).
+    """
+    import json as _json
+
+    from .suite import diff
+
+    try:
+        c = diff.compare_runs(base, new)
+    except ValueError as e:
+        _fail(str(e))
+    if as_json:
+        print(_json.dumps(c.as_json(), indent=1, default=str))
+        raise typer.Exit(c.code)
+    table = Table(title=f"{escape(str(base))} -> {escape(str(new))}")
+    for col in ("case", "engine", "status", "verdict", "worst/tol before", "worst/tol now",
+                "speed ratio", "p"):
+        table.add_column(col)
+    fmt = lambda x, f: "" if x is None else format(x, f)  # noqa: E731
+    for r in c.rows:
+        table.add_row(escape(r["case"]), r["engine"], r["status"], r["verdict"],
+                      fmt(r["worst_of_tolerance_base"], ".3g"),
+                      fmt(r["worst_of_tolerance_new"], ".3g"),
+                      fmt(r["speed_ratio"], ".3g") + (" SLOWER" if r["slower"] else ""),
+                      fmt(r["speed_p"], ".2g"))
+    out.print(table)
+    for line in c.accuracy:
+        err.print(escape(line), highlight=False)
+    for s in c.slower:
+        err.print(escape(s.line()), highlight=False)
+    for s in c.speed:
+        if s.counters:
+            err.print(escape(f"{s.case}/{s.engine}: behaviour change: counters {s.counters}"))
+    raise typer.Exit(c.code)
 
 
 @reference_app.command("update")

@@ -243,6 +243,7 @@ class Case:
     reactions: dict[str, dict] = field(default_factory=dict)
     pose_tolerance: float = float("inf")
     timeout: float | None = None  # s: the case's own time limit per engine run
+    digest: str = ""  # sha256 of the case file: history compares runs of identical cases
     comparison: dict = field(default_factory=dict)
 
     @property

@@ -203,6 +203,7 @@ class Result:
     counters: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     methods: pd.DataFrame | None = None  # natcoord: force channels per reaction method
+    samples_s: list[float] = field(default_factory=list)  # wall time of every repeat, s
 
     @property
     def us_per_step(self) -> float:

@@ -1,9 +1,13 @@
-"""Speed benchmark: per case x engine, best-of-N step cost, measured in one session.
+"""Speed benchmark: per case x engine, the wall time of repeated whole runs, measured in one
+session.
 
-Every repeat is a fresh engine process with single-threaded BLAS; build time is kept apart
-from the stepping time. Ratios to natcoord are computed within the same benchmark run, so
-machine load drifts cancel as far as they can; the spread of the repeats is stored with
-every figure so that a gate can tell noise from a regression.
+Each cell runs once in a fresh engine process (single-threaded BLAS; build time kept apart
+from the stepping time), then ``repeats - 1`` more times in a second process, as many as fit
+in ``BATCH_S`` (a run longer than that is measured once per process). Every repeat's wall
+time is kept as ``samples_s`` beside the best and the median, and the deterministic cost
+counters (steps, right-hand sides, factorizations) beside them, so that a speed judgement
+can tell noise from a regression (:mod:`natcoord.suite.speed`). Ratios to natcoord are
+computed within the same benchmark run, so machine load drifts cancel as far as they can.
 """
 
 from __future__ import annotations
@@ -41,37 +45,50 @@ SWEEPS: dict[str, list[dict]] = {
     "dart": [{"dt": d} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
 }
 TARGETS = (1e-6, 1e-9)
-LONG_RUN_S = 20.0  # a run this long is measured once: its noise is small, repeats are costly
+BATCH_S = 10.0  # wall time the repeats of one cell may take in their process
+COUNTERS = ("steps", "rejected", "rhs", "factorizations", "newton", "projections")
 
 
-def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 3,
+def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path) -> dict:
+    """One cell's benchmark record: every repeat's wall time (``samples_s``), best, median,
+    spread, build time, steps and cost counters."""
+    case = job.case
+    runs = [run_subprocess(job, engine, tmp, timeout_s)]
+    first = runs[0].get("wall_time_s") or 0.0
+    more = repeats - 1 if first <= 0 else min(repeats - 1, int(BATCH_S / first))
+    if runs[0]["status"] == "ok" and more > 0:
+        runs.append(run_subprocess(job, engine, tmp, timeout_s, repeat=more))
+    ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
+    rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
+           "status": runs[-1]["status"],
+           "reason": runs[-1].get("reason", ""),
+           "engine_version": runs[-1].get("engine_version", "")}
+    if ok:
+        samples = [s for r in ok for s in (r.get("samples_s") or [r["wall_time_s"]])]
+        best = min(samples)
+        n_steps = ok[0]["n_steps"]
+        rec |= {"repeats": len(samples), "samples_s": samples, "wall_time_s": best,
+                "wall_spread": (max(samples) - best) / best,
+                "wall_median_s": statistics.median(samples),
+                "build_time_s": min(r["build_time_s"] or 0.0 for r in ok),
+                "n_steps": n_steps, "us_per_step": 1e6 * best / n_steps if n_steps else None,
+                "wall_per_sim_s": best / case.duration, "settings": ok[0]["settings"],
+                "counters": {k: ok[0]["counters"][k] for k in COUNTERS
+                             if isinstance(ok[0].get("counters", {}).get(k), (int, float))}}
+    return rec
+
+
+def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
           timeout_s: float = 600.0, progress: Callable[[str, dict], None] | None = None) -> dict:
     """Benchmark and return ``{"records": [...], "machine": ..., "generated": ...}``."""
     records = []
     with tempfile.TemporaryDirectory(prefix="natcoord-bench-") as tmp:
         for job in map(as_job, cases):
-            case = job.case
             for engine in engines:
-                runs = [run_subprocess(job, engine, Path(tmp), timeout_s)]
-                while len(runs) < repeats and (runs[0].get("wall_time_s") or 0) < LONG_RUN_S:
-                    runs.append(run_subprocess(job, engine, Path(tmp), timeout_s))
-                ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
-                rec = {"case": case.name, "engine": engine, "repeats": len(ok),
-                       "status": runs[-1]["status"], "reason": runs[-1].get("reason", ""),
-                       "engine_version": runs[-1].get("engine_version", "")}
-                if ok:
-                    walls = [r["wall_time_s"] for r in ok]
-                    best = min(ok, key=lambda r: r["wall_time_s"])
-                    rec |= {"wall_time_s": best["wall_time_s"],
-                            "wall_spread": (max(walls) - min(walls)) / min(walls),
-                            "wall_median_s": statistics.median(walls),
-                            "build_time_s": min(r["build_time_s"] or 0.0 for r in ok),
-                            "n_steps": best["n_steps"], "us_per_step": best["us_per_step"],
-                            "wall_per_sim_s": best["wall_time_s"] / case.duration,
-                            "settings": best["settings"]}
+                rec = measure(job, engine, repeats, timeout_s, Path(tmp))
                 records.append(rec)
                 if progress:
-                    progress(f"{case.name}/{engine}", rec)
+                    progress(f"{job.case.name}/{engine}", rec)
     by_key = {(r["case"], r["engine"]): r for r in records}
     for r in records:
         ref = by_key.get((r["case"], "natcoord"), {})

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as dt
+import hashlib
 import os
 import pickle
 import platform
@@ -36,10 +37,23 @@ from .worker import Job
 DEFAULT_TIMEOUT_S = 600.0
 
 
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def machine_info() -> dict:
+    """What the machine is; ``fingerprint`` names machines whose timings compare (CPU model
+    and core count: speed history is only compared within one fingerprint)."""
+    cpu, cores = _cpu_model(), os.cpu_count()
     return {"python": platform.python_version(), "platform": platform.platform(),
-            "cpu": platform.processor() or platform.machine(), "cores": os.cpu_count(),
-            "blas_threads": 1}
+            "cpu": cpu, "cores": cores, "blas_threads": 1,
+            "fingerprint": hashlib.sha256(f"{cpu}|{cores}".encode()).hexdigest()[:16]}
 
 
 def prepare(case: Case) -> Job:
@@ -57,7 +71,7 @@ def as_job(case: Case | Job) -> Job:
 
 
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
-                   settings: dict | None = None) -> dict:
+                   settings: dict | None = None, repeat: int = 1) -> dict:
     """Run one case x engine in a child process; return its record (status failed on a
     crash, a non-zero exit or the time limit). ``case`` may be a prepared Job (assembled
     once for all its engines)."""
@@ -69,9 +83,10 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     folder.mkdir(parents=True, exist_ok=True)
     job_file = folder / f".{engine}.job.pkl"
     with open(job_file, "wb") as f:
-        pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {})), f)
+        pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {}),
+                                        repeat=repeat), f)
     cmd = [sys.executable, "-m", "natcoord.suite.worker", str(job_file), str(out)]
-    timeout_s = case.timeout or timeout_s
+    timeout_s = (case.timeout or timeout_s) * max(1, repeat)
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
@@ -132,7 +147,7 @@ def _failed(case: Case, engine: str, reason: str) -> dict:
 
 def compare_record(case: Case, record: dict, out: Path, references: Path) -> dict:
     """Add the comparison with the reference to a run record."""
-    record = {**record, "description": case.description,
+    record = {**record, "description": case.description, "case_hash": case.digest,
               "tolerance_reason": case.engine(record["engine"]).reason}
     csv = out / "results" / case.name / f"{record['engine']}.csv"
     if record["status"] != "ok" or not csv.exists():

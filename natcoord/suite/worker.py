@@ -42,20 +42,23 @@ def record_of(result: Result, sim_time_s: float) -> dict:
         "wall_time_s": result.wall_time_s, "build_time_s": result.build_time_s,
         "n_steps": result.n_steps, "us_per_step": result.us_per_step,
         "sim_time_s": sim_time_s, "settings": result.settings, "counters": result.counters,
-        "notes": result.notes,
+        "notes": result.notes, "samples_s": list(result.samples_s),
     }
 
 
 @dataclass(frozen=True)
 class Job:
     """One case x engine run: the loaded case, its assembled state at t = 0 (None with
-    ``assembly_error`` when it does not assemble), the engine and setting overrides."""
+    ``assembly_error`` when it does not assemble), the engine and setting overrides.
+    ``repeat``: how many times to run it in this process (timing samples; the results are
+    the last run's)."""
 
     case: Case
     init: InitialState | None
     engine: str
     settings: dict = field(default_factory=dict)
     assembly_error: str = ""
+    repeat: int = 1
 
 
 def run_one(job: Job) -> Result:
@@ -79,7 +82,9 @@ def run_one(job: Job) -> Result:
         return res
     settings = {**spec.settings, **job.settings}
     try:
-        run = mod.run(case, job.init, settings)
+        for _ in range(max(1, job.repeat)):  # every repeat a whole run: its own wall time
+            run = mod.run(case, job.init, settings)
+            res.samples_s.append(run.wall_time_s)
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
         return res

@@ -1,0 +1,132 @@
+"""What changed between two runs, and speed judged against the history.
+
+:func:`compare_runs` reads two results folders (``summary.json``, and ``bench.json`` when
+there is one) and judges the new one against the old: accuracy with the gate's rules (a
+gated channel over tolerance, or an error grown past 10x the old one and a tenth of the
+tolerance), speed with :mod:`natcoord.suite.speed` on the raw samples. :func:`against_history`
+judges a benchmark against the history database instead (same case file, same machine).
+
+Exit codes (``natcoord compare``): 0 nothing significant, 1 an accuracy regression (it
+takes precedence), 2 bad input, 4 a significant slowdown.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from . import gate, history, speed
+from .io import read_json
+
+SLOWER = 4
+
+
+@dataclass
+class Comparison:
+    """Exit code, accuracy lines, speed judgements, and the rows of the table."""
+
+    code: int = 0
+    accuracy: list[str] = field(default_factory=list)
+    speed: list[speed.SpeedChange] = field(default_factory=list)
+    rows: list[dict] = field(default_factory=list)
+
+    @property
+    def slower(self) -> list[speed.SpeedChange]:
+        return [s for s in self.speed if s.slower]
+
+    def as_json(self) -> dict:
+        return {"code": self.code, "accuracy": self.accuracy, "rows": self.rows,
+                "slower": [s.__dict__ for s in self.slower],
+                "behaviour_changes": [s.__dict__ for s in self.speed if s.counters]}
+
+
+def _bench(folder: Path) -> dict | None:
+    path = Path(folder) / "bench.json"
+    if not path.exists():
+        return None
+    try:
+        data = read_json(path)
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{path}: not valid JSON ({e})") from None
+    if not isinstance(data, dict) or not isinstance(data.get("records", []), list):
+        raise ValueError(f"{path}: records: missing or not a list")
+    return data
+
+
+def _worst(record: dict) -> float | None:
+    vals = [c["max_abs"] / c["tolerance"] for c in record.get("channels", {}).values()
+            if c.get("determined", True) and c.get("tolerance") and c.get("max_abs")
+            is not None]
+    return max(vals) if vals else None
+
+
+def compare_runs(base: Path, new: Path) -> Comparison:
+    """Judge results folder ``new`` against ``base``; raises ValueError on bad input."""
+    b, n = gate.load_summary(base), gate.load_summary(new)
+    out = Comparison()
+    verdict = gate.judge(n, baseline=gate.baseline_of(b))
+    if verdict.code in (gate.REGRESSION, gate.NOT_RUN):
+        out.code = gate.REGRESSION
+    elif verdict.code == gate.BAD_INPUT:
+        out.code = gate.BAD_INPUT
+    out.accuracy = verdict.lines
+    old = {(r["case"], r["engine"]): r for r in b["records"]}
+    changes = {}
+    bb, nb = _bench(base), _bench(new)
+    if bb and nb:
+        out.speed = speed.compare_bench(bb, nb)
+        changes = {(s.case, s.engine): s for s in out.speed}
+    for r in n["records"]:
+        key = (r["case"], r["engine"])
+        s = changes.get(key)
+        out.rows.append({"case": r["case"], "engine": r["engine"], "status": r["status"],
+                         "verdict": r["verdict"],
+                         "worst_of_tolerance_base": _worst(old.get(key, {})),
+                         "worst_of_tolerance_new": _worst(r),
+                         "speed_ratio": None if s is None else s.ratio,
+                         "speed_p": None if s is None else s.p,
+                         "slower": bool(s and s.slower)})
+    if out.code == 0 and out.slower:
+        out.code = SLOWER
+    return out
+
+
+def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[speed.SpeedChange]:
+    """Judge every cell of a benchmark against the history's samples of the same case file
+    on the same machine (cells without history are not judged)."""
+    machine = bench.get("machine", {}).get("fingerprint", "")
+    out = []
+    for r in bench.get("records", []):
+        if not r.get("samples_s"):
+            continue
+        past, counters = history.past_samples(db, r["case"], r["engine"],
+                                              r.get("case_hash", ""), machine,
+                                              exclude_dir=exclude_dir)
+        if past:
+            out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
+                                   r.get("counters")))
+    return out
+
+
+def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: str) -> str:
+    """A short CI summary: verdict counts, regressions and slowdowns, where the report is."""
+    counts: dict[str, int] = {}
+    for r in summary["records"]:
+        key = r["verdict"] if r["status"] == "ok" else r["status"]
+        counts[key] = counts.get(key, 0) + 1
+    word = {0: "passed", 1: "accuracy regression", 2: "bad input", 3: "not run",
+            4: "significant slowdown"}.get(code, str(code))
+    lines = [f"## natcoord suite: {word} (exit {code})", "",
+             "| outcome | cells |", "| --- | --- |"]
+    lines += [f"| {k} | {v} |" for k, v in sorted(counts.items())]
+    bad = [r for r in summary["records"] if r.get("verdict") == "fail"
+           or r["status"] == "failed"]
+    if bad:
+        lines += ["", "### Failing cells", ""]
+        lines += [f"- `{r['case']}/{r['engine']}`: {r.get('reason') or r.get('verdict_reason')}"
+                  for r in bad]
+    if slower:
+        lines += ["", "### Significant slowdowns", ""] + [f"- {s.line()}" for s in slower]
+    lines += ["", f"Report: `{report}`", ""]
+    return "\n".join(lines)
