@@ -48,6 +48,11 @@ ResultsDir = Annotated[Path | None, typer.Option(
 Timeout = Annotated[float, typer.Option(
     min=0.001, help="Seconds per engine run (a case file's `timeout` takes precedence).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
+Jobs = Annotated[int | None, typer.Option(
+    "--jobs", min=1, help="Accuracy runs at once [default: every core]; timing stays serial.",
+    show_default=False)]
+Scheduler = Annotated[str | None, typer.Option(
+    help="Send the accuracy runs to a Dask cluster: tcp://HOST:PORT.")]
 HistoryDb = Annotated[Path | None, typer.Option(
     "--history", help="History database [default: <project>/reports/history.db].",
     show_default=False)]
@@ -123,13 +128,35 @@ def _out_dir(given: Path | None, kind: str) -> Path:
     return given if given is not None else stamped(resolve(None, "reports/runs"), kind)
 
 
-def _progress_printer(total: int):
-    done = [0]
+def _progress_printer(total: int, where: str = "here"):
+    """A line per finished run with the time left (from the runs so far); during a silent
+    stretch of more than 30 s a line says that runs are still going (a first numba compile
+    of natcoord's kernels takes about 30 s on a new machine)."""
+    import threading
+    import time
+
+    start, done, last = time.monotonic(), [0], [time.monotonic()]
     style = {"ok": "green", "failed": "red", "unsupported": "yellow", "skipped": "dim"}
     verdict_style = {"pass": "green", "fail": "bold red"}
+    stop = threading.Event()
+
+    def heartbeat():
+        while not stop.wait(5.0):
+            if time.monotonic() - last[0] > 30.0 and done[0] < total:
+                out.print(Text(f"      ... {total - done[0]} run(s) still going ({where}), "
+                               f"{time.monotonic() - start:.0f} s so far", style="dim"))
+                last[0] = time.monotonic()
+
+    threading.Thread(target=heartbeat, daemon=True).start()
 
     def show(key: str, rec: dict):
         done[0] += 1
+        last[0] = time.monotonic()
+        if done[0] >= total:
+            stop.set()
+        elapsed = last[0] - start
+        left = elapsed / done[0] * (total - done[0])
+        eta = f"~{left:4.0f} s left" if done[0] < total else f"{elapsed:5.0f} s total"
         status, verdict = rec.get("status", "?"), rec.get("verdict", "")
         cost = rec.get("us_per_step")
         cost = f"{cost:9.2f} us/step " if isinstance(cost, (int, float)) else " " * 17
@@ -137,8 +164,16 @@ def _progress_printer(total: int):
         out.print(Text.assemble(f"[{done[0]:>3}/{total}] {key:<30} ",
                                 (f"{status:<12}", style.get(status, "")),
                                 (f"{verdict:<10}", verdict_style.get(verdict, "")),
-                                cost, (reason[:100], "dim")))
+                                cost, (f"{eta}  ", "dim"), (reason[:90], "dim")))
     return show
+
+
+def _where(jobs: int | None, scheduler: str | None) -> tuple[int, str]:
+    import os
+
+    n = jobs or os.cpu_count() or 1
+    return n, (f"on the Dask cluster {scheduler}" if scheduler else
+               f"{n} at a time here" if n > 1 else "one at a time here")
 
 
 def counts_line(records: list[dict]) -> str:
@@ -175,8 +210,8 @@ def cases_cmd(cases_dir: CasesDir = None):
 
 @app.command("run")
 def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = None,
-            timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
-            references: RefDir = None):
+            timeout: Timeout = DEFAULT_TIMEOUT_S, jobs: Jobs = None, scheduler: Scheduler = None,
+            cases_dir: CasesDir = None, references: RefDir = None):
     """Run cases in engines; write results/<case>/<engine>.csv and summary.json."""
     from .suite.outdir import publishing
     from .suite.runner import run_suite
@@ -186,10 +221,13 @@ def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = N
     with publishing(target) as staging:  # a refused input publishes nothing
         selected = _cases(cases, cases_dir)
         total = len(selected) * len(names)
-        out.print(f"running {len(selected)} case(s) x {len(names)} engine(s) -> {target}")
+        n, where = _where(jobs, scheduler)
+        out.print(f"running {len(selected)} case(s) x {len(names)} engine(s), {where} -> "
+                  f"{target}")
         summary = run_suite(selected, names, staging, references=resolve(references,
                                                                          "references"),
-                            timeout_s=timeout, progress=_progress_printer(total))
+                            timeout_s=timeout, progress=_progress_printer(total, where),
+                            jobs=n, scheduler=scheduler)
     out.print(f"{counts_line(summary['records'])}; summary: {target / 'summary.json'}")
     out.print(f"judge it with: natcoord gate --results {target}")
 
@@ -321,7 +359,8 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
 def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               repeats: Annotated[int, typer.Option(
                   min=0, help="Bench runs per cell (0: no bench).")] = 7,
-              timeout: Timeout = DEFAULT_TIMEOUT_S,
+              timeout: Timeout = DEFAULT_TIMEOUT_S, jobs: Jobs = None,
+              scheduler: Scheduler = None, cases: CaseArgs = None,
               cases_dir: CasesDir = None, references: RefDir = None,
               history: HistoryDb = None):
     """The nightly job: run all, bench, report, gate (accuracy, and speed against the
@@ -339,24 +378,27 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     hist.import_jsonl(history, history.with_suffix(".jsonl"))
     target = _out_dir(out_dir, "suite")
     latest = resolve(None, "reports/latest")
-    if out_dir is None and latest.is_symlink():  # until this suite completes, no suite is
-        latest.unlink()                          # "the latest": a gate finds no summary
+    nightly = out_dir is None and not cases and engines is None  # a subset is not nightly
+    if nightly and latest.is_symlink():  # until this suite completes, no suite is
+        latest.unlink()                  # "the latest": a gate finds no summary
     with publishing(target) as staging:
-        selected = _cases(None, cases_dir)
+        selected = _cases(cases, cases_dir)
         try:
             base = gate.load_baseline(references / "baseline.json")
         except ValueError as e:
             _fail(str(e))
         total = len(selected) * len(names)
-        out.print(f"[bold]natcoord suite[/]: {len(selected)} cases x {len(names)} engines "
-                  f"-> {escape(str(target))}")
+        n, where = _where(jobs, scheduler)
+        out.print(f"[bold]natcoord suite[/]: {len(selected)} cases x {len(names)} engines, "
+                  f"{where} -> {escape(str(target))}")
         summary = run_suite(selected, names, staging, references=references,
-                            timeout_s=timeout, progress=_progress_printer(total))
+                            timeout_s=timeout, progress=_progress_printer(total, where),
+                            jobs=n, scheduler=scheduler)
         bench_result, slower = None, []
         if repeats:
             out.print(f"[bold]bench[/]: {repeats} runs per cell, every wall time kept")
             bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
-                                       progress=_progress_printer(total))
+                                       progress=_progress_printer(total, "serial, one core"))
             slower = _slower_rechecked(bench_result, selected, repeats, timeout, history)
             bench.store(bench_result, staging, history.parent / "bench")
         verdict = gate.judge(summary, baseline=base)
@@ -365,7 +407,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         verdict.lines += [s.line() for s in slower]
         write_report(staging, references)
         _ci_summary(staging, summary, verdict.code, slower, target / "index.html")
-    if out_dir is None:
+    if nightly:
         point_latest(latest, target)
     for line in verdict.lines:
         err.print(escape(line), highlight=False)

@@ -153,3 +153,70 @@ def test_ci_summary_is_markdown_with_verdicts():
     text = diff.markdown(summary, 1, [], "reports/latest/index.html")
     assert text.startswith("## natcoord suite: accuracy regression (exit 1)")
     assert "`c/e`: 1 of 2 gated channels over tolerance" in text
+
+
+def _tables(out: Path) -> dict:
+    import pandas as pd
+    return {p.relative_to(out).as_posix(): pd.read_csv(p)
+            for p in sorted((out / "results").rglob("*.csv"))}
+
+
+def test_parallel_and_dask_runs_give_the_local_results(tmp_path):
+    """The same cells run one at a time, two at a time, and on a Dask LocalCluster: the
+    same statuses and the same numbers (each run is the same engine process)."""
+    from distributed import LocalCluster
+
+    cases = [load_case(CASES / "pendulum.toml"), load_case(CASES / "slider_crank.toml")]
+    engines = ["natcoord", "exudyn"]
+    serial = run_suite(cases, engines, tmp_path / "serial", references=REFERENCES)
+    two = run_suite(cases, engines, tmp_path / "two", references=REFERENCES, jobs=2)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        dask = run_suite(cases, engines, tmp_path / "dask", references=REFERENCES,
+                         scheduler=cluster.scheduler_address)
+    key = [(r["case"], r["engine"], r["status"], r["verdict"]) for r in serial["records"]]
+    for other in (two, dask):
+        assert [(r["case"], r["engine"], r["status"], r["verdict"])
+                for r in other["records"]] == key
+    a = _tables(tmp_path / "serial")
+    for folder in ("two", "dask"):
+        b = _tables(tmp_path / folder)
+        assert a.keys() == b.keys()
+        for k in a:
+            assert np.array_equal(a[k].to_numpy(), b[k].to_numpy()), (folder, k)
+
+
+def test_an_unreachable_scheduler_is_a_clear_error(tmp_path):
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--scheduler", "tcp://127.0.0.1:9",
+             "--out", tmp_path / "r", timeout=300)
+    assert p.returncode == 2 and "cannot reach the Dask scheduler" in p.stderr, p.stderr
+
+
+def test_a_lost_dask_task_fails_its_cell(tmp_path):
+    """A task whose Dask worker dies with it: the cell is failed with the reason; the
+    command does not hang."""
+    from distributed import LocalCluster
+
+    from natcoord.suite import parallel, runner
+
+    slow = (CASES / "pendulum.toml").read_text().replace(
+        "duration = 10.0", "duration = 2000.0").replace("output_dt = 0.01", "output_dt = 1.0")
+    slow = slow.replace("[engines.natcoord]\n", '[engines.natcoord]\nsettings = { method = '
+                        '"rk4", h = 1e-4, formulation = "index1" }\n', 1)
+    (tmp_path / "c").mkdir()
+    (tmp_path / "c" / "pendulum.toml").write_text(slow)
+    job = runner.prepare(load_case(tmp_path / "c" / "pendulum.toml"))  # runs for minutes
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                      dashboard_address=None) as cluster:
+        gen = parallel.distributed([job], ["natcoord"], tmp_path, 10.0,
+                                   cluster.scheduler_address, runner._failed, margin_s=20.0)
+        import time
+        t0 = time.time()
+        killer = threading.Thread(target=lambda: (time.sleep(3.0), [
+            w.process.process.kill() for w in cluster.workers.values()]))
+        killer.start()
+        out = list(gen)
+        killer.join()
+    assert time.time() - t0 < 120
+    (i, rec), = out
+    assert rec["status"] == "failed" and rec["reason"], rec  # lost, retried, timed out

@@ -13,6 +13,7 @@ computed within the same benchmark run, so machine load drifts cancel as far as 
 from __future__ import annotations
 
 import datetime as dt
+import os
 import statistics
 import tempfile
 from collections.abc import Callable, Sequence
@@ -46,6 +47,8 @@ SWEEPS: dict[str, list[dict]] = {
 }
 TARGETS = (1e-6, 1e-9)
 BATCH_S = 10.0  # wall time the repeats of one cell may take in their process
+CORE = max(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None  # timing
+# runs are pinned to one core (the last this process may use), one at a time
 COUNTERS = ("steps", "rejected", "rhs", "factorizations", "newton", "projections")
 
 
@@ -53,11 +56,11 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path) -> dict
     """One cell's benchmark record: every repeat's wall time (``samples_s``), best, median,
     spread, build time, steps and cost counters."""
     case = job.case
-    runs = [run_subprocess(job, engine, tmp, timeout_s)]
+    runs = [run_subprocess(job, engine, tmp, timeout_s, cpu=CORE)]
     first = runs[0].get("wall_time_s") or 0.0
     more = repeats - 1 if first <= 0 else min(repeats - 1, int(BATCH_S / first))
     if runs[0]["status"] == "ok" and more > 0:
-        runs.append(run_subprocess(job, engine, tmp, timeout_s, repeat=more))
+        runs.append(run_subprocess(job, engine, tmp, timeout_s, repeat=more, cpu=CORE))
     ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
            "status": runs[-1]["status"],

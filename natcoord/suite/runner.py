@@ -71,10 +71,11 @@ def as_job(case: Case | Job) -> Job:
 
 
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
-                   settings: dict | None = None, repeat: int = 1) -> dict:
+                   settings: dict | None = None, repeat: int = 1,
+                   cpu: int | None = None) -> dict:
     """Run one case x engine in a child process; return its record (status failed on a
     crash, a non-zero exit or the time limit). ``case`` may be a prepared Job (assembled
-    once for all its engines)."""
+    once for all its engines). ``cpu``: pin the engine process to that core (timing)."""
     job = as_job(case)
     case = job.case
     folder = out / "results" / case.name
@@ -91,7 +92,8 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=env, start_new_session=True, preexec_fn=_die_with_parent)
+                            env=env, start_new_session=True,
+                            preexec_fn=lambda: _die_with_parent(cpu))
     try:
         _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -117,13 +119,19 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     return record
 
 
-def _die_with_parent() -> None:  # pragma: no cover - runs in the child before exec
-    """Ask Linux to SIGKILL this child when its parent dies (even by SIGKILL)."""
+def _die_with_parent(cpu: int | None = None) -> None:  # pragma: no cover - in the child
+    """Ask Linux to SIGKILL this child when its parent dies (even by SIGKILL); pin it to
+    core ``cpu`` when given."""
     try:
         import ctypes
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    if cpu is not None and hasattr(os, "sched_setaffinity"):
+        try:
+            os.sched_setaffinity(0, {cpu})
+        except OSError:
+            pass
 
 
 def _kill(proc: subprocess.Popen) -> None:
@@ -172,25 +180,32 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
 
 def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
               references: Path = Path("references"), timeout_s: float = DEFAULT_TIMEOUT_S,
-              progress: Callable[[str, dict], None] | None = None) -> dict:
+              progress: Callable[[str, dict], None] | None = None, jobs: int = 1,
+              scheduler: str | None = None) -> dict:
     """Run every case in every engine and write ``out/summary.json``; returns the summary.
-    ``cases`` may be loaded cases or prepared Jobs (assembled once by the caller)."""
+    ``cases`` may be loaded cases or prepared Jobs (assembled once by the caller); ``jobs``
+    engine processes run at once here, or every run goes to the Dask cluster at
+    ``scheduler`` (see :mod:`natcoord.suite.parallel`). Records keep the order of the
+    cells whatever order they finish in."""
+    from . import parallel
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "summary.json").unlink(missing_ok=True)
-    records = []
-    jobs = [as_job(c) for c in cases]
-    for job in jobs:
-        case = job.case
-        for engine in engines:
-            record = compare_record(case, run_subprocess(job, engine, out, timeout_s), out,
-                                    references)
-            records.append(record)
-            if progress:
-                progress(f"{case.name}/{engine}", record)
+    prepared = [as_job(c) for c in cases]
+    todo = parallel.cells(prepared, engines)
+    found: dict[int, dict] = {}
+    runs = (parallel.distributed(prepared, engines, out, timeout_s, scheduler, _failed)
+            if scheduler else parallel.local(prepared, engines, out, timeout_s, jobs))
+    for i, raw in runs:
+        case, engine = todo[i][0].case, todo[i][1]
+        found[i] = compare_record(case, raw, out, references)
+        if progress:
+            progress(f"{case.name}/{engine}", found[i])
+    records = [found[i] for i in range(len(todo))]
     summary = {"generated": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
                "natcoord_version": __version__, "machine": machine_info(),
-               "cases": [j.case.name for j in jobs], "engines": list(engines),
+               "cases": [j.case.name for j in prepared], "engines": list(engines),
                "records": records}
     write_json(out / "summary.json", summary)
     return summary

@@ -1,0 +1,109 @@
+"""Where the accuracy runs of a suite execute: here one at a time, here on N cores, or on a
+Dask distributed cluster.
+
+Every run is still one engine process with its own time limit
+(:func:`natcoord.suite.runner.run_subprocess`). On a cluster the task runs that process on
+the Dask worker, in a temporary folder of its own, and returns the files it wrote; they are
+written here, on the machine that runs the command. A task that raises, or a worker lost
+with the task, gives ``failed`` with the reason for that cell, never a hang: every result
+is awaited at most the run's time limit plus a margin. Timing runs (``natcoord bench``)
+never come here: they stay serial, one core at a time.
+"""
+
+from __future__ import annotations
+
+import pickle
+import tempfile
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+
+from ..errors import NatcoordError
+from .io import write_atomic
+
+MARGIN_S = 120.0  # scheduling and start-up allowance on top of a run's own time limit
+
+
+def cells(jobs, engines) -> list[tuple]:
+    return [(job, engine) for job in jobs for engine in engines]
+
+
+def local(jobs, engines, out: Path, timeout_s: float, workers: int) -> Iterator[tuple]:
+    """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time."""
+    from .runner import run_subprocess
+
+    todo = cells(jobs, engines)
+    if workers <= 1:
+        for i, (job, engine) in enumerate(todo):
+            yield i, run_subprocess(job, engine, out, timeout_s)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = {pool.submit(run_subprocess, job, engine, out, timeout_s): i
+                   for i, (job, engine) in enumerate(todo)}
+        try:
+            for f in as_completed(futures):
+                yield futures[f], f.result()
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+
+def remote_run(job_bytes: bytes, engine: str, timeout_s: float) -> dict:
+    """Runs on a Dask worker: one engine process in a temporary folder; returns the record
+    and the text of every file the run wrote (relative path -> text)."""
+    from .runner import run_subprocess
+
+    job = pickle.loads(job_bytes)
+    with tempfile.TemporaryDirectory(prefix="natcoord-dask-") as tmp:
+        record = run_subprocess(job, engine, Path(tmp), timeout_s)
+        files = {str(p.relative_to(tmp)): p.read_text(encoding="utf-8")
+                 for p in Path(tmp).rglob("*") if p.is_file() and not p.name.startswith(".")}
+    return {"record": record, "files": files}
+
+
+def distributed(jobs, engines, out: Path, timeout_s: float, scheduler: str,
+                failed: Callable[[object, str, str], dict], *, connect_s: float = 30.0,
+                margin_s: float = MARGIN_S) -> Iterator[tuple]:
+    """Yield ``(index, record)`` from a Dask cluster at ``scheduler`` (tcp://host:port);
+    files are written under ``out`` here. ``failed(case, engine, reason)`` makes the record
+    of a run that the cluster lost."""
+    try:
+        from distributed import Client
+        from distributed import TimeoutError as DaskTimeout
+        from distributed import as_completed as dask_done
+    except ImportError as e:
+        raise NatcoordError("--scheduler needs Dask: pip install 'natcoord[cluster]'") from e
+    todo = cells(jobs, engines)
+    longest = max((job.case.timeout or timeout_s) for job, _ in todo) if todo else timeout_s
+    try:
+        client = Client(scheduler, timeout=connect_s)
+    except (OSError, TimeoutError) as e:
+        raise NatcoordError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
+                            f"({type(e).__name__}: {e})") from None
+    with client:
+        futures = {client.submit(remote_run, pickle.dumps(job), engine, timeout_s,
+                                 pure=False, retries=0): i
+                   for i, (job, engine) in enumerate(todo)}
+        done = set()
+        try:
+            for f in dask_done(list(futures), timeout=longest * len(todo) + margin_s):
+                i = futures[f]
+                done.add(i)
+                job, engine = todo[i]
+                try:
+                    res = f.result()
+                except Exception as e:  # the task raised or its worker was lost
+                    yield i, failed(job.case, engine, f"Dask worker: {type(e).__name__}: {e}")
+                    continue
+                for rel, text in res["files"].items():
+                    write_atomic(Path(out) / rel, text)
+                yield i, res["record"]
+        except (DaskTimeout, TimeoutError):
+            pass
+        finally:
+            client.cancel([f for f, i in futures.items() if i not in done])
+        for i, (job, engine) in enumerate(todo):
+            if i not in done:
+                yield i, failed(job.case, engine, "the Dask cluster did not return this run "
+                                "in time (a lost worker or scheduler)")
