@@ -30,23 +30,25 @@ def cells(jobs, engines) -> list[tuple]:
 
 def local(jobs, engines, out: Path, timeout_s: float, workers: int) -> Iterator[tuple]:
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time."""
-    from .runner import run_subprocess
+    from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
     if workers <= 1:
         for i, (job, engine) in enumerate(todo):
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(run_subprocess, job, engine, out, timeout_s): i
-                   for i, (job, engine) in enumerate(todo)}
-        try:
-            for f in as_completed(futures):
-                yield futures[f], f.result()
-        except BaseException:
-            for f in futures:
-                f.cancel()
-            raise
+    pool = ThreadPoolExecutor(max_workers=workers)
+    futures = {pool.submit(run_subprocess, job, engine, out, timeout_s): i
+               for i, (job, engine) in enumerate(todo)}
+    try:
+        for f in as_completed(futures):
+            yield futures[f], f.result()
+    except BaseException:  # an interruption: stop what waits, then what runs
+        pool.shutdown(wait=False, cancel_futures=True)
+        kill_all()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def remote_run(job_bytes: bytes, engine: str, timeout_s: float) -> dict:

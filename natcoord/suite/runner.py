@@ -18,6 +18,7 @@ import platform
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -91,9 +92,15 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
+    if _STOPPING.is_set():
+        job_file.unlink(missing_ok=True)
+        return _failed(case, engine, "not started: the command is stopping")
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env, start_new_session=True,
                             preexec_fn=lambda: _die_with_parent(cpu))
+    _LIVE.add(proc)
+    if _STOPPING.is_set():  # stopped while it started
+        _kill(proc)
     try:
         _, err = proc.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired:
@@ -105,6 +112,8 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
         _kill(proc)
         job_file.unlink(missing_ok=True)
         raise
+    finally:
+        _LIVE.discard(proc)
     job_file.unlink(missing_ok=True)
     record_file = folder / f"{engine}.json"
     if proc.returncode != 0 or not record_file.exists():
@@ -132,6 +141,18 @@ def _die_with_parent(cpu: int | None = None) -> None:  # pragma: no cover - in t
             os.sched_setaffinity(0, {cpu})
         except OSError:
             pass
+
+
+_LIVE: set[subprocess.Popen] = set()  # engine processes running now (any thread)
+_STOPPING = threading.Event()  # set by kill_all: no new engine process starts
+
+
+def kill_all() -> None:
+    """SIGKILL every engine process this command runs, and start no more (parallel runs
+    wait in threads that an interruption of the main thread does not reach)."""
+    _STOPPING.set()
+    for proc in list(_LIVE):
+        _kill(proc)
 
 
 def _kill(proc: subprocess.Popen) -> None:
