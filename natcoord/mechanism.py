@@ -140,10 +140,11 @@ class Channel:
 
     kind ``angle`` (body; with ``points = (p, q)`` the angle of r_q - r_p in ``plane``, from
     its first axis towards its second; with ``relative_to`` that angle minus the angle
-    channel ``relative_to``: a joint angle between two bodies), ``position``/``velocity``/``acceleration`` (body,
-    point, axis x|y|z), ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic +
-    gravitational, J), ``driver`` (the effort a driver applies: N m for an angle driver, N
-    for a coordinate), ``axial`` (tension of rod or spring ``rod``, N), ``combination``
+    channel ``relative_to``: a joint angle between two bodies),
+    ``position``/``velocity``/``acceleration`` (body, point, axis x|y|z), ``reaction``
+    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J),
+    ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate),
+    ``axial`` (tension of rod or spring ``rod``, N), ``combination``
     (``sum(c * channel)`` over ``of``, in the unit of its terms).
     """
 
