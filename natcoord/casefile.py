@@ -403,10 +403,12 @@ def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:
 
 def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
           reference_frame: bool) -> Rod | Spring:
-    """A ``[[rods]]`` or ``[[springs]]`` entry: two body points, length at t = 0."""
+    """A ``[[rods]]`` or ``[[springs]]`` entry: two body points, length at t = 0 (a spring's
+    rest length: its ``length`` when given)."""
     name = r.name(x, "name", p)
     p = f"{p} ({name})"
-    allowed = {"name", "ends"} | ({"stiffness", "damping"} if key == "springs" else set())
+    allowed = {"name", "ends"} | ({"stiffness", "damping", "length"} if key == "springs"
+                                  else set())
     unknown = sorted(set(x) - allowed)
     if unknown:
         r.fail(f"{p}.{unknown[0]}", f"unknown field; expected {', '.join(sorted(allowed))}")
@@ -437,7 +439,9 @@ def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
     c = r.number(x, "damping", p, "damping", required=False, default=0.0)
     if c < 0:
         r.fail(f"{p}.damping", f"must be >= 0, got {c}")
-    return Spring(name, ends_t, k, c, length)
+    # rest length: given, or the distance at t = 0 (unstretched)
+    rest = r.number(x, "length", p, "length", required=False, default=length, positive=True)
+    return Spring(name, ends_t, k, c, rest)
 
 
 def _reactions(r: _Reader, table: dict, links: dict, bodies) -> dict[str, dict]:
@@ -636,7 +640,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
-        body = point = joint = axis = driver = rod = points = None
+        body = point = joint = axis = driver = rod = points = relative_to = None
         plane, of = "xy", ()
         if kind in ("angle", "position", "velocity", "acceleration"):
             body = r.string(c, "body", p)
@@ -656,6 +660,11 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 points = (pts[0], pts[1])
             plane = r.string(c, "plane", p, required=False, default="xy",
                              choices=tuple(PLANES) if dim == 3 else ("xy",))
+            relative_to = r.string(c, "relative_to", p, required=False)
+            if relative_to is not None and relative_to not in {
+                    x.name for x in out if x.kind == "angle" and x.plane == plane}:
+                r.fail(f"{p}.relative_to", f"must name an angle channel in plane {plane} "
+                       f"defined above this one, got {relative_to!r}")
         if kind == "reaction":
             joint = r.string(c, "joint", p)
             if joint not in jnames:
@@ -688,7 +697,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 r.fail(f"{p}.of", "must not be empty")
             of = tuple((t, float(v)) for t, v in terms.items())
         out.append(Channel(name, kind, body, point, joint, axis, driver, rod, points, plane,
-                           of))
+                           of, relative_to))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)
@@ -702,6 +711,9 @@ def _channel_values(r, init: dict, key: str, channels, kinds) -> dict[str, float
         if name not in by_name:
             r.fail(p, f"unknown channel {name!r}; channels are {', '.join(by_name)}")
         ch = by_name[name]
+        if ch.relative_to is not None:
+            r.fail(p, f"channel {name!r} is an angle relative to {ch.relative_to!r}; set the "
+                   "initial state with absolute angle or position channels")
         if ch.kind not in kinds:
             r.fail(p, f"channel {name!r} is a {ch.kind}; only {' or '.join(kinds)} channels "
                    "can set the initial state")

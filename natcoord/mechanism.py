@@ -112,7 +112,8 @@ class Rod:
 @dataclass(frozen=True)
 class Spring:
     """A linear spring-damper between two body points: tension
-    ``stiffness (l - length) + damping dl/dt`` (N/m, N s/m, m; rest length at t = 0)."""
+    ``stiffness (l - length) + damping dl/dt`` (N/m, N s/m, m; rest length ``length``: the
+    file's ``length``, else the distance at t = 0)."""
 
     name: str
     ends: tuple[tuple[str, str], tuple[str, str]]
@@ -138,10 +139,12 @@ class Channel:
     """A named output: what to measure and in which component.
 
     kind ``angle`` (body; with ``points = (p, q)`` the angle of r_q - r_p in ``plane``, from
-    its first axis towards its second), ``position``/``velocity``/``acceleration`` (body,
-    point, axis x|y|z), ``reaction`` (joint, axis x|y|z|normal), ``energy`` (kinetic +
-    gravitational, J), ``driver`` (the effort a driver applies: N m for an angle driver, N
-    for a coordinate), ``axial`` (tension of rod or spring ``rod``, N), ``combination``
+    its first axis towards its second; with ``relative_to`` that angle minus the angle
+    channel ``relative_to``: a joint angle between two bodies),
+    ``position``/``velocity``/``acceleration`` (body, point, axis x|y|z), ``reaction``
+    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J),
+    ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate),
+    ``axial`` (tension of rod or spring ``rod``, N), ``combination``
     (``sum(c * channel)`` over ``of``, in the unit of its terms).
     """
 
@@ -156,6 +159,7 @@ class Channel:
     points: tuple[str, str] | None = None
     plane: str = "xy"
     of: tuple[tuple[str, float], ...] = ()
+    relative_to: str | None = None
 
     @property
     def unit(self) -> str:

@@ -155,6 +155,8 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
                 v = np.sum(f * n, axis=1)
             else:
                 v = f[:, axis_index[ch.axis]]
+        if ch.relative_to is not None:  # a joint angle: both unwrapped from t = 0
+            v = v - cols[ch.relative_to]
         cols[ch.name] = np.asarray(v, dtype=float)
     return pd.DataFrame(cols)
 

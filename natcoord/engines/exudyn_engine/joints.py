@@ -210,5 +210,5 @@ def connectors(build: Build) -> dict:
                            "Force output (tension positive)")
     if case.springs:
         build.notes.append("spring-dampers: ObjectConnectorSpringDamper (rest length = "
-                           "distance at t = 0); tension = Force output . unit Displacement")
+                           "the spring's); tension = Force output . unit Displacement")
     return out

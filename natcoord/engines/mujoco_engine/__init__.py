@@ -29,7 +29,7 @@ Modelling choices (each one that applies is repeated in ``EngineRun.notes``):
   light body with two connects on five_bar: angle error 3.7e-5 rad against 3.1e-3 rad for a
   1e-3 kg light rod, whose loops open past 0.1 mm when it is made lighter.
 * Spring-dampers: the same tendon with ``stiffness``, ``damping`` and ``springlength`` = the
-  length at t = 0 (MuJoCo's passive tendon spring: ``-k (l - l0) - c dl/dt``).
+  spring's rest length (MuJoCo's passive tendon spring: ``-k (l - l0) - c dl/dt``).
 * Particles: a point mass. On a revolute, spherical or universal tree joint it is welded to
   its parent (its rotation carries no energy, so no joint is needed: exact); on a slide or
   floating it cannot turn and is given ``particle_inertia`` (kg m^2), as MuJoCo wants a

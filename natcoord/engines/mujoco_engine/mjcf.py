@@ -273,7 +273,7 @@ def tendons(case: Case, solref: tuple[float, float], solimp: str):
     if case.springs:
         notes.append(f"spring-dampers {', '.join(r.name for r in case.springs)}: spatial "
                      "tendons with MuJoCo's passive stiffness and damping, springlength = "
-                     "length at t = 0")
+                     "the spring's rest length")
     return sites, spatial, equality, notes
 
 
