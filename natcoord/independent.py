@@ -1,17 +1,20 @@
 """An independent solution of a planar case: joint coordinates, Kane's method (sympy).
 
 It shares nothing with natcoord's formulation but the case data: no natural coordinates,
-no natcoord model, no assembly, no multipliers. The bodies are put on a spanning tree of
-the joints grown from the ground (a joint in the tree adds one coordinate: a revolute the
-angle of its second body relative to its first, a prismatic the slide); every joint left
-out closes a loop and gives configuration constraints (a revolute: its two points meet, 2
-rows; a prismatic: the point on the line, and no relative turn unless a particle). sympy's
+no natcoord model or assembly (its own: Newton on the loop equations from the case's
+approximate pose, with the ``[initial] fix`` channels at their values), no multipliers.
+The bodies are put on a spanning tree of the joints grown from the ground (a joint in
+the tree adds one coordinate: a revolute the angle of its second body relative to its
+first, a prismatic the slide); every joint left out closes a loop and gives
+configuration constraints (a revolute: its two points meet, 2 rows; a prismatic: the
+point on the line, and no relative turn unless a particle). sympy's
 ``physics.mechanics.KanesMethod`` derives the equations of motion symbolically with the
 loop constraints as configuration and velocity constraints; they are lambdified and
 integrated by scipy in the independent coordinates only (coordinate partitioning: the
-dependent coordinates are solved from the loop equations by Newton at every evaluation, so
-the loop never drifts). The independent coordinates are chosen from the fixed channels of
-``[initial]`` first, as long as the loop equations stay solvable for the rest.
+dependent coordinates are solved from the loop equations by Newton at every evaluation,
+so the loop never drifts). The independent coordinates are chosen from the fixed
+channels of ``[initial]`` first, as long as the loop equations stay solvable for the
+rest.
 
 Reactions come from Newton-Euler afterwards: with the accelerations of the solution, each
 body's ``m a = F`` and ``I alpha = M`` are solved (least squares) for the joint forces;
@@ -109,7 +112,6 @@ class JointModel:
         N = me.ReferenceFrame("N")
         O = me.Point("O")
         O.set_vel(N, 0)
-        self._N = N
         q, labels, start = [], [], []
         # body -> (frame, angle expression, origin vector from O)
         frames = {GROUND: (N, sp.Integer(0), 0 * N.x)}
@@ -131,7 +133,6 @@ class JointModel:
             c, s = np.cos(a), np.sin(a)
             return guess_origin[body] + np.array([[c, -s], [s, c]]) @ local(body, name)
 
-        self._axis_world = {}
         for child, (j, par) in tree.parent.items():
             fp, ap, rp = frames[par]
             pp, pc = (j.points[0], j.points[1]) if j.bodies[0] == par else \
