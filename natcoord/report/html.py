@@ -502,9 +502,22 @@ def _provenance_items(meta: dict | None) -> list[tuple[str, str]]:
         return []
     order = ["method", "created", "max_phi", "settings", "tolerances", "versions"]
     keys = [k for k in order if k in meta] + [
-        k for k in meta if k not in order and k != "case"
+        k for k in meta if k not in order and k not in ("case", "independent")
     ]
     return [(k.replace("_", " "), fmt_value(meta[k])) for k in keys]
+
+
+def _independent_line(meta: dict | None, units: dict[str, str]) -> str:
+    """'independent check: <method>, max |diff| theta 4.1e-13 rad, ...' from the
+    reference's ``independent`` field ('' when it has none; escaped by the template)."""
+    ind = (meta or {}).get("independent")
+    if not isinstance(ind, dict):
+        return ""
+    diffs = ind.get("max_abs_diff") if isinstance(ind.get("max_abs_diff"), dict) else {}
+    parts = [f"{k} {num(v):.2g} {units.get(k, '')}".rstrip() for k, v in diffs.items()
+             if num(v) is not None]
+    return "independent check: " + ", ".join([str(ind.get("method", "?")),
+                                              "max |diff| " + ", ".join(parts or ["—"])])
 
 
 def _bench_section(bench: dict | None, cases_order: list[str]) -> dict | None:
@@ -658,6 +671,7 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
             "has_reference": ref is not None,
             "reference_file": f"{case}.csv",
             "provenance": _provenance_items(ref_meta),
+            "independent": _independent_line(ref_meta, {n: meta[n]["unit"] for n in names}),
             "notes": notes,
             "tolerance_reasons": tol_reasons,
             "details": details,

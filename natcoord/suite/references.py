@@ -2,7 +2,9 @@
 
 ``references/<case>.csv`` holds the channels at the case's sample times and
 ``references/<case>.json`` how they were made: method, settings, versions, date, the
-constraint drift, and an error estimate from a second run at a 100x looser tolerance.
+constraint drift, an error estimate from a second run at a 100x looser tolerance and,
+for the cases :mod:`natcoord.independent` derives, ``independent``: how far a solution in
+joint coordinates (Kane's method) is from the reference, per channel.
 References change only through ``natcoord reference update``.
 """
 
@@ -18,6 +20,7 @@ import pandas as pd
 from .. import __version__
 from ..engines.base import initial_body_states
 from ..engines.natcoord_engine import run as natcoord_run
+from ..independent import check as independent_check
 from ..mechanism import Case
 from ..result import evaluate_channels, methods_table
 from .io import read_json, write_csv, write_json
@@ -76,6 +79,9 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
                      "python": platform.python_version()},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
+    independent = independent_check(case, table)  # None: the case is not derived there
+    if independent is not None:
+        provenance["independent"] = independent
     write_csv(Path(directory) / f"{case.name}.csv", table)
     if best.methods:
         write_csv(Path(directory) / f"{case.name}.methods.csv", methods_table(case, best))

@@ -1,0 +1,112 @@
+"""The stored references against a derivation that shares nothing with natcoord's:
+joint coordinates, Kane's method (sympy), DOP853 at rtol 1e-13 (natcoord.independent)."""
+
+from __future__ import annotations
+
+import ast
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.special import ellipk
+
+from natcoord import load_case
+from natcoord.independent import SETTINGS, JointModel, check, solve
+
+from .conftest import CASES, REFERENCES
+
+DERIVED = ("slider_crank", "four_bar", "pendulum")
+# measured 4e-13 .. 1e-12 rad and m, 5e-11 N, 3e-11 J (references/<case>.json); the bounds
+# leave room for other platforms and still sit far below every engine's tolerance
+BOUND = {"angle": 1e-9, "position": 1e-9, "reaction": 1e-8, "energy": 1e-9}
+
+# a link 1 mm longer: (case, pattern, replacement) for the case file's text
+LONGER = {
+    "slider_crank": (r"A = \[1\.0, 0\.0\] \}", "A = [1.001, 0.0] }"),
+    "four_bar": (r"C = \[2\.0, 0\.0\] \}", "C = [2.001, 0.0] }"),
+    "pendulum": (r"com = \[1\.0, 0\.0\]\ninertia = 0\.0\npoints = \{ O = \[0\.0, 0\.0\], "
+                 r"P = \[1\.0, 0\.0\] \}",
+                 "com = [1.001, 0.0]\ninertia = 0.0\npoints = { O = [0.0, 0.0], "
+                 "P = [1.001, 0.0] }"),
+}
+
+
+@pytest.fixture(scope="module")
+def independent():
+    """case name -> the independent solution's channels at the case's sample times."""
+    return {name: solve(load_case(CASES / f"{name}.toml")) for name in DERIVED}
+
+
+@pytest.mark.parametrize("name", DERIVED)
+def test_stored_reference_agrees_with_independent_derivation(name, independent):
+    case = load_case(CASES / f"{name}.toml")
+    ref = pd.read_csv(REFERENCES / f"{name}.csv")
+    mine = independent[name]
+    angles = [c.name for c in case.channels if c.kind == "angle"]
+    assert angles and all(a in mine for a in angles)
+    np.testing.assert_allclose(mine["t"], ref["t"], atol=1e-12)
+    for c in case.channels:
+        err = np.max(np.abs(mine[c.name].to_numpy() - ref[c.name].to_numpy()))
+        assert err <= BOUND[c.kind], f"{name}.{c.name}: {err:.3g} {c.unit}"
+
+
+@pytest.mark.parametrize("name", DERIVED)
+def test_stored_independent_field_matches_recomputation(name, independent):
+    """The provenance's numbers are what the derivation gives now, not a stale record."""
+    prov = json.loads((REFERENCES / f"{name}.json").read_text())["independent"]
+    assert prov["settings"] == SETTINGS and "Kane" in prov["method"]
+    ref = pd.read_csv(REFERENCES / f"{name}.csv")
+    for channel, stored in prov["max_abs_diff"].items():
+        now = np.max(np.abs(independent[name][channel].to_numpy() - ref[channel].to_numpy()))
+        assert now == pytest.approx(stored, rel=0.5, abs=1e-12), channel
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", DERIVED)
+def test_a_link_1mm_longer_is_caught(name, case_variant):
+    """The comparison can fail: the same derivation on a case with one link 1 mm longer
+    is far (> 1e-4 rad; measured 1.4e-3 to 2.2e-2) from the stored reference."""
+    pattern, repl = LONGER[name]
+    longer = load_case(case_variant(name, [(pattern, repl)]))
+    ref = pd.read_csv(REFERENCES / f"{name}.csv")
+    theta = solve(longer)["theta"].to_numpy()
+    assert np.max(np.abs(theta - ref["theta"].to_numpy())) > 1e-4
+
+
+def test_pendulum_period_is_the_elliptic_one():
+    """IFToMM A01 released from horizontal: T = 4 sqrt(L/g) K(k^2 = 1/2) = 2.3678419 s,
+    with L and g read from the case; the independent solution's period (the return of the
+    angular rate to zero at theta = 0) and its swing to -pi match it."""
+    case = load_case(CASES / "pendulum.toml")
+    L = float(np.linalg.norm(case.body("link").com - case.body("link").points["O"]))
+    g = float(np.linalg.norm(case.gravity))
+    period = 4.0 * np.sqrt(L / g) * ellipk(0.5)
+    assert period == pytest.approx(2.3678419, abs=1e-7)  # the published value
+
+    model = JointModel(case)
+
+    def rate_falls_through_zero(t, y):
+        return y[1]
+    rate_falls_through_zero.direction = -1.0
+
+    sol = model.integrate(np.array([0.0, 2.5 * period]), events=rate_falls_through_zero,
+                          dense_output=True)
+    t_event = sol.t_events[0][sol.t_events[0] > 0.5 * period]  # not the release at t = 0
+    assert t_event[0] == pytest.approx(period, abs=1e-9)
+    assert t_event[1] == pytest.approx(2 * period, abs=2e-9)
+    assert sol.sol(period / 2)[0] == pytest.approx(-np.pi, abs=1e-10)
+    assert sol.sol(t_event[0])[0] == pytest.approx(0.0, abs=1e-10)
+
+
+def test_unsupported_cases_have_no_independent_field():
+    for name in ("five_bar", "four_bar_3d", "slider_crank_driven"):
+        assert check(load_case(CASES / f"{name}.toml"), pd.DataFrame()) is None
+        assert "independent" not in json.loads((REFERENCES / f"{name}.json").read_text())
+
+
+def test_derivation_uses_no_natcoord_model():
+    """Independent means independent: the module takes the case data and nothing else."""
+    tree = ast.parse((CASES.parent / "natcoord" / "independent.py").read_text())
+    local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
+    assert local <= {"errors", "mechanism"}
