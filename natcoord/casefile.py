@@ -81,6 +81,8 @@ class _Reader:
         raise CaseError(self.file, field, reason)
 
     def get(self, table: dict, key: str, path: str, *, required=True, default=None):
+        if not isinstance(table, dict):
+            self.fail(path, f"must be a table, got {_short(table)}")
         if key not in table:
             if required:
                 self.fail(_join(path, key), "missing required field")
@@ -507,9 +509,11 @@ def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
         if np.linalg.norm(list(points.values())[1] - list(points.values())[0]) < 1e-9:
             r.fail(f"{p}.points", "the first two points coincide; they define the body's axis")
         if kind == "uniform_rod":
-            ends = tuple(r.get(b, "ends", p, required=False, default=list(points)[:2]))
-            if len(ends) != 2 or any(e not in points for e in ends):
-                r.fail(f"{p}.ends", f"must name two of the body's points, got {list(ends)!r}")
+            ends = r.get(b, "ends", p, required=False, default=list(points)[:2])
+            if not isinstance(ends, list) or len(ends) != 2 or any(
+                    not isinstance(e, str) or e not in points for e in ends):
+                r.fail(f"{p}.ends", f"must name two of the body's points, got {_short(ends)}")
+            ends = tuple(ends)
             a, c = points[ends[0]], points[ends[1]]
             length = float(np.linalg.norm(c - a))
             if length < 1e-9:
@@ -655,7 +659,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
             pts = r.get(c, "points", p, required=dim == 3)
             if pts is not None:
                 if not (isinstance(pts, list) and len(pts) == 2
-                        and all(x in points_of[body] for x in pts)):
+                        and all(isinstance(x, str) and x in points_of[body] for x in pts)):
                     r.fail(f"{p}.points", f"must name two points of body {body!r}, got {pts!r}")
                 points = (pts[0], pts[1])
             plane = r.string(c, "plane", p, required=False, default="xy",

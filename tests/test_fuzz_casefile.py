@@ -60,8 +60,8 @@ def _mutate(data, path, action, value):
         node[last] = value
 
 
-@settings(max_examples=300, deadline=None, derandomize=True,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+@settings(max_examples=600, deadline=None, derandomize=True,
+          suppress_health_check=list(HealthCheck))
 @given(st.data())
 def test_mutated_case_files_load_or_are_refused_with_a_reason(tmp_path_factory, data):
     name = data.draw(st.sampled_from(sorted(TEXTS)))
