@@ -17,7 +17,8 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
 
     Returns ``(channels, verdict, reason)``; ``channels[name]`` holds kind, unit,
     ``max_abs`` (max |engine - reference| over the reference's samples), ``max_rel``
-    (``max_abs`` over the reference channel's range), ``tolerance`` and ``pass`` (None when
+    (``max_abs`` over the scale named in ``rel_to``: the reference channel's range, or for
+    energy the system's energy scale), ``tolerance`` and ``pass`` (None when
     not gated: no tolerance, or channel undetermined). A gated channel that the engine's
     output lacks, or that is NaN or infinite anywhere, fails with the reason in ``note``.
     ``undetermined``: channels a self-equilibrating set of the redundant constraints
@@ -59,7 +60,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
             max_abs = float(np.max(err)) if np.all(np.isfinite(err)) else float("inf")
             if not np.isfinite(max_abs):
                 entry["note"] = "non-finite values (NaN or inf) in this engine's results"
-            span = float(np.ptp(ref)) or float(np.max(np.abs(ref))) or 1.0
+            span, entry["rel_to"] = _scale(case, ch, ref)
             entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
             if not determined:
                 entry["note"] = "undetermined (redundant constraints): shown, not gated"
@@ -75,6 +76,26 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         return out, "not-gated", "no tolerance written for this engine in the case file"
     return out, "pass", ""
 
+
+
+def energy_scale(case: Case) -> float:
+    """The system's energy scale, J: the weight of every body times the size of the
+    mechanism (the largest distance between two of its points at t = 0)."""
+    pts = [np.asarray(x, float) for b in case.bodies for x in b.points.values()]
+    pts += [np.asarray(x, float) for x in case.ground.values()]
+    size = max((float(np.linalg.norm(a - b)) for a in pts for b in pts), default=0.0)
+    return sum(b.mass for b in case.bodies) * float(np.linalg.norm(case.gravity)) * size
+
+
+def _scale(case: Case, ch, ref: np.ndarray) -> tuple[float, str]:
+    """What a channel's relative error is relative to: its range over the run; for energy,
+    which a conservative system keeps constant (a range near zero), the larger of the
+    energy scale (:func:`energy_scale`), its range and its size."""
+    span = float(np.ptp(ref))
+    if ch.kind == "energy":
+        scale = max(energy_scale(case), span, float(np.max(np.abs(ref))))
+        return (scale or 1.0), "energy scale (total weight x mechanism size)"
+    return (span or float(np.max(np.abs(ref))) or 1.0), "range of the reference"
 
 
 def _comparable(case: Case, reference: pd.DataFrame) -> tuple[np.ndarray, str]:
