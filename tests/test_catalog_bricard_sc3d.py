@@ -79,9 +79,9 @@ def test_bricard_mirror_libration(bricard):
     _, _, _, b, _ = _run("a04_bricard", np.concatenate([[0.0], s + half]))
     b = b.iloc[1:].reset_index(drop=True)
     assert b["xP3"][0] == pytest.approx(-1.0, abs=1e-6)
-    assert np.max(np.abs(b["xP3"] + a["xP3"])) < 1e-5
-    assert np.max(np.abs(b["yP3"] - a["yP3"])) < 1e-5
-    assert np.max(np.abs(b["zP3"] - a["zP3"])) < 1e-5
+    assert np.max(np.abs(b["xP3"] + a["xP3"])) < 5e-7  # measured 4.7e-8 m
+    assert np.max(np.abs(b["yP3"] - a["yP3"])) < 5e-7
+    assert np.max(np.abs(b["zP3"] - a["zP3"])) < 5e-7
 
 
 def test_bricard_determined_and_undetermined_reactions(bricard):
