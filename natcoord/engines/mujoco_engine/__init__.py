@@ -70,6 +70,7 @@ DEFAULTS = {
     "solimp": [0.9999, 0.9999, 0.001, 0.5, 2.0],
     "particle_inertia": 1e-6,  # kg m^2, about every axis
     "max_loop_drift": 1e-4,  # m: a soft loop or rod opened wider than this is a failed run
+    "loop_axis_offset": 0.0,  # m: > 0 holds a loop-closing 3-D revolute's axis by a 2nd connect
     "zero_inertia": 1e-6,  # added along a zero principal axis, x the largest moment
 }
 

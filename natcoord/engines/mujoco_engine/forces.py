@@ -116,6 +116,10 @@ class Reactions:
         self.loops = built.loops
         self.eqid = {j.name: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_EQUALITY, j.name)
                      for j in built.loops}
+        # a loop revolute held by a second connect along its axis (mjcf.loop_axis_offset)
+        self.axis_eqid = {j.name: k for j in built.loops
+                          if (k := mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_EQUALITY,
+                                                     j.name + "_axis")) >= 0}
         self.tree = {cj.name: (child, tree_orientation(cj, par))
                      for child, (par, cj) in built.parent.items()}
         self.subtree = subtree_bodies(built.parent)
@@ -143,4 +147,8 @@ class Reactions:
                 rows = eq[d.efc_id[eq] == self.eqid[j.name]]
                 forces[j.name][i] = -d.efc_force[rows[:3]]
                 drift = max(drift, float(np.max(np.abs(d.efc_pos[rows]))))
+                if j.name in self.axis_eqid:  # the joint force is the sum of both connects
+                    rows = eq[d.efc_id[eq] == self.axis_eqid[j.name]]
+                    forces[j.name][i] -= d.efc_force[rows[:3]]
+                    drift = max(drift, float(np.max(np.abs(d.efc_pos[rows]))))
         return drift

@@ -68,6 +68,14 @@ def split_tree(case: Case) -> tuple[list[Joint], list[Joint], list[str]]:
                          f"no point-on-line equality); {kinds}"]
 
 
+def _axial_loops(loops: list[Joint], offset: float, planar: bool) -> dict[str, float]:
+    """Loop-closing 3-D revolutes that get a second connect ``offset`` m along their axis
+    (setting ``loop_axis_offset``, 0: none): one connect leaves the joint a ball joint."""
+    if offset <= 0.0 or planar:
+        return {}
+    return {j.name: offset for j in loops if j.type == "revolute" and j.axis is not None}
+
+
 @dataclasses.dataclass
 class Built:
     """The MJCF text and what reading the run needs."""
@@ -309,10 +317,18 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     solimp = fmt(*s["solimp"])
     sites, spatial, equality, ten_notes = tendons(case, solref, solimp)
     notes += ten_notes
+    axial = _axial_loops(loops, float(s.get("loop_axis_offset", 0.0)), planar)
     for j in loops:
         for k in (0, 1):
             sites.setdefault(j.bodies[k], []).append(
                 _site(f"loop_{j.name}_{k}", node_point(case, j.bodies[k], j.points[k])))
+            if j.name in axial:  # the same point moved along the axis, in this body's frame
+                fr = GROUND_FRAME if j.bodies[k] == GROUND else frames[j.bodies[k]]
+                fa = GROUND_FRAME if j.bodies[0] == GROUND else frames[j.bodies[0]]
+                off = fr.R.T @ (fa.R @ j.axis) * axial[j.name]
+                sites[j.bodies[k]].append(_site(
+                    f"loop_{j.name}_axis_{k}",
+                    node_point(case, j.bodies[k], j.points[k]) + off))
     w = _Writer(case, frames, parent, sites, s, planar)
     for c in w.children.get(GROUND, []):
         w.body(c, 4)
@@ -322,7 +338,13 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     eq = [f'    <connect name={quoteattr(j.name)} site1="loop_{j.name}_0" '
           f'site2="loop_{j.name}_1" solref="{fmt(*solref)}" solimp="{solimp}"/>'
           for j in loops]
+    eq += [f'    <connect name={quoteattr(j.name + "_axis")} site1="loop_{j.name}_axis_0" '
+           f'site2="loop_{j.name}_axis_1" solref="{fmt(*solref)}" solimp="{solimp}"/>'
+           for j in loops if j.name in axial]
     notes += w.notes
+    notes += [f"loop revolute {j} also holds its axis: a second connect {axial[j]:g} m along "
+              "it (6 rows for 5, one redundant; the joint force is the sum of both)"
+              for j in axial]
     notes += [f"connect equality (3 rows) for loop {j.type} joint {j.name} (site1 on "
               f"{j.bodies[0]}, site2 on {j.bodies[1]}), solref {fmt(*solref)}, solimp {solimp}"
               for j in loops]
