@@ -497,6 +497,40 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     raise typer.Exit(c.code)
 
 
+@app.command("propose")
+def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file.")],
+                engines: Engines = None,
+                margin: Annotated[float, typer.Option(
+                    min=1.0, help="Tolerance = measured error x margin.")] = 3.0,
+                out_file: Annotated[Path | None, typer.Option(
+                    "--out", help="Write the proposed blocks here too.")] = None,
+                timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
+                references: RefDir = None):
+    """Propose tolerances for a new case: run it in every engine (at its settings and over
+    the start of each engine's sweep), measure the errors against its reference and print
+    the [engines.*] blocks to paste into the case file."""
+    from .suite import propose
+
+    (job,) = _cases([case], cases_dir)
+    names = _engines(engines)
+    refs = resolve(references, "references")
+    try:
+        rows = propose.propose(job, names, refs, margin=margin, timeout_s=timeout)
+    except ValueError as e:
+        _fail(str(e))
+    text = propose.as_toml(job.case, rows, margin)
+    print(text)
+    for row in rows:
+        if row["sweep"] and not propose.converged(row["sweep"]):
+            err.print(f"note: {row['engine']}'s error does not fall over its sweep; check its "
+                      "settings before trusting the proposal")
+    if out_file is not None:
+        from .suite.io import write_atomic
+
+        write_atomic(out_file, text + "\n")
+        out.print(f"written: {escape(str(out_file))}")
+
+
 @reference_app.command("update")
 def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = None,
                      references: RefDir = None):

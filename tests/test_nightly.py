@@ -220,3 +220,32 @@ def test_a_lost_dask_task_fails_its_cell(tmp_path):
     assert time.time() - t0 < 120
     (i, rec), = out
     assert rec["status"] == "failed" and rec["reason"], rec  # lost, retried, timed out
+
+
+def test_propose_measures_and_writes_tolerances_that_then_pass(tmp_path):
+    """A new case without engine blocks: reference update, propose, paste, run, gate."""
+    import tomllib
+
+    text = (CASES / "four_bar.toml").read_text()
+    text = text.replace('name = "four_bar"', 'name = "new_bar"')
+    text = text[:text.index("[engines.")]
+    cases, refs = tmp_path / "cases", tmp_path / "refs"
+    cases.mkdir()
+    (cases / "new_bar.toml").write_text(text)
+    args = ("--cases-dir", cases, "--references", refs)
+    assert _cli("reference", "update", "new_bar", *args).returncode == 0
+    p = _cli("propose", "new_bar", "--engines", "natcoord,exudyn", "--out",
+             tmp_path / "p.toml", *args)
+    assert p.returncode == 0, p.stderr
+    blocks = tomllib.loads((tmp_path / "p.toml").read_text())["engines"]
+    assert set(blocks) == {"natcoord", "exudyn"}
+    assert "first angle over its sweep" in blocks["exudyn"]["reason"]
+    assert blocks["exudyn"]["tolerance"]["theta"] > 1e-6  # a second-order engine
+    (cases / "new_bar.toml").write_text(text + "\n" + (tmp_path / "p.toml").read_text())
+    run = _cli("run", "new_bar", "--engines", "natcoord,exudyn", "--out", tmp_path / "r", *args)
+    assert run.returncode == 0 and "2 within tolerance" in run.stdout, run.stdout
+    g = _cli("gate", "--results", tmp_path / "r", "--baseline", tmp_path / "b.json",
+             "--update-baseline")
+    assert g.returncode == 0 and "baseline updated" in g.stdout
+    assert set(json.loads((tmp_path / "b.json").read_text())["errors"]) == {
+        "new_bar/natcoord", "new_bar/exudyn"}

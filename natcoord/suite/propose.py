@@ -1,0 +1,115 @@
+"""Tolerances proposed from measurement, for a new case.
+
+:func:`propose` runs a case in each engine at the case's settings (and, to show how the
+error converges, at the engine's work-precision sweep), measures every channel's error
+against the case's reference, and proposes each determined channel's tolerance as the
+measured error times a margin, rounded up to one significant digit. The result is TOML to
+paste into the case file, with a reason that says what was measured; an engine that cannot
+run the case gets ``unsupported`` with its reason instead.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import math
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .bench import SWEEPS
+from .compare import channel_errors
+from .references import load_provenance, load_reference
+from .runner import as_job, run_subprocess
+
+FLOOR = 1e-14  # no tolerance below round-off
+
+
+def round_up(x: float) -> float:
+    """x rounded up to one significant digit (at least FLOOR)."""
+    x = max(float(x), FLOOR)
+    e = math.floor(math.log10(x))
+    return math.ceil(x / 10**e - 1e-9) * 10**e
+
+
+def _errors(case, engine, folder: Path, reference, undetermined) -> dict[str, float]:
+    table = pd.read_csv(folder / "results" / case.name / f"{engine}.csv")
+    channels, _, _ = channel_errors(case, engine, table, reference, undetermined)
+    return {n: c["max_abs"] for n, c in channels.items()
+            if c.get("determined", True) and c.get("max_abs") is not None}
+
+
+def propose(case, engines, references: Path, *, margin: float = 3.0,
+            timeout_s: float = 600.0, sweep: int = 3) -> list[dict]:
+    """Per engine: status, the errors at the case's settings, the first angle channel's
+    error over up to ``sweep`` settings of its sweep, and the proposed tolerances."""
+    job = as_job(case)
+    case = job.case
+    reference = load_reference(case.name, references)
+    if reference is None:
+        raise ValueError(f"{case.name}: no reference stored; run `natcoord reference update "
+                         f"{case.name}` first")
+    undetermined = (load_provenance(case.name, references) or {}).get("undetermined", ())
+    angle = next((c.name for c in case.channels if c.kind == "angle"), None)
+    out = []
+    with tempfile.TemporaryDirectory(prefix="natcoord-propose-") as tmp:
+        for engine in engines:
+            rec = run_subprocess(job, engine, Path(tmp), timeout_s)
+            row = {"engine": engine, "status": rec["status"], "reason": rec.get("reason", ""),
+                   "settings": rec.get("settings", {}), "errors": {}, "sweep": [],
+                   "tolerance": {}}
+            if rec["status"] == "ok":
+                row["errors"] = _errors(case, engine, Path(tmp), reference, undetermined)
+                row["tolerance"] = {k: round_up(margin * v) for k, v in row["errors"].items()}
+                for setting in SWEEPS.get(engine, [])[:sweep] if angle else []:
+                    r = run_subprocess(job, engine, Path(tmp), timeout_s, setting)
+                    err = (_errors(case, engine, Path(tmp), reference, undetermined).get(angle)
+                           if r["status"] == "ok" else None)
+                    row["sweep"].append({"setting": setting, "error": err,
+                                         "wall_time_s": r.get("wall_time_s")})
+            out.append(row)
+    return out
+
+
+def as_toml(case, rows: list[dict], margin: float) -> str:
+    """The engine blocks to paste into the case file."""
+    today = dt.date.today().isoformat()
+    units = {c.name: c.unit for c in case.channels}
+    lines = [f"# proposed by `natcoord propose {case.name}` on {today}: measured errors at "
+             f"each engine's settings x {margin:g}, rounded up", ""]
+    for row in rows:
+        e = row["engine"]
+        lines.append(f"[engines.{e}]")
+        if row["status"] == "unsupported":
+            lines += [f"unsupported = {_q(row['reason'])}", ""]
+            continue
+        if row["status"] != "ok":
+            lines += [f"# {e} {row['status']}: {row['reason']}", ""]
+            continue
+        measured = ", ".join(f"{k} {v:.2g} {units.get(k, '')}".rstrip()
+                             for k, v in row["errors"].items())
+        conv = "; ".join(f"{_setting(s['setting'])}: {s['error']:.2g}"
+                         for s in row["sweep"] if s["error"] is not None)
+        reason = (f"measured at {_setting(row['settings']) or 'its defaults'}: {measured}"
+                  f"{'; first angle over its sweep: ' + conv if conv else ''}; bounds "
+                  f"{margin:g}x the measured errors")
+        lines += [f"reason = {_q(reason)}", f"[engines.{e}.tolerance]"]
+        lines += [f"{k} = {v:.0e}" for k, v in row["tolerance"].items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _setting(s: dict) -> str:
+    return " ".join(f"{k} {v:g}" if isinstance(v, float) else f"{k} {v}"
+                    for k, v in (s or {}).items() if v is not None and not isinstance(v, dict))
+
+
+def _q(text: str) -> str:
+    return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def converged(sweep: list[dict]) -> bool:
+    """Whether the sweep's errors fall as the setting tightens (the last below the first)."""
+    errs = [s["error"] for s in sweep if s["error"] is not None]
+    return len(errs) >= 2 and np.isfinite(errs).all() and errs[-1] < errs[0]
