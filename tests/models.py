@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from natcoord import casemodel
+from natcoord import casemodel, outputs
 from natcoord.kinematics import State
 from natcoord.mechanism import Case
 from natcoord.model import Model
@@ -47,4 +47,4 @@ def body_columns(model: Model, body: str) -> np.ndarray:
 
 def body_angle(model: Model, body: str, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """(T,) unwrapped angle of a 2-D body's frame along q, qd (T, n), rad."""
-    return casemodel.frames(_BUILT[id(model)], q, qd).angle(body)
+    return outputs.frames(_BUILT[id(model)], q, qd).angle(body)

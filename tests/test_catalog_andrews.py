@@ -10,7 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from natcoord import casemodel
+from natcoord import casemodel, outputs
 from natcoord.casefile import load_case
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
@@ -206,7 +206,7 @@ def test_seven_coordinates_six_independent_constraints_one_dof(published):
     assert all(j.type == "revolute" for j in case.joints)
     assert 3 * len(case.bodies) - 2 * len(case.joints) == 1
     cm = casemodel.build(case)
-    diag = casemodel.diagnostics(cm, casemodel.initial_state(cm).q)
+    diag = outputs.diagnostics(cm, casemodel.initial_state(cm).q)
     assert diag["dof"] == 1 and diag["redundant"] == 0
 
 

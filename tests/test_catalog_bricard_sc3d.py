@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord import casemodel, reactions
+from natcoord import casemodel, outputs, reactions
 from natcoord.casefile import load_case
 from natcoord.dynamics import integrate
 from natcoord.result import evaluate_channels
@@ -24,9 +24,9 @@ def _run(name: str, times=None):
     sol = integrate(cm.model, casemodel.initial_state(cm),
                     case.times if times is None else times,
                     case_solver({"method": "dop853", "rtol": 1e-12, "atol": 1e-14}))
-    lam = casemodel.reactions_by_method(cm, sol)
+    lam = outputs.reactions_by_method(cm, sol)
     first = next(iter(lam.values()))
-    return case, cm, sol, evaluate_channels(case, casemodel.motion(cm, sol, first)), first
+    return case, cm, sol, evaluate_channels(case, outputs.motion(cm, sol, first)), first
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +49,7 @@ def test_bricard_one_redundant_row_and_one_dof(bricard):
         N, rank = reactions.left_null_space(m.constraints.jacobian(sol.q[k]))
         assert rank == m.n - 1, "Phi_q must have rank n - 1 (1 DOF)"
         assert m.m - rank == 1 and N.shape[1] == 1, "exactly one redundant row"
-    d = casemodel.diagnostics(cm, sol.q[0])
+    d = outputs.diagnostics(cm, sol.q[0])
     assert (d["dof"], d["redundant"]) == (1, 1)
 
 
@@ -88,7 +88,7 @@ def test_bricard_determined_and_undetermined_reactions(bricard):
     """One self-stress wrench runs round the loop: every world component of every joint
     force is undetermined, their differences J1 - J3, J1 - J6 are determined."""
     case, cm, sol, _, lam = bricard
-    und = set(casemodel.undetermined(cm, sol, lam))
+    und = set(outputs.undetermined(cm, sol, lam))
     joints = {c.name for c in case.channels if c.kind == "reaction"}
     combos = {c.name for c in case.channels if c.kind == "combination"}
     assert joints and combos
@@ -99,7 +99,7 @@ def test_bricard_determined_and_undetermined_reactions(bricard):
 # ---- spatial slider-crank ----------------------------------------------------------------
 def test_slider_crank_3d_energy_and_dof(crank3d):
     _, cm, sol, ch, _ = crank3d
-    d = casemodel.diagnostics(cm, sol.q[0])
+    d = outputs.diagnostics(cm, sol.q[0])
     assert (d["dof"], d["redundant"]) == (1, 0)
     assert ch["theta"][0] == pytest.approx(0.0, abs=1e-12)
     assert ch["xC"][0] == pytest.approx(0.2, abs=1e-12)

@@ -16,8 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-from ..casemodel import BodyState, InitialState, initial_body_states
 from ..mechanism import Case
+from ..outputs import BodyState, InitialState, initial_body_states
 from ..result import Motion
 
 __all__ = ["Adapter", "BodyState", "EngineRun", "InitialState", "initial_body_states",

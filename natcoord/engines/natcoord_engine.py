@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import time
 
-from .. import __version__, casemodel
+from .. import __version__, casemodel, outputs
 from ..dynamics import integrate
 from ..kinematics import State
 from ..mechanism import Case
@@ -46,12 +46,12 @@ def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     build = time.perf_counter() - t0
     sol = integrate(cm.model, state, case.times, solver)
     build += sol.counters["compile_time_s"]  # a cold compile or cache load: build, not wall
-    lams = casemodel.reactions_by_method(cm, sol)
-    motions = {name: casemodel.motion(cm, sol, lam) for name, lam in lams.items()}
+    lams = outputs.reactions_by_method(cm, sol)
+    motions = {name: outputs.motion(cm, sol, lam) for name, lam in lams.items()}
     first = next(iter(lams))
-    diag = casemodel.diagnostics(cm, sol.q[0])
+    diag = outputs.diagnostics(cm, sol.q[0])
     counters = sol.counters | diag | {
-        "undetermined": casemodel.undetermined(cm, sol, lams[first]),
+        "undetermined": outputs.undetermined(cm, sol, lams[first]),
         "reaction_methods": list(lams), "coordinates": coordinates}
     notes = [f"natural coordinates ({coordinates}): {diag['n']} coordinates, "
              f"{diag['m']} constraints of rank {diag['rank']}: {diag['dof']} DOF, "

@@ -27,9 +27,9 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..casemodel import initial_body_states
 from ..errors import NatcoordError
 from ..mechanism import Case
+from ..outputs import initial_body_states
 from .compare import channel_errors
 from .io import read_json, write_json
 from .references import load_provenance, load_reference
