@@ -16,7 +16,9 @@ DEFAULTS = {
     "accuracy": 1e-10,  # the integrator's relative accuracy (error-controlled methods)
     "constraint_tolerance": 1e-12,  # projection tolerance of the constraint manifold
     "dt": None,  # s: a fixed step instead (fixed-step integrators only)
-    "step_limit": 10_000_000,  # internal steps per output interval before Simbody gives up
+    "step_limit": 100_000,  # internal steps per output interval before Simbody gives up (a
+    # stall, e.g. five_bar at accuracy 1e-10 near its -180 deg singular position, fails fast)
+    "min_step": 1e-12,  # s: a step Simbody would shrink below this is an error, not a stall
     "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
     "velocity_check": 1e-9,  # m/s, rad/s: start must match natcoord's initial rates
 }
@@ -52,8 +54,8 @@ def run(case, init, settings: dict) -> EngineRun:
     t0 = time.perf_counter()
     times = case.times
     states = simulate.integrate(osim, b, state, times, s)
-    origin, rotation, velocity, omega, forces, rod_force, effort, counters, drift = \
-        simulate.sample(osim, b, states, len(times))
+    (origin, rotation, velocity, omega, accel, alpha, forces, rod_force, effort, counters,
+     drift) = simulate.sample(osim, b, states, len(times))
     wall = time.perf_counter() - t0
     notes = list(b.notes)
     what = f"fixed step {s['dt']:g} s" if s.get("dt") else f"accuracy {s['accuracy']:g}"
@@ -61,7 +63,7 @@ def run(case, init, settings: dict) -> EngineRun:
                  f"{s['constraint_tolerance']:g}, via OpenSim Manager")
     counters |= {"qerr_max": float(drift[0]), "uerr_max": float(drift[1])}
     motion = drop(case, times, origin, rotation, velocity, omega, forces,
-                  driver_effort=effort, rod_force=rod_force)
+                  acceleration=accel, alpha=alpha, driver_effort=effort, rod_force=rod_force)
     return EngineRun(motion, build_time, wall, counters["steps"], s, counters, notes)
 
 

@@ -213,8 +213,9 @@ def _add_spring(osim, b: Built, sp):
     (n1, p1), (n2, p2) = sp.ends
     r1, r2 = node_point(b.case, n1, p1), node_point(b.case, n2, p2)
     expr = f"{sp.stiffness!r}*(d-{sp.length!r})+{sp.damping!r}*ddot"
-    f = osim.ExpressionBasedPointToPointForce(sp.name, _phys(b, n1), vec3(osim, r1),
-                                              _phys(b, n2), vec3(osim, r2), expr)
+    f = osim.ExpressionBasedPointToPointForce(_phys(b, n1).getName(), vec3(osim, r1),
+                                              _phys(b, n2).getName(), vec3(osim, r2), expr)
+    f.setName(sp.name)
     b.model.addForce(f)
     b.springs.append((sp, n1, r1, n2, r2))
 

@@ -30,9 +30,9 @@ def initial_state(osim, b: Built, velocity_check: float):
     state = b.model.initSystem()
     for oj, rates in b.speeds:
         for k, r in enumerate(rates):
-            c = oj.get_coordinates(k)
-            if not c.isPrescribed(state):
-                c.setSpeedValue(state, float(r))
+            # a prescribed coordinate too: its u is only overwritten when the integrator
+            # starts, and the check below reads the state as set here
+            oj.get_coordinates(k).setSpeedValue(state, float(r))
     b.model.realizeVelocity(state)
     for name, ob in b.bodies.items():
         F = b.frames[name]
@@ -62,6 +62,7 @@ def integrate(osim, b: Built, state, times: np.ndarray, s: dict):
         manager.setIntegratorAccuracy(float(s["accuracy"]))
     manager.setIntegratorConstraintTolerance(float(s["constraint_tolerance"]))
     manager.setIntegratorInternalStepLimit(int(s["step_limit"]))
+    manager.setIntegratorMinimumStepSize(float(s["min_step"]))
     manager.setWriteToStorage(False)
     # the Python bindings do not wrap the Integrator (no step counts); the Manager records
     # the state after every internal step, so the trajectory's length counts the steps
@@ -88,8 +89,8 @@ def _point_state(ob, state, p: np.ndarray):
 
 
 def sample(osim, b: Built, states, T: int):
-    """3-D samples at every state: (origin, rotation, velocity, omega, forces, rod_force,
-    driver_effort, counters, drift), as :func:`natcoord.engines.planar.drop` takes them;
+    """3-D samples at every state: (origin, rotation, velocity, omega, acceleration, alpha,
+    forces, rod_force, driver_effort, counters, drift), as :func:`natcoord.engines.planar.drop` takes them;
     drift (2,): the largest constraint violation of positions and speeds seen."""
     case = b.case
     names = list(b.bodies)
@@ -97,6 +98,8 @@ def sample(osim, b: Built, states, T: int):
     rotation = {n: np.empty((T, 3, 3)) for n in names}
     velocity = {n: np.empty((T, 3)) for n in names}
     omega = {n: np.empty((T, 3)) for n in names}
+    accel = {n: np.empty((T, 3)) for n in names}
+    alpha = {n: np.empty((T, 3)) for n in names}
     forces = {j.name: np.empty((T, 3)) for j in case.joints}
     rod_force = {x.name: np.empty(T) for x in case.rods} | {x.name: np.empty(T)
                                                             for x in case.springs}
@@ -117,6 +120,8 @@ def sample(osim, b: Built, states, T: int):
             origin[n][i] = np3(X.p())
             V = ob.getVelocityInGround(state)
             omega[n][i], velocity[n][i] = np3(V.get(0)), np3(V.get(1))
+            A = ob.getAccelerationInGround(state)
+            alpha[n][i], accel[n][i] = np3(A.get(0)), np3(A.get(1))
         for j, oj, sign in b.tree:
             forces[j.name][i] = sign * np3(oj.calcReactionOnChildExpressedInGround(state)
                                            .get(1))
@@ -145,7 +150,8 @@ def sample(osim, b: Built, states, T: int):
                 axis, load = [Rc.get(r, 0) for r in range(3)], np3(reac.get(1))
             effort[d.name][i] = sign * (load @ np.asarray(axis))
     counters = next(it)
-    return origin, rotation, velocity, omega, forces, rod_force, effort, counters, drift
+    return (origin, rotation, velocity, omega, accel, alpha, forces, rod_force, effort, counters,
+            drift)
 
 
 def _inf_norm(v) -> float:
