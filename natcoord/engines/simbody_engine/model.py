@@ -170,7 +170,7 @@ def _path_turns(b: Built, parents: dict, a: str, c: str) -> list[np.ndarray | st
     for n in ua + uc:
         if n in common:
             continue
-        j, parent = parents[n][0], parents[n][1]
+        j = parents[n][0]
         if j.type == "revolute":
             turns.append(frame_of(b.frames, j.bodies[0]).R @ j.axis)
         elif j.type != "prismatic":

@@ -90,8 +90,9 @@ def _point_state(ob, state, p: np.ndarray):
 
 def sample(osim, b: Built, states, T: int):
     """3-D samples at every state: (origin, rotation, velocity, omega, acceleration, alpha,
-    forces, rod_force, driver_effort, counters, drift), as :func:`natcoord.engines.planar.drop` takes them;
-    drift (2,): the largest constraint violation of positions and speeds seen."""
+    forces, rod_force, driver_effort, counters, drift), as
+    :func:`natcoord.engines.planar.drop` takes them; drift (2,): the largest constraint
+    violation of positions and speeds seen."""
     case = b.case
     names = list(b.bodies)
     origin = {n: np.empty((T, 3)) for n in names}
@@ -125,7 +126,7 @@ def sample(osim, b: Built, states, T: int):
         for j, oj, sign in b.tree:
             forces[j.name][i] = sign * np3(oj.calcReactionOnChildExpressedInGround(state)
                                            .get(1))
-        for j, con, _a, c in b.loops:
+        for j, con, _a, _c in b.loops:
             forces[j.name][i] = _constraint_force(osim, con, state, 1)
         for rod, con, n1, r1, n2, r2 in b.rods:
             f2 = _constraint_force(osim, con, state, 1)
