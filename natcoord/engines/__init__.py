@@ -8,7 +8,8 @@ from types import ModuleType
 from ..mechanism import ENGINES
 
 _MODULES = {"natcoord": "natcoord_engine", "mujoco": "mujoco_engine",
-            "pinocchio": "pinocchio_engine", "exudyn": "exudyn_engine", "dart": "dart_engine"}
+            "pinocchio": "pinocchio_engine", "exudyn": "exudyn_engine", "dart": "dart_engine",
+            "simbody": "simbody_engine"}
 
 
 def adapter(name: str) -> ModuleType:

@@ -44,6 +44,7 @@ SWEEPS: dict[str, list[dict]] = {
     "pinocchio": [{"dt": d} for d in (1e-2, 5e-3, 2e-3, 1e-3, 5e-4)],
     "exudyn": [{"dt": d} for d in (5e-3, 2e-3, 1e-3, 5e-4, 2e-4)],
     "dart": [{"dt": d} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
+    "simbody": [{"accuracy": a} for a in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)],
 }
 TARGETS = (1e-6, 1e-9)
 BATCH_S = 10.0  # wall time the repeats of one cell may take in their process
