@@ -536,3 +536,11 @@ def test_trends_and_work_precision_draw_in_chromium(history_report, tmp_path):
         assert re.search(DRAWN, section), fragment
         assert 'class="main-svg"' in section
         assert len(re.findall(DRAWN, dom)) == 1  # only the opened section's figure
+
+
+def test_unreadable_history_is_one_line(tmp_path):
+    out, refs = make_results(tmp_path)
+    db = tmp_path / "history.db"
+    db.write_bytes(b"not a database" * 100)
+    html = write_report(out, references=refs, history=db).read_text(encoding="utf-8")
+    assert "History unreadable" in html

@@ -100,8 +100,8 @@ def methods_figure(name: str, unit: str, methods: pd.DataFrame | None,
                                      line={"color": "#222", "width": 1.6,
                                            "dash": METHOD_DASHES[k % len(METHOD_DASHES)]}))
     fig.update_layout(template="none", height=height, margin={"l": 64, "r": 14, "t": 20,
-                                                              "b": 80},
-                      legend={"orientation": "h", "y": -0.25, "font": {"size": 11}},
+                                                              "b": 96},
+                      legend={"orientation": "h", "y": -0.32, "font": {"size": 11}},
                       yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]")
     return fig
 

@@ -38,6 +38,18 @@ def worst_rel(rec: dict | None) -> float | None:
     return max(vals) if vals else None
 
 
+def angle_error(rec: dict | None) -> tuple[str, float | None, str]:
+    """(channel, max |error|, unit) of a run's first angle channel (else its first position
+    channel): the quantity the work-precision sweep measures, so that speeds at each
+    engine's own settings can be set beside the accuracy they bought."""
+    chans = ((rec or {}).get("channels") or {}).items()
+    for kind in ("angle", "position"):
+        for name, ch in chans:
+            if ch.get("kind") == kind and ch.get("determined", True) is not False:
+                return name, _num(ch.get("max_abs")), str(ch.get("unit") or "")
+    return "", None, ""
+
+
 def samples(rec: dict) -> list[float]:
     """Every repeat's wall time (s) of a bench record ([] when not recorded)."""
     out = []
@@ -89,11 +101,11 @@ def own_settings(bench: dict, summary_by_key: dict, cases_order: list[str],
             spread, spread_title = _spread_text(r, ss, fmt_time)
             us = _num(r.get("us_per_step"))
             status = str(r.get("status") or ("ok" if w is not None else ""))
-            summ = summary_by_key.get((case, str(r.get("engine", ""))))
+            chan, err, unit = angle_error(summary_by_key.get((case, str(r.get("engine", "")))))
             rows.append({
                 "engine": r.get("engine", ""), "status": status,
                 "reason": str(r.get("reason") or ""),
-                "accuracy": fmt_num(worst_rel(summ)),
+                "accuracy": fmt_num(err, unit), "accuracy_channel": chan,
                 "best": fmt_time(r.get("wall_time_s")),
                 "median": fmt_time(median),
                 "spread": spread, "spread_title": spread_title,

@@ -12,6 +12,7 @@ accuracy 10), so run-to-run noise below that factor never shows as a step.
 from __future__ import annotations
 
 import math
+import sqlite3
 import statistics
 from pathlib import Path
 
@@ -102,7 +103,11 @@ def section(history: Path | None, results_dir: Path, summary: dict, bench: dict 
     """Template context: ``{"message", "steps": [...], "groups": [(case, anchor, fig)]}``;
     figures are plotly Figures (made lazy by the caller)."""
     where = str(history) if history is not None else "no history database"
-    cells, n_runs, appended = series(history, results_dir, summary, bench)
+    try:
+        cells, n_runs, appended = series(history, results_dir, summary, bench)
+    except (sqlite3.Error, ValueError, KeyError, TypeError) as exc:
+        return {"message": f"History unreadable ({where}): {exc}", "steps": [], "groups": [],
+                "n_runs": 0}
     if history is None or not Path(history).is_file():
         return {"message": f"No history ({where}): trends appear once the suite has recorded "
                            "two runs.", "steps": [], "groups": [], "n_runs": n_runs}
