@@ -204,11 +204,12 @@ def work_precision_figures(bench: dict, cases_order: list[str], colors: dict[str
                 hovertemplate=f"{name}<br>%{{text}}<br>wall %{{x:.3g}} s<br>"
                               "error %{y:.3g}<extra></extra>"))
         for t in targets:
-            fig.add_hline(y=t, line={"color": "#999", "dash": "dot", "width": 1},
-                          annotation_text=f"{t:g}", annotation_position="bottom left")
+            fig.add_hline(y=t, line={"color": "#999", "dash": "dot", "width": 1})
         channel = by_case[case][0].get("channel") or "error"
         fig.update_xaxes(type="log", title_text="wall time of the whole run [s], one core")
         fig.update_yaxes(type="log", title_text=f"max |{channel} − reference|")
-        layout(fig, 460)
+        layout(fig, 500)
+        fig.update_layout(legend={"orientation": "h", "x": 0, "y": -0.2, "yanchor": "top"},
+                          margin={"b": 110})
         out.append((case, fig))
     return out
