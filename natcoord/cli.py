@@ -195,9 +195,19 @@ def counts_line(records: list[dict]) -> str:
 
 
 @app.command("cases")
-def cases_cmd(cases_dir: CasesDir = None):
+def cases_cmd(cases_dir: CasesDir = None,
+              as_json: Annotated[bool, typer.Option(
+                  "--json", help="Print JSON: per case its name, description, file and, per "
+                                 "engine, null (supported) or the reason it is not.")] = False):
     """List the cases with a one-line description and the engines that support each."""
     jobs = _cases(None, cases_dir)
+    if as_json:
+        import json
+
+        print(json.dumps([{"name": c.name, "description": c.description, "file": str(c.file),
+                           "engines": {e: (c.engine(e).unsupported or None) for e in ENGINES}}
+                          for c in (job.case for job in jobs)], indent=1))
+        return
     table = Table(title=f"cases in {escape(str(resolve(cases_dir, 'cases')))}")
     table.add_column("case")
     table.add_column("description")
@@ -233,14 +243,16 @@ def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = N
 
 
 @app.command("report")
-def report_cmd(results: ResultsDir = None, references: RefDir = None):
-    """Write RESULTS/index.html from a results folder."""
+def report_cmd(results: ResultsDir = None, references: RefDir = None,
+               history: HistoryDb = None):
+    """Write RESULTS/index.html from a results folder (trends from the history database)."""
     from .report.html import write_report
 
     results = resolve(results, "reports/latest")
     if not (results / "summary.json").exists():
         _fail(f"{results}: no summary.json; run `natcoord run` or `natcoord suite` first")
-    path = write_report(results, resolve(references, "references"))
+    path = write_report(results, resolve(references, "references"),
+                        resolve(history, "reports/history.db"))
     out.print(f"report: {path.resolve()}")
 
 
@@ -405,7 +417,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower]
-        write_report(staging, references)
+        write_report(staging, references, history)
         _ci_summary(staging, summary, verdict.code, slower, target / "index.html")
     if nightly:
         point_latest(latest, target)

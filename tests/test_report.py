@@ -216,7 +216,9 @@ def test_figures_per_channel(report):
     _, html = report
     n_channels = sum(len(c) for c in CHANNELS.values())
     assert html.count('class="plotly-graph-div"') == n_channels
-    assert html.count("Plotly.newPlot(") == n_channels
+    # kept as JSON, drawn by one loader when the section opens (not at load)
+    assert html.count('<script type="application/json" data-fig=') == n_channels
+    assert html.count("Plotly.newPlot(") == 1
     # float32 base64 arrays, downsampled
     assert '"dtype":"f4"' in html
     assert "undetermined: not gated" in html
@@ -303,21 +305,40 @@ def _chromium(args: list[str], profile: Path, timeout: float = 180) -> subproces
     return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
 
 
-@pytest.mark.browser
-@pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium (/usr/bin/chromium) absent")
-def test_renders_in_chromium(report, tmp_path):
-    path, _ = report
+def _dom(path: Path, profile: Path, fragment: str = "") -> str:
+    """The page's DOM after load (and after opening what ``#fragment`` asks), with no
+    console message and no network access."""
     proc = _chromium(
         ["--enable-logging=stderr", "--v=0", "--virtual-time-budget=20000",
-         "--window-size=1400,1000", "--dump-dom", path.resolve().as_uri()],
-        tmp_path / "profile",
+         "--window-size=1400,1000", "--dump-dom", path.resolve().as_uri() + fragment],
+        profile,
     )
     dom, log = proc.stdout, proc.stderr
     assert proc.returncode == 0, log[-3000:]
     console = [ln for ln in log.splitlines()
                if "CONSOLE" in ln or "Uncaught" in ln or "ERR_NAME_NOT_RESOLVED" in ln]
     assert not console, "\n".join(console)
+    return dom
+
+
+DRAWN = r'<div id="[^"]+" class="plotly-graph-div js-plotly-plot"'
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium (/usr/bin/chromium) absent")
+def test_renders_in_chromium(report, tmp_path):
+    path, _ = report
     n_channels = sum(len(c) for c in CHANNELS.values())
+    # at load every case is collapsed and no figure is drawn
+    dom = _dom(path, tmp_path / "profile")
+    assert not re.findall(DRAWN, dom)
+    assert dom.count("data-lazy=") == n_channels
+    # a link to a case opens it: its figures, and only those, are drawn
+    dom = _dom(path, tmp_path / "profile", "#case-five_bar")
+    assert len(re.findall(DRAWN, dom)) == len(CHANNELS["five_bar"])
+    assert re.search(r'<details class="sec" open[^>]*>\s*<summary><h2>five_bar', dom)
+    # every section open: every figure drawn
+    dom = _dom(path, tmp_path / "profile", "#open-all")
     # plotly drew every figure (each has its own main-svg layers)
     drawn = re.findall(r'<div id="[^"]+" class="plotly-graph-div js-plotly-plot"', dom)
     assert len(drawn) == n_channels, f"{len(drawn)} of {n_channels} figures drawn"
@@ -369,3 +390,157 @@ def test_redundant_case_section_from_a_real_run(tmp_path):
     assert html.count("determined: gated") == 3  # N34_2N56, R1_y, R2_y
     assert html.count("undetermined: shown only") == 4  # N34, N56, R1_x, R2_x
     assert "Published values" in html and "García de Jalón" in html and "-330.97" in html
+
+
+# ---------------------------------------------------------------- history, benchmark, speed
+
+
+def _bench(scale: dict[tuple[str, str], float] | None = None, work_precision: bool = True
+           ) -> dict:
+    """A bench.json with every repeat's wall time and, optionally, a work-precision sweep
+    of natcoord (two variants) and mujoco on the pendulum."""
+    scale = scale or {}
+    records = []
+    for case in PLAN:
+        for i, e in enumerate(ENGINES):
+            w = 1e-2 * (i + 1) * scale.get((case, e), 1.0)
+            ss = [w, 1.1 * w, 1.3 * w]
+            records.append({"case": case, "engine": e, "status": "ok", "samples_s": ss,
+                            "wall_time_s": min(ss), "wall_median_s": 1.1 * w, "repeats": 3,
+                            "wall_per_sim_s": w / 10, "us_per_step": 1e6 * w / 1e4,
+                            "n_steps": 10000, "build_time_s": 0.1})
+    out = {"generated": "2025-11-21T23:50:00+00:00", "machine": {"cpu": "Test CPU @ 3 GHz"},
+           "repeats": 3, "records": records}
+    if work_precision:
+        pts = []
+        for eng, var, dts, c in (("natcoord", "index1 dop853", (1e-6, 1e-8, 1e-10), 1e4),
+                                 ("natcoord", "index3 trapezoidal", (2e-3, 1e-3, 5e-4), 1.0),
+                                 ("mujoco", "", (1e-3, 5e-4, 2e-4), 3.0)):
+            for k, d in enumerate(dts):
+                pts.append({"case": "pendulum", "engine": eng, "variant": var,
+                            "channel": "x", "setting": {"dt": d}, "status": "ok",
+                            "error": c * d ** 2 if eng != "natcoord" or k else 1e-4,
+                            "wall_time_s": 0.01 * (k + 1) * (2 if eng == "mujoco" else 1)})
+        out["work_precision"] = pts
+        from natcoord.suite.bench import time_to_accuracy
+        out["time_to_accuracy"] = time_to_accuracy(pts)
+    return out
+
+
+def _summary(out: Path) -> dict:
+    with open(out / "summary.json") as f:
+        return json.load(f)
+
+
+@pytest.fixture(scope="module")
+def history_report(tmp_path_factory) -> tuple[Path, str]:
+    """A results folder with a work-precision bench.json, reported with a history of two
+    earlier runs (the pendulum in natcoord three times slower in this one)."""
+    from natcoord.suite.history import record
+
+    root = tmp_path_factory.mktemp("history")
+    out, refs = make_results(root)
+    db = root / "history.db"
+    summary = _summary(out)
+    for k in range(2):
+        summary["generated"] = f"2025-11-{19 + k}T23:40:00+00:00"
+        record(db, kind="suite", summary=summary, bench=_bench(work_precision=False),
+               results_dir=str(root / f"earlier{k}"))
+    (out / "bench.json").write_text(json.dumps(_bench({("pendulum", "natcoord"): 3.0})))
+    path = write_report(out, references=refs, history=db)
+    return path, path.read_text(encoding="utf-8")
+
+
+def test_change_point():
+    from natcoord.report.trends import change_point
+
+    assert change_point([1.0, 1.02, 0.98, 1.01, 1.6, 1.62, 1.58], 1.25)["index"] == 4
+    cp = change_point([1.0, 1.02, 0.98, 1.01, 1.6, 1.62, 1.58], 1.25)
+    assert cp["factor"] == pytest.approx(1.6 / 1.0, rel=0.02)
+    assert change_point([1.0, 1.1, 0.95, 1.05, 1.12, 0.9], 1.25) is None  # noise only
+    assert change_point([1e-9, 2e-9, 5e-9], 10.0) is None  # accuracy: below a decade
+    assert change_point([1e-9, 1e-9, 1e-6], 10.0)["index"] == 2
+    assert change_point([1.0], 1.25) is None
+
+
+def test_trends_section_from_history(history_report):
+    _, html = history_report
+    assert 'id="trends"' in html and "last 3 runs" in html
+    assert "the last point is this run, not yet recorded" in html
+    for case in PLAN:
+        assert f'id="trend-{case}"' in html
+    steps = html.split('<table class="speed steps">', 1)[1].split("</table>", 1)[0]
+    assert "pendulum" in steps and "median wall time" in steps and "3× (worse)" in steps
+    assert "five_bar" not in steps  # unchanged cells show no step
+
+
+def test_trends_need_two_runs(report, tmp_path):
+    _, html = report
+    assert "No history (no history database)" in html
+    from natcoord.suite.history import record
+
+    out, refs = make_results(tmp_path)
+    db = tmp_path / "history.db"
+    record(db, kind="suite", summary=_summary(out), results_dir=str(out.resolve()))
+    html = write_report(out, references=refs, history=db).read_text(encoding="utf-8")
+    assert "Fewer than two runs in the history" in html  # this folder is the one run
+
+
+def test_work_precision_and_time_to_accuracy(history_report):
+    _, html = history_report
+    assert "Speed at equal accuracy" in html
+    assert 'id="wp-pendulum"' in html and "Work-precision diagrams (1 case)" in html
+    tta = html.split('<table class="speed tta">', 1)[1].split("</table>", 1)[0]
+    assert "time to error ≤ 1e-6" in tta and "time to error ≤ 1e-9" in tta
+    assert "natcoord (index1 dop853)" in tta and "natcoord (index3 trapezoidal)" in tta
+    assert "not reached" in tta  # mujoco's sweep never reaches 1e-9
+    spec = json.loads(re.search(r'data-fig="[^"]+">(\{.*?"log".*?\})</script>', html
+                                .split('id="wp-pendulum"', 1)[1]).group(1))
+    assert spec["layout"]["xaxis"]["type"] == spec["layout"]["yaxis"]["type"] == "log"
+    assert {t["name"] for t in spec["data"] if t.get("mode") == "lines+markers"} == {
+        "natcoord (index1 dop853)", "natcoord (index3 trapezoidal)", "mujoco"}
+
+
+def test_speed_from_bench_with_spread(history_report):
+    _, html = history_report
+    own = html.split('<h3 id="bench">', 1)[1].split("</table>", 1)[0]
+    assert "at each engine&#39;s own settings" in own or "at each engine's own settings" in own
+    assert "samples_s" in own and "median" in own
+    # natcoord pendulum: samples 30, 33, 39 ms: best, median and spread from the samples
+    row = re.search(r"<td>natcoord</td>(.*?)</tr>", own, re.S).group(1)
+    assert "30\u00a0ms" in row and "33\u00a0ms" in row and "30\u00a0ms–39\u00a0ms (+30 %)" in row
+    assert "wall (1 run)" not in html  # the run's one-repeat timings are not shown beside it
+
+
+def test_constraint_rows_in_words():
+    from natcoord.report.redundant import describe_row
+
+    assert describe_row("135.5 in 135: x") == "135.5 fixed in body 135, x component"
+    assert describe_row("O: axis.1").startswith("joint O: rotation axis kept aligned")
+    assert describe_row("A: x") == "joint A: its two points coincide along x"
+    assert "rigid body plate" in describe_row("plate: |plate.1plate.2|")
+    assert describe_row("N34", {"N34"}).startswith("rod N34")
+    assert describe_row("something") == ""
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium (/usr/bin/chromium) absent")
+def test_trends_and_work_precision_draw_in_chromium(history_report, tmp_path):
+    path, _ = history_report
+    dom = _dom(path, tmp_path / "profile")
+    assert not re.findall(DRAWN, dom)
+    for fragment, figure in (("#trend-pendulum", 'id="trend-pendulum"'),
+                             ("#wp-pendulum", 'id="wp-pendulum"')):
+        dom = _dom(path, tmp_path / "profile", fragment)
+        section = dom.split(figure, 1)[1].split("</figure>", 1)[0]
+        assert re.search(DRAWN, section), fragment
+        assert 'class="main-svg"' in section
+        assert len(re.findall(DRAWN, dom)) == 1  # only the opened section's figure
+
+
+def test_unreadable_history_is_one_line(tmp_path):
+    out, refs = make_results(tmp_path)
+    db = tmp_path / "history.db"
+    db.write_bytes(b"not a database" * 100)
+    html = write_report(out, references=refs, history=db).read_text(encoding="utf-8")
+    assert "History unreadable" in html

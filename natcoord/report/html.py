@@ -5,10 +5,13 @@ Input (the runner's contract, README "Commands"):
 - ``DIR/summary.json``: header fields and one record per case x engine;
 - ``DIR/results/<case>/<engine>.csv``: column ``t`` then one column per channel;
 - ``references/<case>.csv`` and ``references/<case>.json`` (data and provenance);
-- optionally ``DIR/bench.json`` (speed benchmark).
+- optionally ``DIR/bench.json`` (speed benchmark, work-precision sweeps);
+- optionally the history database (``reports/history.db``: trends over the last runs).
 
 Output: ``DIR/index.html``, one file that works offline: plotly.js is embedded once,
-inline, and every figure is drawn from data embedded in the page (float32, base64).
+inline, and every figure is kept in the page as JSON (float32, base64) and drawn when the
+section holding it is opened (:mod:`natcoord.report.lazy`), so the page loads fast however
+many cases it has.
 """
 
 from __future__ import annotations
@@ -25,13 +28,13 @@ import jinja2
 import numpy as np
 import pandas as pd
 import plotly.graph_objects as go
-import plotly.io as pio
 import plotly.offline
-from markupsafe import Markup
+from markupsafe import Markup, escape
 from plotly.subplots import make_subplots
 
 from ..mechanism import FORCE_KINDS
-from . import redundant
+from . import redundant, speed, trends
+from .lazy import FigureStore
 
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 ENGINE_COLORS = {
@@ -303,7 +306,7 @@ def channel_figure(
     runs: dict[str, pd.DataFrame],
     colors: dict[str, str],
     undetermined: bool = False,
-) -> str:
+) -> go.Figure:
     """One figure per channel: values over the reference (dashed) and |error| (log)."""
     has_ref = ref is not None and name in ref.columns
     has_err = False
@@ -404,10 +407,21 @@ def channel_figure(
         fig.add_annotation(
             text="no data", showarrow=False, xref="paper", yref="paper", x=0.5, y=0.5
         )
-    return pio.to_html(
-        fig, include_plotlyjs=False, full_html=False, config=PLOT_CONFIG,
-        default_height=f"{fig.layout.height}px", default_width="100%",
-    )
+    return fig
+
+
+def style(fig: go.Figure, height: int) -> None:
+    """The report's look for a summary figure (trends, work-precision)."""
+    axis = {"showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
+            "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
+            "exponentformat": "power"}
+    fig.update_layout(
+        template="none", height=height, margin={"l": 70, "r": 14, "t": 20, "b": 60},
+        font={"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12},
+        legend={"font": {"size": 11}}, hovermode="closest", paper_bgcolor="white",
+        plot_bgcolor="white")
+    fig.update_xaxes(**axis)
+    fig.update_yaxes(**axis)
 
 
 # ---------------------------------------------------------------- building the page
@@ -520,44 +534,50 @@ def _independent_line(meta: dict | None, units: dict[str, str]) -> str:
                                               "max |diff| " + ", ".join(parts or ["—"])])
 
 
-def _bench_section(bench: dict | None, cases_order: list[str]) -> dict | None:
-    if not bench:
-        return None
-    recs = [r for r in bench.get("records") or [] if isinstance(r, dict)]
-    by_case: dict[str, list[dict]] = {}
-    for r in recs:
-        by_case.setdefault(str(r.get("case", "")), []).append(r)
-    groups = []
-    order = [c for c in cases_order if c in by_case] + sorted(
-        c for c in by_case if c not in cases_order
-    )
-    for case in order:
-        rs = by_case[case]
-        engs = _engine_order(str(r.get("engine", "")) for r in rs)
-        rs = sorted(rs, key=lambda r: engs.index(str(r.get("engine", ""))))
-        base = next(
-            (num(r.get("wall_per_sim_s")) for r in rs if r.get("engine") == "natcoord"), None
-        )
-        rows = []
-        for r in rs:
-            w = num(r.get("wall_per_sim_s"))
-            rows.append({
-                "engine": r.get("engine", ""),
-                "us_per_step": fmt_time(
-                    num(r.get("us_per_step")) * 1e-6 if num(r.get("us_per_step")) else None
-                ),
-                "wall_per_sim": fmt_time(w),
-                "build": fmt_time(r.get("build_time_s")),
-                "repeats": fmt_int(r.get("repeats")),
-                "ratio": fmt_ratio(w / base) if (w is not None and base) else "—",
-            })
-        groups.append({"case": case, "anchor": anchor("case", case), "rows": rows})
-    machine = bench.get("machine") or {}
-    return {"groups": groups, "machine": [(k, fmt_value(v)) for k, v in machine.items()],
-            "error": ""}
+def _read_bench(results_dir: Path) -> tuple[dict | None, str]:
+    path = results_dir / "bench.json"
+    if not path.is_file():
+        return None, ""
+    try:
+        data = _read_json(path)
+    except (OSError, ValueError) as exc:
+        return None, f"unreadable bench.json: {exc}"
+    return (data, "") if isinstance(data, dict) else (None, "bench.json is not an object")
 
 
-def build_context(results_dir: Path, references: Path = Path("references")) -> dict:
+def _speed_context(bench: dict | None, bench_error: str, by_key: dict, case_names: list[str],
+                   speed_groups: list[dict], colors: dict[str, str],
+                   figures: FigureStore) -> dict:
+    """The speed section: time to accuracy (headline), work-precision diagrams and the
+    benchmark at each engine's own settings, all from bench.json; the run's own timings
+    only when there is no benchmark."""
+    if bench is None:
+        return {"source": "run", "error": bench_error, "tta": None, "wp": [], "own": [],
+                "run": speed_groups, "machine": [], "how": ""}
+    tta = speed.time_to_accuracy(bench, case_names, anchor, fmt_time, fmt_ratio)
+    wp = [{"case": c, "anchor": anchor("wp", c), "fig": figures.add(f, PLOT_CONFIG)}
+          for c, f in speed.work_precision_figures(bench, case_names, colors, style)]
+    own = speed.own_settings(bench, by_key, case_names, _engine_order, anchor, fmt_time,
+                             fmt_num, fmt_ratio, fmt_int)
+    reps = sorted({int(r["repeats"]) for r in bench.get("records") or []
+                   if isinstance(r, dict) and num(r.get("repeats"))})
+    has_samples = any(r.get("samples_s") for r in bench.get("records") or []
+                      if isinstance(r, dict))
+    runs = "–".join(str(r) for r in dict.fromkeys([reps[0], reps[-1]])) if reps else "?"
+    when = f" of {escape(fmt_when(bench['generated']))}" if bench.get("generated") else ""
+    how = (f"<code>bench.json</code>{when}: every cell run {runs} time(s), each run a whole "
+           "simulation in a fresh process pinned to one core; <i>best</i> and <i>median</i> "
+           "over those repeats; "
+           + ("<i>spread</i>: fastest–slowest repeat (<code>samples_s</code>)" if has_samples
+              else "<i>spread</i>: slowest over best (no per-repeat samples recorded)"))
+    return {"source": "bench", "error": bench_error, "tta": tta, "wp": wp, "own": own,
+            "run": [], "machine": [(k, fmt_value(v)) for k, v in
+                                   (bench.get("machine") or {}).items()],
+            "how": Markup(how)}
+
+
+def build_context(results_dir: Path, references: Path = Path("references"),
+                  history: Path | None = None) -> dict:
     """Everything the template needs, as plain values (no file access in the template)."""
     results_dir = Path(results_dir)
     references = Path(references)
@@ -572,6 +592,7 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
     colors = _engine_colors(engines)
     by_key = {(str(r.get("case")), str(r.get("engine"))): r for r in records}
 
+    figures = FigureStore()
     footnotes: list[dict] = []
     matrix = []
     cases = []
@@ -629,8 +650,9 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
             fig = {
                 "name": n, "unit": m["unit"], "determined": m["determined"],
                 "anchor": anchor("fig", case, n),
-                "html": Markup(channel_figure(n, m["unit"], ref, plots_runs, colors,
-                                              not m["determined"])),
+                "fig": figures.add(channel_figure(n, m["unit"], ref, plots_runs, colors,
+                                                  not m["determined"]), PLOT_CONFIG,
+                                   FIG_HEIGHT),
             }
             (reactions if m["kind"] in FORCE_KINDS else trajectories).append(fig)
 
@@ -655,7 +677,7 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
         speed_groups.append({"case": case, "anchor": case_anchor, "rows": speed_rows})
 
         redundancy = redundant.section(case, crecs, runs, ref, ref_meta, results_dir, references,
-                                       colors, fmt_num)
+                                       colors, fmt_num, figures.add)
         cases.append({
             "redundancy": redundancy,
             "name": case,
@@ -688,13 +710,14 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
     engine_versions = [(e, ", ".join(versions.get(e, [])) or "—") for e in engines]
     machine = summary.get("machine") or {}
 
-    bench = None
-    bench_path = results_dir / "bench.json"
-    if bench_path.is_file():
-        try:
-            bench = _bench_section(_read_json(bench_path), case_names)
-        except (OSError, ValueError) as exc:
-            bench = {"groups": [], "machine": [], "error": f"unreadable bench.json: {exc}"}
+    bench, bench_error = _read_bench(results_dir)
+    speed_ctx = _speed_context(bench, bench_error, by_key, case_names, speed_groups, colors,
+                               figures)
+    trend = trends.section(history, results_dir, summary, bench, case_names, _engine_order,
+                           colors, style, anchor, fmt_num, fmt_time, fmt_when)
+    for g in trend["groups"]:
+        g["fig"] = figures.add(g["fig"], PLOT_CONFIG)
+    figures.finalize()
 
     return {
         "title": "natcoord validation report",
@@ -708,8 +731,11 @@ def build_context(results_dir: Path, references: Path = Path("references")) -> d
         "matrix": matrix,
         "footnotes": footnotes,
         "cases": cases,
-        "speed": speed_groups,
-        "bench": bench,
+        "speed": speed_ctx,
+        "bench": bench is not None or bool(bench_error),
+        "trends": trend,
+        "shared_arrays": figures.shared(),
+        "n_figures": len(figures),
         "references_dir": str(references),
         "results_dir": str(results_dir),
     }
@@ -736,10 +762,12 @@ def render(context: dict) -> str:
     return template.render(plotlyjs=Markup(js), **context)
 
 
-def write_report(results_dir: Path, references: Path = Path("references")) -> Path:
-    """Write ``results_dir/index.html`` from the run's results and the stored references."""
+def write_report(results_dir: Path, references: Path = Path("references"),
+                 history: Path | None = None) -> Path:
+    """Write ``results_dir/index.html`` from the run's results, the stored references and,
+    when given, the history database (trends)."""
     results_dir = Path(results_dir)
-    html = render(build_context(results_dir, references))
+    html = render(build_context(results_dir, references, history))
     out = results_dir / "index.html"
     tmp = out.with_suffix(".html.tmp")
     tmp.write_text(html, encoding="utf-8")

@@ -6,18 +6,18 @@ natcoord's reaction methods side by side, their plots over time, and published v
 
 from __future__ import annotations
 
+import re
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import plotly.graph_objects as go
-import plotly.io as pio
-from markupsafe import Markup
 
 from ..mechanism import FORCE_KINDS
 
 METHOD_DASHES = ("dash", "dot", "dashdot", "longdash", "longdashdot")
+MAX_POINTS = 1000  # samples per plotted series, as in the channel figures
 
 
 def _published(references: Path, case: str) -> dict | None:
@@ -46,30 +46,64 @@ def _words(diag: dict) -> str:
             "touches, and combinations such as resultants, are determined and gated.")
 
 
+def _stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
+    return np.arange(n) if n <= m else np.unique(np.linspace(0, n - 1, m).round().astype(int))
+
+
+def _f32(series, idx: np.ndarray) -> np.ndarray:
+    """Every plotted series as float32, at most MAX_POINTS samples (as the channel plots)."""
+    return np.asarray(series, dtype=float)[idx].astype(np.float32)
+
+
+def describe_row(label: str, forces: set[str] = frozenset()) -> str:
+    """A constraint row's label in words, from the builder's naming (``"E in B: x"``,
+    ``"B: |PQ|"``, ``"J: axis.0"``, ...); '' when the label says nothing more."""
+    if m := re.fullmatch(r"(.+) in (.+): ([xyz])", label):
+        return f"{m[1]} fixed in body {m[2]}, {m[3]} component"
+    if m := re.fullmatch(r"(.+): \|(.+)\|", label):
+        return f"rigid body {m[1]}: fixed distance between two of its points ({m[2]})"
+    if m := re.fullmatch(r"(.+): axis\.(\d+)", label):
+        return f"joint {m[1]}: rotation axis kept aligned (direction {int(m[2]) + 1} of 2)"
+    if m := re.fullmatch(r"(.+): cross", label):
+        return f"universal joint {m[1]}: its two axes kept perpendicular"
+    if m := re.fullmatch(r"(.+): unit", label):
+        return f"vector {m[1]} of unit length"
+    if m := re.fullmatch(r"(.+): ([xyz])", label):
+        return f"joint {m[1]}: its two points coincide along {m[2]}"
+    if m := re.fullmatch(r"(.+): (.+)\.(.+)", label):
+        return f"rigid body {m[1]}: fixed angle between {m[2]} and {m[3]}"
+    if m := re.fullmatch(r"\|(.+)\|", label):
+        return f"fixed distance {m[1]}"
+    if label in forces:
+        return f"rod {label}: fixed length (its multiplier is the axial force {label})"
+    return ""
+
+
 def methods_figure(name: str, unit: str, methods: pd.DataFrame | None,
                    runs: dict[str, pd.DataFrame], colors: dict[str, str],
-                   height: int = 320) -> str:
+                   height: int = 320) -> go.Figure:
     """One force channel over time: each engine (solid) and natcoord's reaction methods
     (dashed)."""
     fig = go.Figure()
     for eng, df in runs.items():
         if name in df.columns and np.any(np.isfinite(df[name].to_numpy(float))):
-            fig.add_trace(go.Scatter(x=df["t"], y=df[name], name=eng, mode="lines",
+            i = _stride(len(df))
+            fig.add_trace(go.Scatter(x=_f32(df["t"], i), y=_f32(df[name], i), name=eng,
+                                     mode="lines",
                                      line={"color": colors.get(eng, "#444"), "width": 1.4}))
     if methods is not None:
         cols = [c for c in methods.columns if c.startswith(f"{name}@")]
+        i = _stride(len(methods))
         for k, c in enumerate(cols):
-            fig.add_trace(go.Scatter(x=methods["t"], y=methods[c],
+            fig.add_trace(go.Scatter(x=_f32(methods["t"], i), y=_f32(methods[c], i),
                                      name=f"natcoord {c.split('@', 1)[1]}", mode="lines",
                                      line={"color": "#222", "width": 1.6,
                                            "dash": METHOD_DASHES[k % len(METHOD_DASHES)]}))
     fig.update_layout(template="none", height=height, margin={"l": 64, "r": 14, "t": 20,
-                                                              "b": 80},
-                      legend={"orientation": "h", "y": -0.25, "font": {"size": 11}},
+                                                              "b": 96},
+                      legend={"orientation": "h", "y": -0.32, "font": {"size": 11}},
                       yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]")
-    return pio.to_html(fig, include_plotlyjs=False, full_html=False,
-                       config={"displaylogo": False, "responsive": True},
-                       default_height=f"{height}px", default_width="100%")
+    return fig
 
 
 def _at(df: pd.DataFrame, col: str, t: float) -> float | None:
@@ -82,9 +116,10 @@ def _at(df: pd.DataFrame, col: str, t: float) -> float | None:
 
 def section(case: str, records: list[dict], runs: dict[str, pd.DataFrame],
             ref: pd.DataFrame | None, provenance: dict | None, results_dir: Path,
-            references: Path, colors: dict[str, str], fmt) -> dict | None:
+            references: Path, colors: dict[str, str], fmt, add_figure) -> dict | None:
     """Template context of the section, or None when the case has no redundant constraints
-    and no published values."""
+    and no published values. ``add_figure(fig, config, height)`` turns a plotly figure into
+    the template's payload."""
     counters = (provenance or {}).get("counters") or {}
     nat = next((r for r in records if r.get("engine") == "natcoord"), None)
     if not counters.get("redundant") and nat is not None:
@@ -119,12 +154,14 @@ def section(case: str, records: list[dict], runs: dict[str, pd.DataFrame],
         rows.append({"name": n, "unit": kinds[n][1] or "", "determined": n not in undetermined,
                      "cells": cells})
     figures = [{"name": n, "determined": n not in undetermined,
-                "html": Markup(methods_figure(n, kinds[n][1] or "", methods,
-                                              {e: runs[e] for e in engines}, colors))}
+                "fig": add_figure(methods_figure(n, kinds[n][1] or "", methods,
+                                                 {e: runs[e] for e in engines}, colors),
+                                  {"displaylogo": False, "responsive": True}, 320)}
                for n in forces]
     null_sets = []
     for k, s in enumerate(counters.get("null_space") or []):
-        null_sets.append({"n": k + 1, "rows": [(label, f"{v:+.4g}") for label, v in s.items()]})
+        null_sets.append({"n": k + 1, "rows": [(label, describe_row(label, set(forces)),
+                                                f"{v:+.4g}") for label, v in s.items()]})
     pub = None
     if published and "phi" in kinds and ref is not None:
         peak, end = published.get("phi_peak_deg"), published.get("phi_end_deg")
@@ -139,7 +176,8 @@ def section(case: str, records: list[dict], runs: dict[str, pd.DataFrame],
         "diag": {k: counters.get(k) for k in ("n", "m", "rank", "dof", "redundant")},
         "words": _words(counters) if counters.get("m") else "",
         "null_sets": null_sets,
-        "determined_rows": counters.get("determined_rows") or [],
+        "determined_rows": [(label, describe_row(label, set(forces)))
+                            for label in counters.get("determined_rows") or []],
         "t_show": t_show,
         "methods": method_names,
         "engines": engines,
