@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from natcoord.casefile import load_case
-from natcoord.casemodel import initial_body_states
+from natcoord.outputs import initial_body_states
 from natcoord.engines import adapter
 from natcoord.result import evaluate_channels, point_position, point_velocity
 from natcoord.suite.references import load_reference
