@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from natcoord.casefile import load_case
-from natcoord.outputs import initial_body_states
 from natcoord.engines import adapter
+from natcoord.outputs import initial_body_states
 from natcoord.result import evaluate_channels, point_position, point_velocity
 from natcoord.suite.references import load_reference
 from tests.conftest import CASES, REFERENCES
