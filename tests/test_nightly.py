@@ -212,8 +212,9 @@ def test_a_lost_dask_task_fails_its_cell(tmp_path):
                                    cluster.scheduler_address, runner._failed, margin_s=20.0)
         import time
         t0 = time.time()
+        pids = [w.process.process.pid for w in cluster.workers.values()]
         killer = threading.Thread(target=lambda: (time.sleep(3.0), [
-            w.process.process.kill() for w in cluster.workers.values()]))
+            os.kill(pid, 9) for pid in pids]))
         killer.start()
         out = list(gen)
         killer.join()
