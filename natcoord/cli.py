@@ -290,7 +290,7 @@ def gate_cmd(results: ResultsDir = None,
     except (KeyError, TypeError, ValueError, AttributeError) as e:
         _fail(f"{results / 'summary.json'}: malformed ({type(e).__name__}: {e})")
     try:
-        bench_result = diff._bench(results)
+        bench_result = diff.read_bench(results)
         slower = [s for s in diff.against_history(
             bench_result, resolve(history, "reports/history.db"),
             exclude_dir=str(results.resolve())) if s.slower] if bench_result else []
@@ -315,7 +315,7 @@ def gate_cmd(results: ResultsDir = None,
     raise typer.Exit(verdict.code)
 
 
-def _bench(selected, names, repeats, work_precision, references, timeout, target):
+def _bench(selected, names, repeats, work_precision, references, timeout):
     from .suite import bench
 
     total = len(selected) * len(names)
@@ -362,7 +362,7 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
     with publishing(target) as staging:
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
-                        resolve(references, "references"), timeout, staging)
+                        resolve(references, "references"), timeout)
         bench.store(result, staging, resolve(history, "reports/bench"))
     out.print(f"benchmark: {target / 'bench.json'}")
 
@@ -411,14 +411,17 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             out.print(f"[bold]bench[/]: {repeats} runs per cell, every wall time kept")
             bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
                                        progress=_progress_printer(total, "serial, one core"))
-            slower = _slower_rechecked(bench_result, selected, repeats, timeout, history)
+            slower = diff.slower_rechecked(
+                bench_result, selected, repeats, timeout, history,
+                say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "
+                                        "their history"))
             bench.store(bench_result, staging, history.parent / "bench")
         verdict = gate.judge(summary, baseline=base)
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower]
         write_report(staging, references, history)
-        _ci_summary(staging, summary, verdict.code, slower, target / "index.html")
+        diff.write_ci_summary(staging, summary, verdict.code, slower, target / "index.html")
     if nightly:
         point_latest(latest, target)
     for line in verdict.lines:
@@ -431,40 +434,6 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     out.print("[green]gate passed[/]" if verdict.code == 0
               else f"[bold red]gate failed[/] (exit {verdict.code})")
     raise typer.Exit(verdict.code)
-
-
-def _slower_rechecked(result: dict, jobs, repeats: int, timeout: float,
-                      history: Path) -> list:
-    """Cells significantly slower than their history; each suspect is measured once more
-    (its new samples replace the first ones) before it is reported."""
-    from .suite import bench, diff
-
-    suspects = [s for s in diff.against_history(result, history) if s.slower]
-    if not suspects:
-        return []
-    out.print(f"re-measuring {len(suspects)} cell(s) that look slower than their history")
-    by_name = {j.case.name: j for j in jobs}
-    records = {(r["case"], r["engine"]): r for r in result["records"]}
-    import tempfile
-    with tempfile.TemporaryDirectory(prefix="natcoord-recheck-") as tmp:
-        for s in suspects:
-            records[(s.case, s.engine)].update(
-                bench.measure(by_name[s.case], s.engine, repeats, timeout, Path(tmp)))
-    return [s for s in diff.against_history(result, history) if s.slower]
-
-
-def _ci_summary(folder: Path, summary: dict, code: int, slower: list, report: Path) -> None:
-    """summary.md in the results folder, and appended to $GITHUB_STEP_SUMMARY when set."""
-    import os
-
-    from .suite import diff
-    from .suite.io import write_atomic
-
-    text = diff.markdown(summary, code, slower, str(report))
-    write_atomic(folder / "summary.md", text)
-    if os.environ.get("GITHUB_STEP_SUMMARY"):
-        with open(os.environ["GITHUB_STEP_SUMMARY"], "a", encoding="utf-8") as f:
-            f.write(text)
 
 
 @app.command("compare")

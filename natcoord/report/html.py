@@ -35,6 +35,7 @@ from plotly.subplots import make_subplots
 from ..mechanism import FORCE_KINDS
 from . import redundant, speed, trends
 from .lazy import FigureStore
+from .sampling import MAX_POINTS, f32, stride
 
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 ENGINE_COLORS = {
@@ -46,7 +47,6 @@ ENGINE_COLORS = {
 }
 _EXTRA_COLORS = ["#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f"]
 REFERENCE_COLOR = "#222222"
-MAX_POINTS = 1000  # samples per plotted series
 FIG_HEIGHT = 480  # px, every channel figure (grid rows line up)
 KIND_ORDER = {"angle": 0, "position": 1, "velocity": 2, "energy": 3, "reaction": 4}
 PLOT_CONFIG = {
@@ -258,12 +258,6 @@ def overall_verdict(records: list[dict]) -> dict:
 # ---------------------------------------------------------------- plotting
 
 
-def _stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
-    if n <= m:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, m).round().astype(int))
-
-
 def _envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
     """Downsample an error series keeping each bucket's largest value (peaks survive)."""
     n = len(e)
@@ -281,10 +275,6 @@ def _envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS) -> tuple[np.nda
             idx.append(a + int(np.nanargmax(seg)))
     idx = np.asarray(idx)
     return t[idx], e[idx]
-
-
-def _f32(a: np.ndarray) -> np.ndarray:
-    return np.asarray(a, dtype=np.float32)
 
 
 def _on_reference_times(ref_t: np.ndarray, t: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -345,20 +335,20 @@ def channel_figure(
         y = df[name].to_numpy(float)
         if not np.any(np.isfinite(y)):
             continue
-        i = _stride(len(t))
+        i = stride(len(t))
         add(
             go.Scatter(
-                x=_f32(t[i]), y=_f32(y[i]), name=eng, mode="lines", legendgroup=eng,
+                x=f32(t[i]), y=f32(y[i]), name=eng, mode="lines", legendgroup=eng,
                 line={"color": colors[eng], "width": 1.5},
                 hovertemplate=f"{eng}<br>t=%{{x:.4g}} s<br>%{{y:.4g}}<extra></extra>",
             ),
             1,
         )
     if has_ref:  # drawn last: its dashes stay visible over engines that agree with it
-        i = _stride(len(ref_t))
+        i = stride(len(ref_t))
         add(
             go.Scatter(
-                x=_f32(ref_t[i]), y=_f32(ref_y[i]), name="reference", mode="lines",
+                x=f32(ref_t[i]), y=f32(ref_y[i]), name="reference", mode="lines",
                 legendgroup="reference",
                 line={"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
                 hovertemplate="reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>",
@@ -369,7 +359,7 @@ def channel_figure(
         te, ee = _envelope(ref_t, e)
         add(
             go.Scatter(
-                x=_f32(te), y=_f32(ee), name=eng, mode="lines", legendgroup=eng,
+                x=f32(te), y=f32(ee), name=eng, mode="lines", legendgroup=eng,
                 showlegend=False, line={"color": colors[eng], "width": 1.2},
                 hovertemplate=f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>",
             ),

@@ -15,9 +15,9 @@ import pandas as pd
 import plotly.graph_objects as go
 
 from ..mechanism import FORCE_KINDS
+from .sampling import f32, stride
 
 METHOD_DASHES = ("dash", "dot", "dashdot", "longdash", "longdashdot")
-MAX_POINTS = 1000  # samples per plotted series, as in the channel figures
 
 
 def _published(references: Path, case: str) -> dict | None:
@@ -46,34 +46,27 @@ def _words(diag: dict) -> str:
             "touches, and combinations such as resultants, are determined and gated.")
 
 
-def _stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
-    return np.arange(n) if n <= m else np.unique(np.linspace(0, n - 1, m).round().astype(int))
-
-
-def _f32(series, idx: np.ndarray) -> np.ndarray:
-    """Every plotted series as float32, at most MAX_POINTS samples (as the channel plots)."""
-    return np.asarray(series, dtype=float)[idx].astype(np.float32)
+# A constraint row's label (the builder's naming) -> its meaning in words; first match wins.
+ROW_WORDS = (
+    (r"(.+) in (.+): ([xyz])", lambda m: f"{m[1]} fixed in body {m[2]}, {m[3]} component"),
+    (r"(.+): \|(.+)\|",
+     lambda m: f"rigid body {m[1]}: fixed distance between two of its points ({m[2]})"),
+    (r"(.+): axis\.(\d+)", lambda m: f"joint {m[1]}: rotation axis kept aligned "
+                                      f"(direction {int(m[2]) + 1} of 2)"),
+    (r"(.+): cross", lambda m: f"universal joint {m[1]}: its two axes kept perpendicular"),
+    (r"(.+): unit", lambda m: f"vector {m[1]} of unit length"),
+    (r"(.+): ([xyz])", lambda m: f"joint {m[1]}: its two points coincide along {m[2]}"),
+    (r"(.+): (.+)\.(.+)", lambda m: f"rigid body {m[1]}: fixed angle between {m[2]} and {m[3]}"),
+    (r"\|(.+)\|", lambda m: f"fixed distance {m[1]}"),
+)
 
 
 def describe_row(label: str, forces: set[str] = frozenset()) -> str:
-    """A constraint row's label in words, from the builder's naming (``"E in B: x"``,
-    ``"B: |PQ|"``, ``"J: axis.0"``, ...); '' when the label says nothing more."""
-    if m := re.fullmatch(r"(.+) in (.+): ([xyz])", label):
-        return f"{m[1]} fixed in body {m[2]}, {m[3]} component"
-    if m := re.fullmatch(r"(.+): \|(.+)\|", label):
-        return f"rigid body {m[1]}: fixed distance between two of its points ({m[2]})"
-    if m := re.fullmatch(r"(.+): axis\.(\d+)", label):
-        return f"joint {m[1]}: rotation axis kept aligned (direction {int(m[2]) + 1} of 2)"
-    if m := re.fullmatch(r"(.+): cross", label):
-        return f"universal joint {m[1]}: its two axes kept perpendicular"
-    if m := re.fullmatch(r"(.+): unit", label):
-        return f"vector {m[1]} of unit length"
-    if m := re.fullmatch(r"(.+): ([xyz])", label):
-        return f"joint {m[1]}: its two points coincide along {m[2]}"
-    if m := re.fullmatch(r"(.+): (.+)\.(.+)", label):
-        return f"rigid body {m[1]}: fixed angle between {m[2]} and {m[3]}"
-    if m := re.fullmatch(r"\|(.+)\|", label):
-        return f"fixed distance {m[1]}"
+    """A constraint row's label in words (``"E in B: x"``, ``"B: |PQ|"``, ``"J: axis.0"``,
+    ...); '' when the label says nothing more."""
+    for pattern, words in ROW_WORDS:
+        if m := re.fullmatch(pattern, label):
+            return words(m)
     if label in forces:
         return f"rod {label}: fixed length (its multiplier is the axial force {label})"
     return ""
@@ -87,15 +80,16 @@ def methods_figure(name: str, unit: str, methods: pd.DataFrame | None,
     fig = go.Figure()
     for eng, df in runs.items():
         if name in df.columns and np.any(np.isfinite(df[name].to_numpy(float))):
-            i = _stride(len(df))
-            fig.add_trace(go.Scatter(x=_f32(df["t"], i), y=_f32(df[name], i), name=eng,
-                                     mode="lines",
+            i = stride(len(df))
+            fig.add_trace(go.Scatter(x=f32(df["t"].to_numpy()[i]),
+                                     y=f32(df[name].to_numpy()[i]), name=eng, mode="lines",
                                      line={"color": colors.get(eng, "#444"), "width": 1.4}))
     if methods is not None:
         cols = [c for c in methods.columns if c.startswith(f"{name}@")]
-        i = _stride(len(methods))
+        i = stride(len(methods))
         for k, c in enumerate(cols):
-            fig.add_trace(go.Scatter(x=_f32(methods["t"], i), y=_f32(methods[c], i),
+            fig.add_trace(go.Scatter(x=f32(methods["t"].to_numpy()[i]),
+                                     y=f32(methods[c].to_numpy()[i]),
                                      name=f"natcoord {c.split('@', 1)[1]}", mode="lines",
                                      line={"color": "#222", "width": 1.6,
                                            "dash": METHOD_DASHES[k % len(METHOD_DASHES)]}))

@@ -13,11 +13,14 @@ takes precedence), 2 bad input, 4 a significant slowdown.
 from __future__ import annotations
 
 import json
+import os
+import tempfile
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from . import gate, history, speed
-from .io import read_json
+from . import bench, gate, history, speed
+from .io import read_json, write_atomic
 
 SLOWER = 4
 
@@ -41,7 +44,7 @@ class Comparison:
                 "behaviour_changes": [s.__dict__ for s in self.speed if s.counters]}
 
 
-def _bench(folder: Path) -> dict | None:
+def read_bench(folder: Path) -> dict | None:
     path = Path(folder) / "bench.json"
     if not path.exists():
         return None
@@ -73,7 +76,7 @@ def compare_runs(base: Path, new: Path) -> Comparison:
     out.accuracy = verdict.lines
     old = {(r["case"], r["engine"]): r for r in b["records"]}
     changes = {}
-    bb, nb = _bench(base), _bench(new)
+    bb, nb = read_bench(base), read_bench(new)
     if bb and nb:
         out.speed = speed.compare_bench(bb, nb)
         changes = {(s.case, s.engine): s for s in out.speed}
@@ -107,6 +110,34 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
             out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
                                    r.get("counters")))
     return out
+
+
+def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Path,
+                     say: Callable[[int], None] = lambda n: None) -> list[speed.SpeedChange]:
+    """Cells of a benchmark significantly slower than their history; each suspect is
+    measured once more (its new samples replace the first ones in ``result``) before it is
+    reported. ``say(n)`` is told how many are re-measured."""
+    suspects = [s for s in against_history(result, db) if s.slower]
+    if not suspects:
+        return []
+    say(len(suspects))
+    by_name = {j.case.name: j for j in jobs}
+    records = {(r["case"], r["engine"]): r for r in result["records"]}
+    with tempfile.TemporaryDirectory(prefix="natcoord-recheck-") as tmp:
+        for s in suspects:
+            records[(s.case, s.engine)].update(
+                bench.measure(by_name[s.case], s.engine, repeats, timeout_s, Path(tmp)))
+    return [s for s in against_history(result, db) if s.slower]
+
+
+def write_ci_summary(folder: Path, summary: dict, code: int, slower: list,
+                     report: Path) -> None:
+    """summary.md in the results folder, and appended to $GITHUB_STEP_SUMMARY when set."""
+    text = markdown(summary, code, slower, str(report))
+    write_atomic(Path(folder) / "summary.md", text)
+    if os.environ.get("GITHUB_STEP_SUMMARY"):
+        with open(os.environ["GITHUB_STEP_SUMMARY"], "a", encoding="utf-8") as f:
+            f.write(text)
 
 
 def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: str) -> str:
