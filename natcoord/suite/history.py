@@ -14,6 +14,7 @@ import json
 import sqlite3
 import statistics
 import subprocess
+import time
 from collections.abc import Iterator
 from contextlib import closing, contextmanager
 from pathlib import Path
@@ -43,17 +44,35 @@ def connect(path: Path) -> Iterator[sqlite3.Connection]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with closing(sqlite3.connect(path, timeout=60.0, isolation_level=None)) as db:
-        db.execute("PRAGMA journal_mode=WAL")
         db.execute("PRAGMA busy_timeout=60000")
-        db.executescript(SCHEMA)
+        _wal(db)
+        # the schema in one write transaction: BEGIN IMMEDIATE waits for another writer
+        # (executescript would commit first and create tables outside any lock)
+        db.execute("BEGIN IMMEDIATE")
+        for statement in filter(str.strip, SCHEMA.split(";")):
+            db.execute(statement)
         version = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
         if version is None:
-            db.execute("INSERT OR IGNORE INTO meta VALUES ('schema_version', ?)",
-                       (str(SCHEMA_VERSION),))
-        elif int(version[0]) > SCHEMA_VERSION:
+            db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+        db.execute("COMMIT")
+        if version is not None and int(version[0]) > SCHEMA_VERSION:
             raise ValueError(f"{path}: history schema {version[0]} is newer than this "
                              f"natcoord's ({SCHEMA_VERSION}); upgrade natcoord")
         yield db
+
+
+def _wal(db: sqlite3.Connection, wait_s: float = 60.0) -> None:
+    """Switch to write-ahead logging. Changing the journal mode needs the database to
+    itself and SQLite does not wait for that (no busy handler), so retry for a while."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            db.execute("PRAGMA journal_mode=WAL")
+            return
+        except sqlite3.OperationalError as e:
+            if "locked" not in str(e) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
 
 
 def git_commit(folder: Path) -> str:
