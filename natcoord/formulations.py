@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
+from .kernels_general import ROUNDOFF
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
 from .solver import Index1, Index3, Maggi
@@ -226,6 +227,8 @@ class Index1Loop(FormulationLoop):
         self.mode = mode
 
     def init(self, t, q, qd):
+        if self.mode == "auto" and hasattr(self, "_plan"):  # compiled: no rank decision
+            self.mode = "schur" if self._plan is not None else "qr"
         if self.mode == "auto":
             r = np.linalg.matrix_rank(self.cs.jacobian(q, t), self.opt["rank_tol"])
             self.mode = "schur" if self.Minv is not None and r == self.cs.m else "qr"
@@ -236,32 +239,40 @@ class Index1Loop(FormulationLoop):
 
     def compiled_candidate(self, method: str, h) -> bool:
         """Whether the compiled loop may run (decided before ``init``): adaptive dop853 or
-        dopri5, projection, scleronomic constraints, forces :func:`compiled_forces` knows.
-        Either linear-algebra mode runs compiled (Schur, or the null-space QR form)."""
+        dopri5, fixed-step rk4 or dopri5, projection, scleronomic constraints, forces
+        :func:`compiled_forces` knows. A regular M runs the sparse Schur path (redundant rows
+        included), a singular one (or ``linsolve = "qr"``) the null-space QR form."""
         from . import kernels
-        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and h is None
-                and method in self.COMPILED_METHODS
+        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA
+                and method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP)
                 and self.opt["stabilization"] == "projection" and not self.cs.rheonomic):
             return False
         if not hasattr(self, "_frc"):
             self._frc = compiled_forces(self.model)
         return self._frc is not None
 
+    def prepare_compiled(self) -> None:
+        """Model-only set-up of the compiled loop, kept out of the stepping time: the
+        sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`)."""
+        from .sparsity import schur_plan
+        sparse = self.Minv is not None and self.opt["linsolve"] != "qr"
+        self._plan = schur_plan(self.cs.con, self.M) if sparse else None
+
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
         ``schur`` and ``qr`` have a compiled path (``integrate`` gates on this)."""
         return self.mode in ("schur", "qr")
 
-    def run_compiled(self, times, y, method, rtol, atol):
-        """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``,
-        in the mode ``init`` chose (Schur with M^-1, or the QR null-space form with M)."""
+    def run_compiled(self, times, y, method, rtol, atol, h=None):
+        """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``
+        (the sparse Schur path for a regular M, else the QR null-space form with M)."""
         from . import kernels
-        if not hasattr(self, "_frc"):
-            self._frc = compiled_forces(self.model)
+        if not hasattr(self, "_plan"):
+            self.prepare_compiled()
         return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
-                           Minv=self.Minv if self.mode == "schur" else None, M=self.M,
-                           rank_tol=self.opt["rank_tol"], rtol=rtol, atol=atol,
-                           ptol=self.opt["project_tol"], cnt=self.cnt)
+                           plan=self._plan, M=self.M, rank_tol=self.opt["rank_tol"],
+                           rtol=rtol, atol=atol, ptol=self.opt["project_tol"], cnt=self.cnt,
+                           h=h)
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]
@@ -319,7 +330,9 @@ class Index1Loop(FormulationLoop):
     def project(self, t, q, qd):
         """Newton projection of q on Phi(q, t) = 0, then qd on Phi_q qd = -Phi_t."""
         self._drift(t, q, qd)
-        cs, tol = self.cs, self.opt["project_tol"]
+        cs = self.cs
+        tol = max(self.opt["project_tol"],  # what Phi's round-off allows (kernels_general)
+                  ROUNDOFF * max(1.0, float(np.max(np.abs(q), initial=0.0))) ** 2)
         q = q.copy()
         corr = None
         for _ in range(10):

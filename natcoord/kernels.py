@@ -45,7 +45,7 @@ except ImportError:  # pragma: no cover - numba is a dependency, but stay import
             return args[0]
         return lambda f: f
 
-from . import kernels_general
+from . import kernels_general, kernels_sparse, sparsity
 from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-exported
     C_FACT,
     C_NEWTON,
@@ -102,7 +102,7 @@ def _tableau_dop853():
     Aext = np.zeros((3, 16))
     Aext[:, :] = d.A[13:16, :16]
     return (A, B, C, np.array(d.E5, float), np.array(d.E3, float), 7,  # order for the control
-            Aext, np.array(d.C[13:16], float), np.array(d.D, float))
+            Aext, np.array(d.C[13:16], float), np.array(d.D, float), True)
 
 
 def _tableau_dopri5():
@@ -110,82 +110,48 @@ def _tableau_dopri5():
     A = np.array(D.A, float)
     B = np.array(D.B, float)
     return (A, B, np.array(D.C, float), np.array(D.E, float), np.zeros(len(B)), 4,
-            np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)))
+            np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), True)
 
 
-TABLEAUX = {"dop853": _tableau_dop853(), "dopri5": _tableau_dopri5()}
+def _tableau_rk4():
+    A = np.zeros((4, 4))
+    A[1, 0] = A[2, 1] = 0.5
+    A[3, 2] = 1.0
+    B = np.array([1.0, 2.0, 2.0, 1.0]) / 6.0
+    return (A, B, np.array([0.0, 0.5, 0.5, 1.0]), np.zeros(4), np.zeros(4), 4,
+            np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), False)
 
 
-# ---- one evaluation: the Schur path, and the dispatch to the general one ----------------
+TABLEAUX = {"dop853": _tableau_dop853(), "dopri5": _tableau_dopri5(), "rk4": _tableau_rk4()}
+FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed step
+ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
+
+
+# ---- one evaluation on either path ------------------------------------------------------
 @njit(cache=True)
-def _acc(kk, ii, jj, vv, Minv, Q0, T, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, cnt):
-    """qdd of Eq. (6) by the Schur complement, forces F in w_n; False if W is singular."""
-    n = q.shape[0]
-    m = J.shape[0]
-    cnt[C_RHS] += 1
-    cnt[C_FACT] += 1
-    _jac(kk, ii, jj, vv, q, J)
-    _gamma(kk, ii, jj, vv, qd, w_m2)
-    if not _schur(J, Minv, MiJt, L):
-        return False
-    for a in range(n):  # F = Q0 + T q
-        s = Q0[a]
-        for b in range(n):
-            s += T[a, b] * q[b]
-        w_n[a] = s
-    for a in range(n):  # M^-1 F
-        s = 0.0
-        for b in range(n):
-            s += Minv[a, b] * w_n[b]
-        qdd[a] = s
-    for r in range(m):  # J M^-1 F - c
-        s = -w_m2[r]
-        for a in range(n):
-            s += J[r, a] * qdd[a]
-        w_m[r] = s
-    _chol_solve(L, w_m)
-    for a in range(n):
-        s = qdd[a]
-        for r in range(m):
-            s -= MiJt[a, r] * w_m[r]
-        qdd[a] = s
-    return True
+def _accel(plan, ws, gen, frc, q, qd, qdd, wg, cnt):
+    """qdd (n,) at (q, qd), factoring at q; a status code. ``wg`` None: the sparse Schur
+    path on ``plan`` / ``ws``; else the general path on ``gen`` = (k, i, j, v, M, rank_tol)
+    (numba compiles the two apart: the ``wg is None`` branch is resolved when compiling)."""
+    if wg is None:
+        return kernels_sparse.accelerations(plan[0], plan[1], plan[2], frc, q, qd, qdd, ws,
+                                            cnt, True)
+    kk, ii, jj, vv, M, rank_tol = gen
+    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
-def _project(kk, ii, jj, vv, Minv, q, qd, tol, J, MiJt, L, w_m, cnt):
-    """Newton projection of q on Phi = 0 (simplified: one factorization), then qd on
-    Phi_q qd = 0, both M-orthogonal. Returns a status code."""
-    m = J.shape[0]
-    drift(kk, ii, jj, vv, q, qd, w_m, J, cnt)
-    factored = False
-    for it in range(11):
-        e = 0.0
-        for r in range(m):
-            e = max(e, abs(w_m[r]))
-        if e < tol:
-            break
-        if it == 10:
-            return ERR_NEWTON
-        if not factored:
-            if not _schur(J, Minv, MiJt, L):
-                return ERR_SINGULAR
-            cnt[C_FACT] += 1
-            factored = True
-        _chol_solve(L, w_m)
-        _sub_matvec(MiJt, w_m, q)
-        cnt[C_NEWTON] += 1
-        _phi(kk, ii, jj, vv, m, q, w_m)
-    if factored:
-        _jac(kk, ii, jj, vv, q, J)
-    if jv(J, qd, w_m) > tol:
-        if not _schur(J, Minv, MiJt, L):
-            return ERR_SINGULAR
-        cnt[C_FACT] += 1
-        _chol_solve(L, w_m)
-        _sub_matvec(MiJt, w_m, qd)
-    cnt[C_PROJ] += 1
-    return OK
+def _settle(plan, ws, gen, frc, q, qd, qdd, ptol, wg, cnt):
+    """Project (q, qd) in place and evaluate qdd there; a status code. The sparse path
+    starts its simplified Newton from the factorization of the last evaluation."""
+    if wg is None:
+        return kernels_sparse.settle(plan[0], plan[1], plan[2], frc, q, qd, qdd, ptol, ws,
+                                     cnt, True)
+    kk, ii, jj, vv, M, rank_tol = gen
+    st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
+    if st != OK:
+        return st
+    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
@@ -216,53 +182,27 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 
 @njit(cache=True)
-def _accel(kk, ii, jj, vv, lin, frc, q, qd, qdd, J, MiJt, L, w_m, w_m2, w_n, wg, cnt):
-    """qdd (n,) at (q, qd) on either path; returns a status code. ``wg`` None: the Schur
-    path (numba compiles the two apart)."""
-    if wg is None:
-        Minv = lin[0]
-        if not _acc(kk, ii, jj, vv, Minv, frc[0], frc[1], q, qd, qdd, J, MiJt, L, w_m, w_m2,
-                    w_n, cnt):
-            return ERR_SINGULAR
-        return OK
-    return acc_general(kk, ii, jj, vv, lin[1], lin[2], frc, q, qd, qdd, wg, cnt)
+def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
+    """Explicit Runge-Kutta over ``times`` (T,) from a consistent (q0, qd0) (n,) at
+    times[0]: adaptive (embedded pair, steps cross the samples, dense output) or fixed
+    steps (landing on every sample).
 
-
-@njit(cache=True)
-def _proj(kk, ii, jj, vv, lin, q, qd, ptol, J, MiJt, L, w_m, wg, cnt):
-    """Project (q, qd) in place on either path; returns a status code."""
-    if wg is None:
-        return _project(kk, ii, jj, vv, lin[0], q, qd, ptol, J, MiJt, L, w_m, cnt)
-    return project_general(kk, ii, jj, vv, lin[2], q, qd, ptol, wg, cnt)
-
-
-@njit(cache=True)
-def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
-    """Adaptive embedded RK over ``times`` (T,) from a consistent (q0, qd0) (n,) at
-    times[0].
-
-    ``con`` = (k, i, j, v, m): the constraint triplets over qh and the row count;
-    ``wg``: None for the Schur path, else the general path's work arrays
-    (:func:`kernels_general.workspace`); ``lin`` = (Minv (n, n), M (n, n), rank_tol): Minv
-    for the Schur path, M and rank_tol for the general one; ``frc``: :func:`pack_forces`;
-    ``tab`` = (A, B, C, E5, E3, order, dop853, Aext, Cext, D): the method's tableau
-    (:data:`TABLEAUX`); ``ctl`` = (rtol, atol, h0, ptol, max_steps): step control (h0 <= 0:
-    Hairer's initial step) and projection tolerance; ``out`` = (Q, QD, QDD (T, n), cnt
-    (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
+    ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`);
+    else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
+    arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` = (A, B, C, E5, E3,
+    order, dop853, Aext, Cext, D, fsal): the method's tableau (:data:`TABLEAUX`); ``ctl`` =
+    (rtol, atol, h0, ptol, max_steps, h_fixed): step control (h0 <= 0: Hairer's initial
+    step; h_fixed > 0: fixed steps of at most h_fixed, no error control) and projection
+    tolerance; ``out`` = (Q, QD, QDD (T, n), cnt (N_COUNTERS,)) filled in place. Returns a
+    status code (0 = ok).
     """
-    kk, ii, jj, vv, m = con
-    A, B, C, E5, E3, order, dop853, Aext, Cext, D = tab
-    rtol, atol, h0, ptol, max_steps = ctl
+    A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
+    rtol, atol, h0, ptol, max_steps, h_fixed = ctl
     Q, QD, QDD, cnt = out
+    fixed = h_fixed > 0.0
     n = q0.shape[0]
     N = 2 * n
     s_st = B.shape[0]
-    J = np.zeros((m, n))
-    MiJt = np.zeros((n, m))
-    L = np.zeros((m, m))
-    w_m = np.zeros(m)
-    w_m2 = np.zeros(m)
-    w_n = np.zeros(n)
     n_ext = Aext.shape[0]
     K = np.zeros((s_st + n_ext, N))
     Fd = np.zeros((D.shape[0] + 3, N))  # dop853 continuous extension (order 7)
@@ -280,8 +220,7 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = _accel(kk, ii, jj, vv, lin, frc, y[:n], y[n:], qdd, J, MiJt, L, w_m, w_m2,
-                     w_n, wg, cnt)
+    st_code = _accel(plan, ws, gen, frc, y[:n], y[n:], qdd, wg, cnt)
     if st_code != OK:
         return st_code
     f0[:n] = y[n:]
@@ -292,7 +231,7 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
     k_out = 1
     # initial step (Hairer)
     h = h0
-    if h <= 0.0:
+    if h <= 0.0 and not fixed:
         d0 = 0.0
         d1 = 0.0
         for a in range(N):
@@ -308,7 +247,11 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
     while k_out < T_out:
         if nsteps >= max_steps:
             return ERR_MAXSTEPS
-        hh = min(h, tend - t)
+        if fixed:  # equal steps of at most h_fixed up to the next sample
+            span = times[k_out] - t
+            hh = span / max(1.0, math.ceil(span / h_fixed - 1e-9))
+        else:
+            hh = min(h, tend - t)
         # stages
         K[0] = f0
         for st in range(1, s_st):
@@ -318,16 +261,24 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
                     if A[st, p] != 0.0:
                         s += hh * A[st, p] * K[p, a]
                 ys[a] = s
-            if st == s_st - 1:
-                yn[:] = ys
             K[st, :n] = ys[n:]
-            st_code = _accel(kk, ii, jj, vv, lin, frc, ys[:n], ys[n:], qdd, J, MiJt, L, w_m, w_m2,
-                             w_n, wg, cnt)
+            st_code = _accel(plan, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
             if st_code != OK:
                 return st_code
             K[st, n:] = qdd
+        if fsal:  # the last stage is at the new point
+            yn[:] = ys
+        else:
+            for a in range(N):
+                s = y[a]
+                for p in range(s_st):
+                    s += hh * B[p] * K[p, a]
+                yn[a] = s
         # error norm
-        if dop853:
+        err = 0.0
+        if fixed:
+            pass
+        elif dop853:
             e5 = 0.0
             e3 = 0.0
             for a in range(N):
@@ -362,6 +313,8 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
             continue
         # accept: dense output from the unprojected step, then project the end state
         t1 = t + hh
+        if fixed and abs(t1 - times[k_out]) <= 1e-9 * hh:
+            t1 = times[k_out]
         if hh == tend - t:
             t1 = tend
         inner = k_out < T_out and times[k_out] < t1 - 1e-13 * max(1.0, abs(t1))
@@ -375,8 +328,7 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
                             s += hh * Aext[e, p] * K[p, a]
                     ys[a] = s
                 K[st, :n] = ys[n:]
-                st_code = _accel(kk, ii, jj, vv, lin, frc, ys[:n], ys[n:], qdd, J, MiJt, L,
-                                 w_m, w_m2, w_n, wg, cnt)
+                st_code = _accel(plan, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
                 if st_code != OK:
                     return st_code
                 K[st, n:] = qdd
@@ -390,11 +342,7 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
                     for p in range(s_st + n_ext):
                         s += D[r, p] * K[p, a]
                     Fd[3 + r, a] = hh * s
-        st_code = _proj(kk, ii, jj, vv, lin, yn[:n], yn[n:], ptol, J, MiJt, L, w_m, wg, cnt)
-        if st_code != OK:
-            return st_code
-        st_code = _accel(kk, ii, jj, vv, lin, frc, yn[:n], yn[n:], qdd, J, MiJt, L, w_m, w_m2,
-                         w_n, wg, cnt)
+        st_code = _settle(plan, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt)
         if st_code != OK:
             return st_code
         f1[:n] = yn[n:]
@@ -422,11 +370,7 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = _proj(kk, ii, jj, vv, lin, qs, qds, ptol, J, MiJt, L, w_m, wg, cnt)
-                if st_code != OK:
-                    return st_code
-                st_code = _accel(kk, ii, jj, vv, lin, frc, qs, qds, qdd, J, MiJt, L, w_m, w_m2,
-                                 w_n, wg, cnt)
+                st_code = _settle(plan, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt)
                 if st_code != OK:
                     return st_code
                 Q[k_out] = qs
@@ -436,20 +380,21 @@ def run_index1(con, wg, lin, frc, tab, ctl, times, q0, qd0, out):
         t = t1
         y[:] = yn
         f0[:] = f1
-        fac = 10.0 if err == 0.0 else min(10.0, 0.9 * err ** expo)
-        h = hh * fac
+        if not fixed:
+            fac = 10.0 if err == 0.0 else min(10.0, 0.9 * err ** expo)
+            h = hh * fac
     return OK
 
 
 # ---- compile / load once ----------------------------------------------------------------
-def _drop_stale_cache(namespace: dict, module: str) -> None:
+def _drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
     """numba compiles callees into the cached code of their callers but checks only the
     caller's file for changes: flush the cache of every compiled function of ``module``
-    (its ``namespace``) when :mod:`natcoord.kernels_general` changed since it was written."""
+    (its ``namespace``) when one of the modules ``deps`` changed since it was written."""
     try:
         disp = [v for v in namespace.values() if getattr(v, "_cache", None) is not None
                 and getattr(v, "py_func", None) is not None and v.py_func.__module__ == module]
-        sha = hashlib.sha1(Path(kernels_general.__file__).read_bytes()).hexdigest()
+        sha = hashlib.sha1(b"".join(Path(d.__file__).read_bytes() for d in deps)).hexdigest()
         stamp = Path(disp[0]._cache.cache_path) / f"{module}.deps.sha1"
         if stamp.exists() and stamp.read_text() == sha:
             return
@@ -460,14 +405,16 @@ def _drop_stale_cache(namespace: dict, module: str) -> None:
         pass
 
 
-_drop_stale_cache(globals(), __name__)
+_drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
+_drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse))
 _READY = False
 COMPILE_TIME_S = 0.0
 
 
 def ensure_compiled() -> float:
-    """Compile (or load from numba's cache) the kernels by tiny runs of both paths; returns
-    the seconds this call took (0 when already done in this process)."""
+    """Compile (or load from numba's cache) the kernels by tiny runs of both paths,
+    adaptive and fixed-step; returns the seconds this call took (0 when already done in
+    this process)."""
     global _READY, COMPILE_TIME_S
     if _READY or not HAVE_NUMBA:
         return 0.0
@@ -476,39 +423,42 @@ def ensure_compiled() -> float:
     con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
                           v=np.array([1.0, 1.0, -1.0]), m=1)
     frc = pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
-    for name in ("dop853", "dopri5"):
-        for Minv in (np.eye(2), None):
-            run(name, con, frc, np.linspace(0.0, 0.02, 3), np.array([1.0, 0.0]), np.zeros(2),
-                Minv=Minv, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13, cnt=None)
+    times = np.linspace(0.0, 0.02, 3)
+    for general in (False, True):
+        plan = None if general else sparsity.schur_plan(con, np.eye(2))
+        for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
+            run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2), plan=plan,
+                M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13, cnt=None, h=h)
     _READY = True
     COMPILE_TIME_S = time.perf_counter() - t0
     return COMPILE_TIME_S
 
 
-def run(name: str, con, frc, times, q0, qd0, *, Minv=None, M=None, rank_tol: float = 1e-9,
-        rtol, atol, ptol, cnt, h0: float = 0.0, max_steps: int = 10_000_000):
+def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: float = 1e-9,
+        rtol, atol, ptol, cnt, h=None, h0: float = 0.0, max_steps: int = 10_000_000):
     """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n). Raises RuntimeError.
 
-    ``frc`` from :func:`pack_forces`. ``Minv`` (n, n) selects the Schur path (whose forces
-    are Q0 + T q: with torques or springs the general path runs); the general path needs
-    ``M`` (n, n) and ``rank_tol`` (relative, on |R_kk| / |R_00|)."""
-    A, B, C, E5, E3, order, Aext, Cext, D = TABLEAUX[name]
+    ``frc`` from :func:`pack_forces`. ``plan`` (:func:`natcoord.sparsity.schur_plan`, for
+    a regular M) selects the sparse Schur path; without it the general path runs on ``M``
+    (n, n) and ``rank_tol`` (relative, on |R_kk| / |R_00|). ``h``: a fixed step (s) for
+    rk4 or dopri5, else adaptive steps at ``rtol``/``atol``."""
+    A, B, C, E5, E3, order, Aext, Cext, D, fsal = TABLEAUX[name]
+    tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
+    if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
+        raise ValueError(f"{name} (compiled): " + ("give a fixed step h" if h is None else
+                                                   "adaptive only"))
     Tn, n = len(times), len(q0)
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
-    if Minv is not None and (len(frc[3]) > 1 or len(frc[5]) > 0):
-        Minv, M = None, np.linalg.inv(Minv) if M is None else M
-    if Minv is not None and frc[1].shape != (n, n):  # the Schur path reads T (n, n)
-        frc = (frc[0], np.zeros((n, n))) + tuple(frc[2:])
-    wg = workspace(n, int(con.m)) if Minv is None else None
-    lin = (as_f64(np.zeros((0, 0)) if Minv is None else Minv, 2),
+    gen = (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
+           np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
            as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
-    triplets = (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
-                np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
-                int(con.m))
-    tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D)
-    ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps))
-    status = run_index1(triplets, wg, lin, frc, tab, ctl, np.ascontiguousarray(times, float),
+    wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
+    args = (sparsity.empty_plan(n) if plan is None else plan).kernel_args
+    ws = kernels_sparse.workspace(args)
+    ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
+           0.0 if h is None else float(h))
+    status = run_index1(args, ws, gen, wg, frc, tab, ctl, np.ascontiguousarray(times, float),
                         np.array(q0, float), np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:
         for slot, name_ in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),

@@ -113,6 +113,20 @@ def drift(kk, ii, jj, vv, q, qd, w, J, cnt):
         cnt[C_PHID] = max(cnt[C_PHID], abs(s))
 
 
+ROUNDOFF = 16 * 2.2e-16  # |Phi| that evaluating a quadratic row at |q| ~ 1 m cannot beat
+
+
+@njit(cache=True)
+def reachable(tol, q):
+    """The projection tolerance (m) that Phi's evaluation can reach at q: ``tol``, or the
+    round-off of rows quadratic in coordinates as large as max|q| when that is larger (a
+    chain 60 m long cannot be projected to 1e-13 m)."""
+    big = 1.0
+    for a in range(q.shape[0]):
+        big = max(big, abs(q[a]))
+    return max(tol, ROUNDOFF * big * big)
+
+
 @njit(cache=True)
 def jv(J, x, w):
     """w = J x (m,) in place; returns max |w|."""
@@ -368,6 +382,7 @@ def project_general(kk, ii, jj, vv, rank_tol, q, qd, tol, wg, cnt):
     J, w = wg[0], wg[1]
     m = J.shape[0]
     wg[15][0] = -1
+    tol = reachable(tol, q)
     drift(kk, ii, jj, vv, q, qd, w, J, cnt)
     rk = -1
     for it in range(11):

@@ -137,8 +137,10 @@ def test_compiled_candidate_takes_natural_models_and_refuses_the_rest():
     _, model, _ = _case("five_bar")
     assert Index1Loop(model, {}, Counters()).compiled_candidate("dop853", None)
     assert Index1Loop(model, {"linsolve": "qr"}, Counters()).compiled_candidate("dopri5", None)
-    assert not Index1Loop(model, {}, Counters()).compiled_candidate("dopri5", 1e-3)  # fixed h
+    assert Index1Loop(model, {}, Counters()).compiled_candidate("dopri5", 1e-3)  # fixed h
+    assert Index1Loop(model, {}, Counters()).compiled_candidate("rk4", 1e-3)
     assert not Index1Loop(model, {}, Counters()).compiled_candidate("rk4", None)
+    assert not Index1Loop(model, {}, Counters()).compiled_candidate("dop853", 1e-3)
     assert not Index1Loop(model, {"stabilization": "baumgarte"},
                       Counters()).compiled_candidate("dop853", None)
     assert not Index1Loop(model, {"compiled": False}, Counters()).compiled_candidate("dop853", None)

@@ -1,0 +1,278 @@
+"""Compiled evaluation of Eq. (6) on the sparsity plan (:mod:`natcoord.sparsity`).
+
+The Schur path of the compiled loop for a regular, constant M, redundant rows included:
+
+    qdd = M^-1 F - Y lambda,    W lambda = J M^-1 F - c,    Y = M^-1 J^T,  W = J Y = L L^T
+
+The plan arrives packed as three arrays ``I, F, O`` (:attr:`SchurPlan.kernel_args
+<natcoord.sparsity.SchurPlan.kernel_args>`: its integer and float arrays and their offsets;
+three pointers per call instead of thirty arrays, whose passing and reference counting
+cost more than the arithmetic), and the work array ``ws`` (:func:`workspace`) holds the
+values of J, Y and L of the last factorization, so that a projection can take
+simplified-Newton steps with it before factoring again. Every loop runs over the plan's
+flat index arrays: no dense (m, n) matrix, no test on zeros.
+Units: SI.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .kernels_general import (
+    C_FACT,
+    C_NEWTON,
+    C_PHI,
+    C_PHID,
+    C_PROJ,
+    C_RHS,
+    ERR_NEWTON,
+    OK,
+    forces,
+    njit,
+    reachable,
+)
+from .sparsity import FLOAT, INT, WORK
+
+NEWTON_MAX = 12  # simplified-Newton iterations of one projection
+NEWTON_RATE = 0.25  # a slower contraction refreshes the factorization at the current q
+
+# segment numbers in O (see SchurPlan.kernel_args): ints, then floats, then work, then m
+_FO = len(INT) + 1
+_WO = _FO + len(FLOAT) + 1
+_M = _WO + len(WORK) + 1
+(PHI_K, PHI_I, PHI_J, JAC_PTR, JAC_OTHER, GAM_K, GAM_I, GAM_J, J_ROW, J_COL, MI_PTR, MI_COL,
+ Y_PTR, Y_J, YPTR, YCOL, W_PTR, W_J, W_Y, ENV_FIRST, ENV_PTR) = range(len(INT))
+PHI_V, JAC_V, GAM_V, MI_VAL, Y_COEF = range(_FO, _FO + len(FLOAT))
+W_J_, W_Y_, W_L_, W_DIAG, W_W, W_C, W_F = range(_WO, _WO + len(WORK))
+
+
+@njit(cache=True, inline="always")
+def _seg(A, O, k):
+    """Segment k of the packed array A (an integer, float or work segment by k)."""
+    return A[O[k]:O[k + 1]]
+
+
+def workspace(plan: tuple) -> np.ndarray:
+    """The work array of plan (I, F, O): values of J, Y, L, the diagonal of W, and three
+    vectors (m, m, n)."""
+    O = plan[2]
+    return np.zeros(int(O[_M - 1] - O[_WO]))
+
+
+@njit(cache=True)
+def phi(I, F, O, q, out):
+    """out (m,) = Phi(q)."""
+    kk, ii, jj, vv = _seg(I, O, PHI_K), _seg(I, O, PHI_I), _seg(I, O, PHI_J), _seg(F, O, PHI_V)
+    n = q.shape[0]
+    out[:] = 0.0
+    for t in range(kk.shape[0]):
+        a = q[ii[t]] if ii[t] < n else 1.0
+        b = q[jj[t]] if jj[t] < n else 1.0
+        out[kk[t]] += 0.5 * vv[t] * a * b
+
+
+@njit(cache=True)
+def jacobian(I, F, O, q, Jv):
+    """Jv (nJ,) = the entries of Phi_q(q)."""
+    ptr, other, vv = _seg(I, O, JAC_PTR), _seg(I, O, JAC_OTHER), _seg(F, O, JAC_V)
+    n = q.shape[0]
+    for e in range(Jv.shape[0]):
+        s = 0.0
+        for t in range(ptr[e], ptr[e + 1]):
+            o = other[t]
+            s += vv[t] * (q[o] if o < n else 1.0)
+        Jv[e] = s
+
+
+@njit(cache=True)
+def gamma(I, F, O, qd, c):
+    """c (m,) = -qd^T H_k qd."""
+    kk, ii, jj, vv = _seg(I, O, GAM_K), _seg(I, O, GAM_I), _seg(I, O, GAM_J), _seg(F, O, GAM_V)
+    c[:] = 0.0
+    for t in range(kk.shape[0]):
+        c[kk[t]] -= vv[t] * qd[ii[t]] * qd[jj[t]]
+
+
+@njit(cache=True)
+def jx(I, O, Jv, x, w):
+    """w (m,) = J x; returns max |w|."""
+    row, col = _seg(I, O, J_ROW), _seg(I, O, J_COL)
+    w[:] = 0.0
+    for e in range(row.shape[0]):
+        w[row[e]] += Jv[e] * x[col[e]]
+    big = 0.0
+    for r in range(w.shape[0]):
+        big = max(big, abs(w[r]))
+    return big
+
+
+@njit(cache=True)
+def minv(I, F, O, f, out):
+    """out (n,) = M^-1 f."""
+    ptr, col, val = _seg(I, O, MI_PTR), _seg(I, O, MI_COL), _seg(F, O, MI_VAL)
+    for a in range(out.shape[0]):
+        s = 0.0
+        for e in range(ptr[a], ptr[a + 1]):
+            s += val[e] * f[col[e]]
+        out[a] = s
+
+
+@njit(cache=True)
+def sub_y(I, O, Yv, w, x):
+    """x (n,) -= Y w."""
+    ptr, col = _seg(I, O, YPTR), _seg(I, O, YCOL)
+    for a in range(x.shape[0]):
+        s = 0.0
+        for e in range(ptr[a], ptr[a + 1]):
+            s += Yv[e] * w[col[e]]
+        x[a] -= s
+
+
+@njit(cache=True)
+def factor(I, F, O, Jv, Yv, Lv, diag):
+    """Y = M^-1 J^T and the envelope Cholesky L of W = J Y, in place; returns the number
+    of dependent rows (a pivot below dep_tol of its row's diagonal: its L[r, r] = 0)."""
+    y_ptr, y_j, y_coef = _seg(I, O, Y_PTR), _seg(I, O, Y_J), _seg(F, O, Y_COEF)
+    w_ptr, w_j, w_y = _seg(I, O, W_PTR), _seg(I, O, W_J), _seg(I, O, W_Y)
+    first, ptr = _seg(I, O, ENV_FIRST), _seg(I, O, ENV_PTR)
+    m, dep_tol = O[_M], O[_M + 1] * 1e-18
+    for e in range(Yv.shape[0]):
+        s = 0.0
+        for p in range(y_ptr[e], y_ptr[e + 1]):
+            s += y_coef[p] * Jv[y_j[p]]
+        Yv[e] = s
+    for e in range(Lv.shape[0]):
+        s = 0.0
+        for p in range(w_ptr[e], w_ptr[e + 1]):
+            s += Jv[w_j[p]] * Yv[w_y[p]]
+        Lv[e] = s
+    dependent = 0
+    for r in range(m):
+        fr, pr = first[r], ptr[r]
+        for c in range(fr, r):  # L[r, c] = (W[r, c] - sum_k L[r, k] L[c, k]) / L[c, c]
+            pc = ptr[c]
+            dc = Lv[pc + c - first[c]]
+            if dc == 0.0:
+                Lv[pr + c - fr] = 0.0
+                continue
+            s = Lv[pr + c - fr]
+            for k in range(max(fr, first[c]), c):
+                s -= Lv[pr + k - fr] * Lv[pc + k - first[c]]
+            Lv[pr + c - fr] = s / dc
+        d = Lv[pr + r - fr]
+        diag[r] = d
+        s = d
+        for k in range(fr, r):
+            s -= Lv[pr + k - fr] * Lv[pr + k - fr]
+        if s > dep_tol * d and s > 0.0:
+            Lv[pr + r - fr] = math.sqrt(s)
+        else:
+            Lv[pr + r - fr] = 0.0
+            dependent += 1
+    return dependent
+
+
+@njit(cache=True)
+def solve(I, O, Lv, b):
+    """b (m,) <- a solution of L L^T x = b (dependent rows: x_r = 0)."""
+    first, ptr, m = _seg(I, O, ENV_FIRST), _seg(I, O, ENV_PTR), O[_M]
+    for r in range(m):
+        fr, pr = first[r], ptr[r]
+        d = Lv[pr + r - fr]
+        if d == 0.0:
+            b[r] = 0.0
+            continue
+        s = b[r]
+        for k in range(fr, r):
+            s -= Lv[pr + k - fr] * b[k]
+        b[r] = s / d
+    for r in range(m - 1, -1, -1):
+        fr, pr = first[r], ptr[r]
+        d = Lv[pr + r - fr]
+        if d == 0.0:
+            b[r] = 0.0
+            continue
+        x = b[r] / d
+        b[r] = x
+        for k in range(fr, r):
+            b[k] -= Lv[pr + k - fr] * x
+
+
+@njit(cache=True)
+def refactor(I, F, O, q, ws, cnt):
+    """J, Y and L at q into the work array ``ws``."""
+    jacobian(I, F, O, q, _seg(ws, O, W_J_))
+    factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_),
+           _seg(ws, O, W_DIAG))
+    cnt[C_FACT] += 1
+
+
+@njit(cache=True)
+def accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, fresh):
+    """qdd (n,) of Eq. (6) at (q, qd); ``fresh``: factor at q first (else ``ws`` holds
+    the factorization at this q already)."""
+    cnt[C_RHS] += 1
+    if fresh:
+        refactor(I, F, O, q, ws, cnt)
+    w, c, f = _seg(ws, O, W_W), _seg(ws, O, W_C), _seg(ws, O, W_F)
+    gamma(I, F, O, qd, c)
+    forces(frc, q, qd, f)
+    minv(I, F, O, f, qdd)
+    jx(I, O, _seg(ws, O, W_J_), qdd, w)
+    for r in range(w.shape[0]):
+        w[r] -= c[r]
+    solve(I, O, _seg(ws, O, W_L_), w)
+    sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
+    return OK
+
+
+@njit(cache=True)
+def _newton_step(I, O, ws, w, x):
+    """x -= Y L^-T L^-1 w (an M-orthogonal correction with the stored factorization)."""
+    solve(I, O, _seg(ws, O, W_L_), w)
+    sub_y(I, O, _seg(ws, O, W_Y_), w, x)
+
+
+@njit(cache=True)
+def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
+    """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
+    in ``ws`` (``factored``: one made near q, e.g. at the last stage or sample; refreshed
+    at the current q when the contraction is slow), factor once at the projected q, project
+    qd on Phi_q qd = 0 with it and evaluate qdd there. Returns a status code."""
+    w = _seg(ws, O, W_W)
+    tol = reachable(tol, q)
+    phi(I, F, O, q, w)
+    e = 0.0
+    for r in range(w.shape[0]):
+        e = max(e, abs(w[r]))
+    cnt[C_PHI] = max(cnt[C_PHI], e)
+    if not factored and e >= tol:
+        refactor(I, F, O, q, ws, cnt)
+    prev = math.inf
+    fresh = False  # the factorization is at the current q (true Newton this iteration)
+    it = 0
+    while e >= tol:
+        if it >= NEWTON_MAX:
+            return ERR_NEWTON
+        if e > NEWTON_RATE * prev and not fresh:
+            refactor(I, F, O, q, ws, cnt)
+            fresh = True
+        else:
+            fresh = False
+        _newton_step(I, O, ws, w, q)
+        cnt[C_NEWTON] += 1
+        prev = e
+        phi(I, F, O, q, w)
+        e = 0.0
+        for r in range(w.shape[0]):
+            e = max(e, abs(w[r]))
+        it += 1
+    refactor(I, F, O, q, ws, cnt)
+    ev = jx(I, O, _seg(ws, O, W_J_), qd, w)
+    cnt[C_PHID] = max(cnt[C_PHID], ev)
+    if ev > tol:
+        _newton_step(I, O, ws, w, qd)
+    cnt[C_PROJ] += 1
+    return accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, False)

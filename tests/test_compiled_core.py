@@ -1,0 +1,146 @@
+"""The compiled core against the Python path, case by case, and its sparsity plan.
+
+Every case natcoord can run compiled (scleronomic, known forces) is integrated by fixed-step
+RK4 twice, once in the compiled loop (sparse Schur path for a regular M, the QR null-space
+form for a singular one) and once in the Python loop: the same method with the same steps,
+so the two agree to round-off and the projection tolerance, and must agree to 1e-10. The
+plan itself is checked against dense algebra: J, W = J M^-1 J^T and its Cholesky factor,
+and a redundant row (five_bar's regular-M variant) left out by the semi-definite factor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from natcoord import casefile, casemodel, kernels, sparsity
+from natcoord import kernels_sparse as ks
+from natcoord.drivers import ConstraintSystem
+from natcoord.dynamics import integrate
+from natcoord.formulations import Counters, Index1Loop, compiled_forces
+from natcoord.solver import Fixed, Index1, Solver
+
+from .conftest import CASES
+
+H = 1e-3  # RK4 step (s)
+WINDOW = 0.05  # s of each case
+STIFF = {"a05_flyball_governor": (1e-4, 0.01),  # dampers' mode ~1e4 1/s
+         "parallelogram_3d_flexible": (2e-5, 0.002)}  # its springs: ~35 steps per ms
+COMPILED = [p.stem for p in sorted(CASES.glob("*.toml"))
+            if p.stem not in ("slider_crank_driven",)]  # drivers are rheonomic: Python only
+
+
+def _model(name):
+    case = casefile.load_case(CASES / f"{name}.toml")
+    engine = case.engines.get("natcoord")
+    coords = (getattr(engine, "settings", None) or {}).get("coordinates", "joints")
+    cm = casemodel.build(case, coords)
+    return case, cm.model, casemodel.initial_state(cm)
+
+
+@pytest.mark.parametrize("name", COMPILED)
+def test_compiled_rk4_matches_the_python_loop(name):
+    case, model, st = _model(name)
+    h, window = STIFF.get(name, (H, WINDOW))
+    times = case.times[case.times <= window + 1e-12]
+    if len(times) < 2:
+        times = np.array([0.0, window])
+    runs = {}
+    for compiled in (True, False):
+        sol = integrate(model, st, times, Solver(Index1(compiled=compiled), "rk4", Fixed(h)))
+        assert sol.counters["compiled"] is compiled
+        runs[compiled] = sol
+    a, b = runs[True], runs[False]
+    assert a.counters["steps"] == b.counters["steps"]
+    scale = max(1.0, float(np.max(np.abs(b.q))))
+    assert np.max(np.abs(a.q - b.q)) < 1e-10 * scale
+    vscale = max(1.0, float(np.max(np.abs(b.qd))))
+    assert np.max(np.abs(a.qd - b.qd)) < 1e-10 * vscale
+    ascale = max(1.0, float(np.max(np.abs(b.qdd))))
+    assert np.max(np.abs(a.qdd - b.qdd)) < 1e-9 * ascale
+
+
+def _dense(con, q, n):
+    J = np.zeros((con.m, n))
+    qh = np.append(q, 1.0)
+    for k, i, j, v in zip(con.k, con.i, con.j, con.v, strict=True):
+        if i < n:
+            J[k, i] += v * qh[j]
+    return J
+
+
+@pytest.mark.parametrize("name", ["slider_crank", "four_bar", "a02_four_bar_n2",
+                                  "slider_crank_3d", "a04_bricard"])
+def test_plan_reproduces_dense_algebra(name):
+    _, model, st = _model(name)
+    cs = ConstraintSystem(model)
+    M = np.asarray(model.M, float)
+    plan = sparsity.schur_plan(cs.con, M)
+    I, F, O = plan.kernel_args
+    ws = ks.workspace(plan.kernel_args)
+    n = model.n
+    J = _dense(cs.con, st.q, n)[plan.perm]  # the plan's rows are in RCM order
+    cnt = np.zeros(kernels.N_COUNTERS)
+    ks.refactor(I, F, O, np.asarray(st.q, float), ws, cnt)
+    nJ, nY = len(plan.jac_ptr) - 1, len(plan.y_ptr) - 1
+    Jv = ws[:nJ]
+    Jp = np.zeros_like(J)
+    Jp[plan.J_row, plan.J_col] = Jv
+    assert np.allclose(Jp, J, rtol=0, atol=1e-14)
+    Lv = ws[nJ + nY:nJ + nY + plan.envelope]
+    L = np.zeros((plan.m, plan.m))
+    for r in range(plan.m):
+        for c in range(plan.env_first[r], r + 1):
+            L[r, c] = Lv[plan.env_ptr[r] + c - plan.env_first[r]]
+    W = J @ np.linalg.solve(M, J.T)
+    rank = np.linalg.matrix_rank(J, 1e-9)
+    assert np.count_nonzero(np.diag(L)) == rank
+    assert np.allclose(L @ L.T, W, rtol=0, atol=1e-10 * np.max(np.abs(W)))
+
+
+def test_semidefinite_factor_solves_a_redundant_system():
+    """A four_bar with its last joint row repeated: W is singular, the factor marks the
+    copy dependent, and qdd equals the one without the copy."""
+    _, model, st = _model("four_bar")
+    cs = ConstraintSystem(model)
+    con = cs.con
+    last = con.k == con.m - 1
+
+    class Con:
+        m = con.m + 1
+        k = np.concatenate([con.k, np.full(int(last.sum()), con.m)])
+        i = np.concatenate([con.i, con.i[last]])
+        j = np.concatenate([con.j, con.j[last]])
+        v = np.concatenate([con.v, 2.0 * con.v[last]])  # a multiple: still redundant
+
+    frc = compiled_forces(model)
+    M = np.asarray(model.M, float)
+    q, qd = np.asarray(st.q, float), np.asarray(st.qd, float)
+    out = []
+    for c in (con, Con):
+        plan = sparsity.schur_plan(c, M)
+        I, F, O = plan.kernel_args
+        ws = ks.workspace(plan.kernel_args)
+        qdd = np.zeros(model.n)
+        ks.accelerations(I, F, O, frc, q, qd, qdd, ws, np.zeros(kernels.N_COUNTERS), True)
+        out.append(qdd)
+    assert np.max(np.abs(out[0] - out[1])) < 1e-12 * max(1.0, np.max(np.abs(out[0])))
+    ref = Index1Loop(model, {"linsolve": "qr"}, Counters()).accelerations(0.0, q, qd)
+    assert np.max(np.abs(out[0] - ref)) < 1e-10 * max(1.0, np.max(np.abs(ref)))
+
+
+def test_envelope_of_a_chain_stays_narrow(tmp_path):
+    """Reverse Cuthill-McKee keeps W's envelope linear in the size of a chain: the
+    N-four-bar's envelope per row does not grow with N."""
+    from natcoord.generate import n_four_bar
+
+    per_row = []
+    for n_cranks in (4, 16):
+        path = tmp_path / f"a02_four_bar_n{n_cranks}.toml"
+        path.write_text(n_four_bar(n_cranks))
+        case = casefile.load_case(path)
+        cm = casemodel.build(case, "joints")
+        cs = ConstraintSystem(cm.model)
+        plan = sparsity.schur_plan(cs.con, np.asarray(cm.model.M, float))
+        per_row.append(plan.envelope / plan.m)
+    assert per_row[1] < 1.3 * per_row[0]
