@@ -51,7 +51,8 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     (and adaptive ``dopri5``) on index1 runs as one compiled numba loop when the model
     allows, and so do fixed-step ``rk4`` and ``dopri5``; its compile/cache-load time
     (``counters["compile_time_s"]``) and the model's sparsity plan
-    (``counters["plan_time_s"]``) are never in ``wall_time_s``. ``check``: test Eq. (37) at the initial state first.
+    (``counters["plan_time_s"]``) are never in ``wall_time_s``. ``check``: test Eq. (37)
+    at the initial state first.
     """
     solver = Solver() if solver is None else solver
     name, method, h = solver.formulation.name, solver.method, solver.h

@@ -32,9 +32,9 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .kernels_general import ROUNDOFF
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
+from .kernels_general import ROUNDOFF
 from .solver import Index1, Index3, Maggi
 
 

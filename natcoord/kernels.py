@@ -189,12 +189,12 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
 
     ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`);
     else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
-    arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` = (A, B, C, E5, E3,
-    order, dop853, Aext, Cext, D, fsal): the method's tableau (:data:`TABLEAUX`); ``ctl`` =
-    (rtol, atol, h0, ptol, max_steps, h_fixed): step control (h0 <= 0: Hairer's initial
-    step; h_fixed > 0: fixed steps of at most h_fixed, no error control) and projection
-    tolerance; ``out`` = (Q, QD, QDD (T, n), cnt (N_COUNTERS,)) filled in place. Returns a
-    status code (0 = ok).
+    arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` =
+    (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
+    (:data:`TABLEAUX`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
+    control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
+    no error control) and projection tolerance; ``out`` = (Q, QD, QDD (T, n), cnt
+    (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
     """
     A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
