@@ -378,7 +378,8 @@ def _cost_table(result: dict) -> Table:
 
 def _score_table(rows: list[dict]) -> Table:
     """The benchmark scoring: error at the case's settings, CPU time to the precision."""
-    table = Table(title="Benchmark scoring (error as each case's [benchmark] defines it)")
+    table = Table(title=escape("Benchmark scoring (error as each case's [benchmark] "
+                               "defines it)"))
     for col in ("case", "output", "precision", "engine", "error at case settings",
                 "time to precision (s)", "by"):
         table.add_column(col)

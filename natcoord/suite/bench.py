@@ -108,6 +108,8 @@ def explain_cost(full: dict, short: dict | None) -> dict:
             {"duration_s": short["duration_s"], "n_steps": short["n_steps"],
              "rhs": (short.get("counters") or {}).get("rhs"), "wall_s": min(short_s),
              "repeats": len(short_s)}]
+    for r in rows:
+        r["us_per_step"] = 1e6 * r["wall_s"] / r["n_steps"] if r["n_steps"] else None
     step = cost_fit([(r["n_steps"], r["wall_s"]) for r in rows])
     if step:
         out["fixed_s"], out["per_step_us"] = step[0], 1e6 * step[1]
@@ -118,8 +120,19 @@ def explain_cost(full: dict, short: dict | None) -> dict:
         "method": f"best wall time of the whole case and of its first {FIT_FRACTION:g} of "
                   "samples (every repeat runs both, in the same process), line through them "
                   "in steps (and in right-hand sides), intercept >= 0",
-        "points": rows, "determined": step is not None}
+        "points": rows, "determined": step is not None,
+        # the free line's intercept: negative when the shorter run cost less per step (noise,
+        # or a cost per step that grows with the run's length); the fit then uses 0
+        "free_fixed_s": _free_intercept([(r["n_steps"], r["wall_s"]) for r in rows])}
     return out
+
+
+def _free_intercept(points) -> float | None:
+    x = np.array([p[0] for p in points], dtype=float)
+    w = np.array([p[1] for p in points], dtype=float)
+    if len(np.unique(x)) < 2 or not np.all(np.isfinite(w)):
+        return None
+    return float(np.polyfit(x, w, 1)[1])
 
 
 def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
@@ -377,6 +390,8 @@ def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
     """Per case x engine x variant, the least wall time of a sweep point with error <=
     target."""
     out = []
+    points = [p for p in points if p.get("channel", "") is not None]  # a case without an
+    # angle channel is swept for its benchmark output only
     keys = sorted({(p["case"], p["engine"], p.get("variant", "")) for p in points})
     for case, engine, var in keys:
         mine = [p for p in points if (p["case"], p["engine"], p.get("variant", ""))
