@@ -247,7 +247,7 @@ def cost_explained(bench: dict, cases_order: list[str],
             rows.append({
                 "engine": str(r.get("engine", "")), "status": str(r.get("status") or ""),
                 "reason": str(r.get("reason") or ""),
-                "fixed": fmt_time(r.get("fixed_s")),
+                "fixed": "0" if _num(r.get("fixed_s")) == 0 else fmt_time(r.get("fixed_s")),
                 "per_step": fmt_time(per_step * 1e-6 if per_step else None),
                 "per_rhs": fmt_time(per_rhs * 1e-6 if per_rhs else None),
                 "steps": fmt_int(r.get("n_steps")) if _num(r.get("n_steps")) else "—",
