@@ -61,7 +61,7 @@ UNITS = {
 }
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
-            "drivers", "rods", "springs", "reactions", "comparison", "timeout"}
+            "drivers", "rods", "springs", "reactions", "comparison", "timeout", "benchmark"}
 MAX_FILE_BYTES = 1 << 20
 MAX_DEPTH = 8
 MAX_SAMPLES = 1_000_000
@@ -332,13 +332,14 @@ def load_case(path: str | Path) -> Case:
     tags = tuple(tags)
     reactions = _reactions(r, r.table(data, "reactions", "", required=False), links, names)
     comparison = _comparison(r, r.table(data, "comparison", "", required=False), channels)
+    benchmark = _benchmark(r, r.table(data, "benchmark", "", required=False), channels)
     case = Case(name=name, description=r.string(data, "description", ""), file=str(path),
                 dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
                 ground=ground, bodies=bodies, joints=joints, forces=forces,
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
-                comparison=comparison, timeout=timeout,
+                comparison=comparison, timeout=timeout, benchmark=benchmark,
                 digest=hashlib.sha256(path.read_bytes()).hexdigest())
     return case
 
@@ -384,6 +385,41 @@ def _comparison(r: _Reader, table: dict, channels) -> dict:
         "channel": ch,
         "angles": [r.quantity(a, f"{p}.angles[{k}]", "angle") for k, a in enumerate(angles)],
         "within": r.number(spec, "within", p, "angle", positive=True)}}
+
+
+BENCHMARK_ERRORS = ("max_abs", "final_abs")
+
+
+def _benchmark(r: _Reader, table: dict, channels) -> dict:
+    """``[benchmark] channels, precision, error, source``: the output a published benchmark
+    scores (channels of this case, all of one kind), the precision it asks for (in their
+    unit) and how its error is taken: max |run - reference| over every output sample
+    (``max_abs``) or at the last sample (``final_abs``)."""
+    if not table:
+        return {}
+    unknown = sorted(set(table) - {"channels", "precision", "error", "source"})
+    if unknown:
+        r.fail(f"benchmark.{unknown[0]}", "unknown field; expected channels, precision, error, "
+               "source")
+    names = r.get(table, "channels", "benchmark")
+    if (not isinstance(names, list) or not names
+            or not all(isinstance(n, str) for n in names)):
+        r.fail("benchmark.channels", f"must be a non-empty list of channel names, got "
+               f"{_short(names)}")
+    kinds = {c.name: c.kind for c in channels}
+    for k, n in enumerate(names):
+        if n not in kinds:
+            r.fail(f"benchmark.channels[{k}]", f"unknown channel {_short(n)}; channels are "
+                   f"{', '.join(kinds)}")
+    dims = {_kind_dim(n, channels) for n in names}
+    if len(dims) > 1:
+        r.fail("benchmark.channels", f"must share one unit (one precision), got "
+               f"{', '.join(sorted(dims))}")
+    return {"channels": tuple(names),
+            "precision": r.number(table, "precision", "benchmark", dims.pop(), positive=True),
+            "error": r.string(table, "error", "benchmark", required=False, default="max_abs",
+                              choices=BENCHMARK_ERRORS),
+            "source": r.string(table, "source", "benchmark")}
 
 
 def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:

@@ -315,20 +315,33 @@ def gate_cmd(results: ResultsDir = None,
     raise typer.Exit(verdict.code)
 
 
-def _bench(selected, names, repeats, work_precision, references, timeout):
+def _bench(selected, names, repeats, work_precision, references, timeout, quiet=False):
     from .suite import bench
 
     total = len(selected) * len(names)
-    out.print(f"benchmarking {total} case x engine pairs, best of {repeats}")
+    say = (lambda *a: None) if quiet else out.print
+    say(f"benchmarking {total} case x engine pairs, best of {repeats}")
     result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
-                         progress=_progress_printer(total))
+                         progress=None if quiet else _progress_printer(total),
+                         references=references)
+    say(_cost_table(result))
+    if result.get("cold_start"):
+        c = result["cold_start"]
+        say(f"natcoord cold start ({escape(c['case'])}, {c['duration_s']:g} s simulated, "
+            f"fresh process, build time): " + (
+                f"{c['build_time_s']:.2f} s (import {c['import_s']:.2f} s, kernels from cache "
+                f"{c['kernel_load_s'] or 0:.2f} s, run {c['wall_time_s']:.3g} s), best of "
+                f"{len(c['samples_s'])}" if c["status"] == "ok" else
+                f"{c['status']}: {escape(c['reason'])}"))
     if work_precision:
         n = sum(len(bench.SWEEPS.get(e, [])) for e in names) * len(selected)
-        out.print(f"work-precision: {n} runs")
+        say(f"work-precision: {n} runs")
         points = bench.work_precision(selected, names, references=references,
-                                      timeout_s=timeout, progress=_progress_printer(n))
+                                      timeout_s=timeout,
+                                      progress=None if quiet else _progress_printer(n))
         result["work_precision"] = points
         result["time_to_accuracy"] = bench.time_to_accuracy(points)
+        result["scoring"] = bench.scoring(selected, result["records"], points)
         table = Table(title="CPU time (s) to reach an angle error")
         for col in ("case", "engine", *(f"<= {t:g} rad" for t in bench.TARGETS)):
             table.add_column(col)
@@ -336,8 +349,46 @@ def _bench(selected, names, repeats, work_precision, references, timeout):
             cells = [row[f"time_to_{t:g}"] for t in bench.TARGETS]
             table.add_row(escape(row["case"]), row["engine"],
                           *("not reached" if c is None else f"{c:.3g}" for c in cells))
-        out.print(table)
+        say(table)
+        if result["scoring"]:
+            say(_score_table(result["scoring"]))
     return result
+
+
+def _g(x, fmt="{:.3g}", none="—"):
+    return none if x is None else fmt.format(x)
+
+
+def _cost_table(result: dict) -> Table:
+    """Per case x engine: best wall time, steps, rhs, and the cost fit."""
+    table = Table(title="Cost per case x engine (fit over the whole run and its first "
+                        "quarter, best of the repeats)")
+    for col in ("case", "engine", "status", "best wall (s)", "steps", "rhs", "fixed (s)",
+                "us/step", "us/rhs", "build (s)"):
+        table.add_column(col, justify="left" if col in ("case", "engine", "status")
+                         else "right")
+    for r in result["records"]:
+        c = r.get("counters") or {}
+        table.add_row(escape(r["case"]), r["engine"], r["status"], _g(r.get("wall_time_s")),
+                      _g(r.get("n_steps"), "{:d}"), _g(c.get("rhs"), "{:d}"),
+                      _g(r.get("fixed_s"), "{:.2g}"), _g(r.get("per_step_us")),
+                      _g(r.get("per_rhs_us")), _g(r.get("build_time_s"), "{:.2g}"))
+    return table
+
+
+def _score_table(rows: list[dict]) -> Table:
+    """The benchmark scoring: error at the case's settings, CPU time to the precision."""
+    table = Table(title=escape("Benchmark scoring (error as each case's [benchmark] "
+                               "defines it)"))
+    for col in ("case", "output", "precision", "engine", "error at case settings",
+                "time to precision (s)", "by"):
+        table.add_column(col)
+    for r in rows:
+        table.add_row(escape(r["case"]), ", ".join(r["channels"]) + (
+            " (end)" if r["error_kind"] == "final_abs" else ""), f"{r['precision']:g}",
+            r["engine"], _g(r["error"], "{:.2g}", r["status"] or "—"),
+            _g(r["time_to_precision"], "{:.3g}", "not reached"), escape(r["reached_by"]))
+    return table
 
 
 @app.command("bench")
@@ -350,10 +401,14 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
                   show_default=False)] = None,
               work_precision: Annotated[bool, typer.Option(
                   help="Also sweep step sizes / tolerances: angle error against CPU time, "
-                       "and the time each engine needs to reach 1e-6 and 1e-9 rad.")] = False,
+                       "the time each engine needs to reach 1e-6 and 1e-9 rad, and the "
+                       "benchmark scoring of cases with a [benchmark] table.")] = False,
               timeout: Timeout = DEFAULT_TIMEOUT_S,
-              cases_dir: CasesDir = None, references: RefDir = None):
-    """Measure step cost per case x engine (best of repeats, single-threaded BLAS)."""
+              cases_dir: CasesDir = None, references: RefDir = None,
+              as_json: Annotated[bool, typer.Option(
+                  "--json", help="Print bench.json to stdout instead of the tables.")] = False):
+    """Measure the cost per case x engine: best of repeats (single-threaded BLAS), fixed
+    cost, cost per step and per right-hand side, natcoord's cold start."""
     from .suite import bench
     from .suite.outdir import publishing
 
@@ -362,9 +417,14 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
     with publishing(target) as staging:
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
-                        resolve(references, "references"), timeout)
+                        resolve(references, "references"), timeout, quiet=as_json)
         bench.store(result, staging, resolve(history, "reports/bench"))
-    out.print(f"benchmark: {target / 'bench.json'}")
+    if as_json:
+        import json
+
+        print(json.dumps(result, indent=1, default=str))
+    else:
+        out.print(f"benchmark: {target / 'bench.json'}")
 
 
 @app.command("suite")
@@ -410,7 +470,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         if repeats:
             out.print(f"[bold]bench[/]: {repeats} runs per cell, every wall time kept")
             bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
-                                       progress=_progress_printer(total, "serial, one core"))
+                                       progress=_progress_printer(total, "serial, one core"),
+                                       references=references)
             slower = diff.slower_rechecked(
                 bench_result, selected, repeats, timeout, history,
                 say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "

@@ -222,6 +222,9 @@ class Case:
     ``comparison``: ``{"singular": {channel, angles (rad), within (rad)}}``, samples where
     force channels are not compared (see :func:`natcoord.suite.compare.channel_errors`).
     ``timeout``: the case's own time limit for one engine run, s (None: the command's).
+    ``benchmark``: the output a published benchmark scores, ``{channels (tuple of channel
+    names), precision (their unit), error ("max_abs" over every sample | "final_abs" at the
+    last), source}``; {} for a case without one (see :func:`natcoord.suite.bench.scoring`).
     """
 
     name: str
@@ -249,6 +252,7 @@ class Case:
     timeout: float | None = None  # s: the case's own time limit per engine run
     digest: str = ""  # sha256 of the case file: history compares runs of identical cases
     comparison: dict = field(default_factory=dict)
+    benchmark: dict = field(default_factory=dict)
 
     @property
     def times(self) -> np.ndarray:

@@ -543,6 +543,7 @@ def _speed_context(bench: dict | None, bench_error: str, by_key: dict, case_name
     only when there is no benchmark."""
     if bench is None:
         return {"source": "run", "error": bench_error, "tta": None, "wp": [], "own": [],
+                "cost": [], "cold": None, "score": [],
                 "run": speed_groups, "machine": [], "how": ""}
     tta = speed.time_to_accuracy(bench, case_names, anchor, fmt_time, fmt_ratio)
     wp = [{"case": c, "anchor": anchor("wp", c), "fig": figures.add(f, PLOT_CONFIG)}
@@ -561,6 +562,10 @@ def _speed_context(bench: dict | None, bench_error: str, by_key: dict, case_name
            + ("<i>spread</i>: fastest–slowest repeat (<code>samples_s</code>)" if has_samples
               else "<i>spread</i>: slowest over best (no per-repeat samples recorded)"))
     return {"source": "bench", "error": bench_error, "tta": tta, "wp": wp, "own": own,
+            "cost": speed.cost_explained(bench, case_names, _engine_order, anchor, fmt_time,
+                                         fmt_int),
+            "cold": speed.cold_start(bench, fmt_time),
+            "score": speed.scoring(bench, case_names, _engine_order, anchor, fmt_time, fmt_num),
             "run": [], "machine": [(k, fmt_value(v)) for k, v in
                                    (bench.get("machine") or {}).items()],
             "how": Markup(how)}

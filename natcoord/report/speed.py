@@ -5,7 +5,11 @@
 - work-precision diagrams (``work_precision`` points): error against wall time, log-log,
   one trace per engine and natcoord formulation / integrator;
 - the benchmark at each engine's own settings: best, median and spread of every repeat
-  (``samples_s``), beside the accuracy those settings reached in the run.
+  (``samples_s``), beside the accuracy those settings reached in the run;
+- the benchmark scoring of cases with a ``[benchmark]`` (``scoring``): the benchmark's error
+  at the case's settings and the least time within its precision;
+- the cost explained (``fixed_s``, ``per_step_us``, ``per_rhs_us`` and their ``cost_fit``)
+  and natcoord's cold start (``cold_start``, build time).
 
 Without ``bench.json`` the run's own timings (one repeat each) are shown, labelled so.
 """
@@ -213,3 +217,99 @@ def work_precision_figures(bench: dict, cases_order: list[str], colors: dict[str
                           margin={"b": 110})
         out.append((case, fig))
     return out
+
+
+def _by_case(rows: Iterable[dict], cases_order: list[str]) -> list[tuple[str, list[dict]]]:
+    by: dict[str, list[dict]] = {}
+    for r in rows:
+        if isinstance(r, dict):
+            by.setdefault(str(r.get("case", "")), []).append(r)
+    order = [c for c in cases_order if c in by] + sorted(c for c in by if c not in cases_order)
+    return [(c, by[c]) for c in order]
+
+
+def cost_explained(bench: dict, cases_order: list[str],
+                   engine_order: Callable[[Iterable[str]], list[str]], anchor: Callable,
+                   fmt_time: Callable, fmt_int: Callable) -> list[dict]:
+    """Per case, each engine's fixed cost per run, cost per step and per right-hand side
+    (the cost fit of bench.json), beside the counters and the two runs the fit used."""
+    groups = []
+    for case, rs in _by_case(bench.get("records") or [], cases_order):
+        if not any("cost_fit" in r or "fixed_s" in r for r in rs):
+            continue
+        engs = engine_order(str(r.get("engine", "")) for r in rs)
+        rows = []
+        for r in sorted(rs, key=lambda r: engs.index(str(r.get("engine", "")))):
+            fit = r.get("cost_fit") or {}
+            pts = [p for p in fit.get("points") or [] if isinstance(p, dict)]
+            c = r.get("counters") or {}
+            per_step, per_rhs = _num(r.get("per_step_us")), _num(r.get("per_rhs_us"))
+            rows.append({
+                "engine": str(r.get("engine", "")), "status": str(r.get("status") or ""),
+                "reason": str(r.get("reason") or ""),
+                "fixed": "0" if _num(r.get("fixed_s")) == 0 else fmt_time(r.get("fixed_s")),
+                "per_step": fmt_time(per_step * 1e-6 if per_step else None),
+                "per_rhs": fmt_time(per_rhs * 1e-6 if per_rhs else None),
+                "steps": fmt_int(r.get("n_steps")) if _num(r.get("n_steps")) else "—",
+                "rhs": fmt_int(c.get("rhs")) if _num(c.get("rhs")) else "—",
+                "counters": ", ".join(f"{k} {v:g}" for k, v in c.items()
+                                      if k not in ("steps", "rhs") and _num(v) is not None),
+                "build": fmt_time(r.get("build_time_s")),
+                "points": "; ".join(
+                    f"{_num(p.get('duration_s')) or 0:g} s: {fmt_int(p.get('n_steps'))} steps, "
+                    f"{fmt_time(p.get('wall_s'))}"
+                    + (f" ({fmt_time(us * 1e-6)}/step)" if (us := _num(p.get("us_per_step")))
+                       else "") for p in pts) or "—",
+                "superlinear": (_num(fit.get("free_fixed_s")) or 0.0) < 0,
+                "undetermined": bool(pts) and fit.get("determined") is False,
+            })
+        groups.append({"case": case, "anchor": anchor("case", case), "rows": rows})
+    return groups
+
+
+def cold_start(bench: dict, fmt_time: Callable) -> dict | None:
+    """natcoord's cold start (a fresh process: import, kernels from the numba cache, a tiny
+    run) as the report states it; None when the benchmark did not measure it."""
+    c = bench.get("cold_start")
+    if not isinstance(c, dict):
+        return None
+    ss = [v for v in (_num(x) for x in c.get("samples_s") or []) if v]
+    return {"case": str(c.get("case", "")), "status": str(c.get("status") or ""),
+            "reason": str(c.get("reason") or ""),
+            "duration": f"{_num(c.get('duration_s')) or 0:g} s",
+            "total": fmt_time(c.get("build_time_s")), "import": fmt_time(c.get("import_s")),
+            "kernels": fmt_time(c.get("kernel_load_s")), "run": fmt_time(c.get("wall_time_s")),
+            "samples": ", ".join(fmt_time(x) for x in ss), "n": len(ss)}
+
+
+def scoring(bench: dict, cases_order: list[str],
+            engine_order: Callable[[Iterable[str]], list[str]], anchor: Callable,
+            fmt_time: Callable, fmt_num: Callable) -> list[dict]:
+    """Per case with a benchmark definition: its output, error measure, precision and source,
+    and per engine the error at the case's settings and the least time within the
+    precision ("not reached" when neither the case's settings nor any sweep point is)."""
+    groups = []
+    for case, rs in _by_case(bench.get("scoring") or [], cases_order):
+        first = rs[0]
+        engs = engine_order(str(r.get("engine", "")) for r in rs)
+        times = [t for r in rs if (t := _num(r.get("time_to_precision")))]
+        rows = []
+        for r in sorted(rs, key=lambda r: engs.index(str(r.get("engine", "")))):
+            t, err = _num(r.get("time_to_precision")), _num(r.get("error"))
+            prec = _num(r.get("precision"))
+            status = str(r.get("status") or "")
+            rows.append({
+                "engine": str(r.get("engine", "")), "status": status,
+                "error": fmt_num(err) if err is not None else (status or "—"),
+                "within": err is not None and prec is not None and err <= prec,
+                "time": fmt_time(t) if t is not None else "not reached",
+                "by": str(r.get("reached_by") or ""),
+                "best_swept": fmt_num(_num(r.get("best_swept_error"))),
+                "fastest": t is not None and t == min(times)})
+        kind = ("at the last sample" if first.get("error_kind") == "final_abs"
+                else "over every output sample")
+        groups.append({"case": case, "anchor": anchor("case", case), "rows": rows,
+                       "output": ", ".join(str(c) for c in first.get("channels") or []),
+                       "precision": fmt_num(_num(first.get("precision"))), "kind": kind,
+                       "source": str(first.get("source") or "")})
+    return groups

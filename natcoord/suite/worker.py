@@ -9,11 +9,18 @@ again), the engine and its setting overrides. Writes
 ``OUT_DIR/results/<case>/<engine>.json`` (the run record), both atomically. The parent
 process owns time limits and crashes: whatever this process does not write is reported by
 the parent as ``failed``.
+
+A bench job may ask for a cost fit (``Job.truncate``): every repeat then also runs the same
+case over its first ``truncate`` fraction of samples, right after the full run in this
+process, so that both durations see the same machine load (their wall times go to the
+record's ``short``).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import math
 import os
 import pickle
 import sys
@@ -51,7 +58,8 @@ class Job:
     """One case x engine run: the loaded case, its assembled state at t = 0 (None with
     ``assembly_error`` when it does not assemble), the engine and setting overrides.
     ``repeat``: how many times to run it in this process (timing samples; the results are
-    the last run's)."""
+    the last run's). ``truncate``: a fraction in (0, 1) makes every repeat also run the case
+    cut to that fraction of its samples (the bench's cost fit); 0 does not."""
 
     case: Case
     init: InitialState | None
@@ -59,40 +67,63 @@ class Job:
     settings: dict = field(default_factory=dict)
     assembly_error: str = ""
     repeat: int = 1
+    truncate: float = 0.0
+
+
+def truncated(case: Case, fraction: float) -> Case:
+    """The same case over its first ``fraction`` of output intervals (at least one): same
+    mechanism, start state, settings and output step, a shorter duration."""
+    n = int(round(case.duration / case.output_dt))
+    k = max(1, min(n, math.ceil(fraction * n)))
+    return dataclasses.replace(case, duration=k * case.output_dt)
 
 
 def run_one(job: Job) -> Result:
     """Run a job in this process and return its Result (never raises for engine trouble:
     that becomes the status)."""
+    return run_job(job)[0]
+
+
+def run_job(job: Job) -> tuple[Result, dict]:
+    """Run a job in this process: its Result (never raises for engine trouble: that becomes
+    the status) and, for a job with ``truncate``, the truncated runs' record ``{duration_s,
+    samples_s, n_steps, counters}`` (else {})."""
     case, engine = job.case, job.engine
     spec = case.engine(engine)
     res = Result(case.name, engine)
     mod = adapter(engine)
     if spec.unsupported:
         res.status, res.reason = Status.UNSUPPORTED, spec.unsupported
-        return res
+        return res, {}
     try:
         res.engine_version = mod.version()
     except ImportError as e:
         res.status = Status.SKIPPED
         res.reason = f"package {mod.PACKAGE!r} is not installed ({e}); pip install {mod.PACKAGE}"
-        return res
+        return res, {}
     if job.init is None:
         res.status, res.reason = Status.FAILED, f"the case does not assemble: {job.assembly_error}"
-        return res
+        return res, {}
     settings = {**spec.settings, **job.settings}
+    short_case = truncated(case, job.truncate) if 0 < job.truncate < 1 else None
+    short: dict = {}
     try:
         for _ in range(max(1, job.repeat)):  # every repeat a whole run: its own wall time
             run = mod.run(case, job.init, settings)
             res.samples_s.append(run.wall_time_s)
+            if short_case is not None:  # interleaved: both durations under the same load
+                cut = mod.run(short_case, job.init, settings)
+                short = {"duration_s": short_case.duration, "n_steps": cut.n_steps,
+                         "counters": cut.counters,
+                         "samples_s": [*short.get("samples_s", []), cut.wall_time_s]}
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
-        return res
+        return res, {}
     except Exception as e:  # an engine's failure must not take the suite down
         res.status = Status.FAILED
         res.reason = f"{type(e).__name__}: {e}"
         res.notes.append(traceback.format_exc(limit=4))
-        return res
+        return res, {}
     res.table = evaluate_channels(case, run.motion)
     res.build_time_s, res.wall_time_s, res.n_steps = (run.build_time_s, run.wall_time_s,
                                                        run.n_steps)
@@ -106,7 +137,7 @@ def run_one(job: Job) -> Result:
         first = int(np.argmax(~np.isfinite(res.table[bad[0]].to_numpy())))
         res.reason = (f"non-finite values in {', '.join(bad)} from t = "
                       f"{res.table['t'].iloc[first]:.4g} s (the engine diverged)")
-    return res
+    return res, short
 
 
 def main(argv=None) -> int:
@@ -116,13 +147,16 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     with open(a.job_file, "rb") as f:
         job: Job = pickle.load(f)
-    res = run_one(job)
+    res, short = run_job(job)
     folder = Path(a.out_dir) / "results" / res.case
     if res.table is not None:
         write_csv(folder / f"{res.engine}.csv", res.table)
     if res.methods is not None:
         write_csv(folder / f"{res.engine}.methods.csv", res.methods)
-    write_json(folder / f"{res.engine}.json", record_of(res, job.case.duration))
+    record = record_of(res, job.case.duration)
+    if short and res.status == Status.OK:
+        record["short"] = short
+    write_json(folder / f"{res.engine}.json", record)
     return 0
 
 
