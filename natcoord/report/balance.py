@@ -69,7 +69,6 @@ def figure(name: str, series: dict[str, tuple[np.ndarray, np.ndarray]],
             line={"color": REFERENCE_COLOR if ref else colors.get(who, "#7f7f7f"),
                   "width": 1.8 if ref else 1.4, **({"dash": "dash"} if ref else {})},
             hovertemplate=f"{who}<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>"))
-    unit = "relative to the energy scale" if scale else "J"
     axis = {"showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
             "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
             "exponentformat": "power"}
@@ -80,7 +79,8 @@ def figure(name: str, series: dict[str, tuple[np.ndarray, np.ndarray]],
                 "font": {"size": 11}},
         hovermode="closest", paper_bgcolor="white", plot_bgcolor="white")
     fig.update_xaxes(title_text="t [s]", **axis)
-    fig.update_yaxes(title_text=f"|{name}(t) − {name}(0)| [{unit}]", type="log", **axis)
+    fig.update_yaxes(title_text="|drift| / energy scale" if scale else "|drift| [J]",
+                     type="log", **axis)
     if not fig.data:
         fig.add_annotation(text="no data", showarrow=False, xref="paper", yref="paper",
                            x=0.5, y=0.5)
