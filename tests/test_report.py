@@ -564,20 +564,28 @@ def _figure_series(html: str, anchor: str) -> dict[str, np.ndarray]:
     return out
 
 
-def test_energy_balance_drift_from_a_real_run(tmp_path):
-    """a03_andrews (motor torque, spring) and a02_four_bar_n2 (conservative) run in
-    natcoord: each case gets an energy-balance figure of its conserved channel (a03: the
-    ``balance`` channel, not ``energy``, which the motor changes by 0.52 J; a02: ``energy``)
-    with natcoord's and the reference's drift relative to the energy scale, below 1e-9
-    (measured: a03 5e-11, a02 3e-9 J over an energy scale of 39 J)."""
+@pytest.fixture(scope="module")
+def balance_report(tmp_path_factory) -> tuple[Path, str]:
+    """a03_andrews (motor torque, spring) and a02_four_bar_n2 (conservative) run in natcoord
+    (real runs, ~20 s), and their report."""
     from natcoord.casefile import load_case
     from natcoord.suite.runner import run_suite
 
     from .conftest import CASES, REFERENCES
 
+    out = tmp_path_factory.mktemp("balance")
     cases = [load_case(CASES / f"{n}.toml") for n in ("a03_andrews", "a02_four_bar_n2")]
-    run_suite(cases, ["natcoord"], tmp_path, references=REFERENCES)
-    html = write_report(tmp_path, REFERENCES).read_text()
+    run_suite(cases, ["natcoord"], out, references=REFERENCES)
+    path = write_report(out, REFERENCES)
+    return path, path.read_text(encoding="utf-8")
+
+
+def test_energy_balance_drift_from_a_real_run(balance_report):
+    """Each case gets an energy-balance figure of its conserved channel (a03: the
+    ``balance`` channel, not ``energy``, which the motor changes by 0.52 J; a02: ``energy``)
+    with natcoord's and the reference's drift relative to the energy scale, below 1e-9
+    (measured: a03 7.3e-11 J of its 1.44 J scale, 5.1e-11; a02 3.2e-8 J of 110 J, 3.0e-10)."""
+    path, html = balance_report
     assert 'id="case-a03_andrews-energy-balance"' in html
     assert 'id="case-a03_andrews-balance-energy"' not in html  # not conserved: not drawn
     for anchor in ("case-a03_andrews-balance-balance", "case-a02_four_bar_n2-balance-energy"):
@@ -585,11 +593,23 @@ def test_energy_balance_drift_from_a_real_run(tmp_path):
         assert set(series) == {"natcoord", "reference"}, anchor
         for who, y in series.items():
             assert len(y) > 100 and np.nanmax(y) < 1e-9, (anchor, who, np.nanmax(y))
-    summary = json.loads((tmp_path / "summary.json").read_text())
+    summary = json.loads((path.parent / "summary.json").read_text())
     entries = {r["case"]: r["channels"] for r in summary["records"]}
     assert entries["a03_andrews"]["balance"]["balance"] is True
     assert entries["a03_andrews"]["energy"]["balance"] is False
     assert entries["a02_four_bar_n2"]["energy"]["scale"] > 10.0
+
+
+@pytest.mark.browser
+@pytest.mark.skipif(not CHROMIUM.exists(), reason="headless Chromium (/usr/bin/chromium) absent")
+def test_energy_balance_figure_draws_in_chromium(balance_report, tmp_path):
+    """A link to the balance section opens its case and draws the drift figure (log axis)."""
+    path, _ = balance_report
+    dom = _dom(path, tmp_path / "profile", "#case-a03_andrews-energy-balance")
+    start = dom.index('id="case-a03_andrews-balance-balance"')
+    fig = dom[start:dom.index("</figure>", start)]
+    assert re.search(DRAWN, fig) and 'class="main-svg"' in fig
+    assert "|drift| / energy scale" in fig
 
 
 def test_no_energy_balance_section_without_energy_channels(report):
