@@ -681,7 +681,11 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
         body = point = joint = axis = driver = rod = points = relative_to = None
-        plane, of = "xy", ()
+        plane, of, work = "xy", (), False
+        if kind == "energy":  # work = true: the energy balance (minus non-conservative work)
+            work = r.get(c, "work", p, required=False, default=False)
+            if not isinstance(work, bool):
+                r.fail(f"{p}.work", f"must be true or false, got {_short(work)}")
         if kind in ("angle", "position", "velocity", "acceleration"):
             body = r.string(c, "body", p)
             if body not in bodies:
@@ -737,7 +741,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 r.fail(f"{p}.of", "must not be empty")
             of = tuple((t, float(v)) for t, v in terms.items())
         out.append(Channel(name, kind, body, point, joint, axis, driver, rod, points, plane,
-                           of, relative_to))
+                           of, relative_to, work))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)

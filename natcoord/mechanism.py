@@ -142,7 +142,9 @@ class Channel:
     its first axis towards its second; with ``relative_to`` that angle minus the angle
     channel ``relative_to``: a joint angle between two bodies),
     ``position``/``velocity``/``acceleration`` (body, point, axis x|y|z), ``reaction``
-    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J),
+    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J; with
+    ``work`` that minus the work done since t = 0 by applied loads, dampers and drivers:
+    the energy balance, constant in exact physics, see :func:`natcoord.result.work`),
     ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate),
     ``axial`` (tension of rod or spring ``rod``, N), ``combination``
     (``sum(c * channel)`` over ``of``, in the unit of its terms).
@@ -160,6 +162,7 @@ class Channel:
     plane: str = "xy"
     of: tuple[tuple[str, float], ...] = ()
     relative_to: str | None = None
+    work: bool = False
 
     @property
     def unit(self) -> str:

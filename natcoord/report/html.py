@@ -33,9 +33,9 @@ from markupsafe import Markup, escape
 from plotly.subplots import make_subplots
 
 from ..mechanism import FORCE_KINDS
-from . import redundant, speed, trends
+from . import balance, redundant, speed, trends
 from .lazy import FigureStore
-from .sampling import MAX_POINTS, f32, stride
+from .sampling import MAX_POINTS, envelope, f32, stride  # noqa: F401 (MAX_POINTS: tests)
 
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 ENGINE_COLORS = {
@@ -258,25 +258,6 @@ def overall_verdict(records: list[dict]) -> dict:
 # ---------------------------------------------------------------- plotting
 
 
-def _envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
-    """Downsample an error series keeping each bucket's largest value (peaks survive)."""
-    n = len(e)
-    if n <= m:
-        return t, e
-    edges = np.linspace(0, n, m + 1).astype(int)
-    idx = []
-    for a, b in zip(edges[:-1], edges[1:], strict=True):
-        if b <= a:
-            continue
-        seg = e[a:b]
-        if np.all(np.isnan(seg)):
-            idx.append(a)
-        else:
-            idx.append(a + int(np.nanargmax(seg)))
-    idx = np.asarray(idx)
-    return t[idx], e[idx]
-
-
 def _on_reference_times(ref_t: np.ndarray, t: np.ndarray, y: np.ndarray) -> np.ndarray:
     """Engine series at the reference's sample times (NaN outside the engine's span)."""
     if len(t) == len(ref_t) and np.allclose(t, ref_t, rtol=0, atol=1e-12):
@@ -356,7 +337,7 @@ def channel_figure(
             1,
         )
     for eng, e in errors.items():
-        te, ee = _envelope(ref_t, e)
+        te, ee = envelope(ref_t, e)
         add(
             go.Scatter(
                 x=f32(te), y=f32(ee), name=eng, mode="lines", legendgroup=eng,
@@ -671,6 +652,8 @@ def build_context(results_dir: Path, references: Path = Path("references"),
         speed_rows = [_speed_row(r, runs.get(str(r.get("engine"))), base) for r in crecs]
         speed_groups.append({"case": case, "anchor": case_anchor, "rows": speed_rows})
 
+        balances = balance.section(crecs, plots_runs, ref, colors, fmt_num,
+                                   lambda f: figures.add(f, PLOT_CONFIG, balance.HEIGHT))
         redundancy = redundant.section(case, crecs, runs, ref, ref_meta, results_dir, references,
                                        colors, fmt_num, figures.add)
         cases.append({
@@ -684,6 +667,7 @@ def build_context(results_dir: Path, references: Path = Path("references"),
             "table": table,
             "trajectories": trajectories,
             "reactions": reactions,
+            "balances": balances,
             "any_undetermined": any(not f["determined"] for f in reactions + trajectories),
             "has_reference": ref is not None,
             "reference_file": f"{case}.csv",

@@ -8,6 +8,7 @@ import numpy as np
 import pandas as pd
 
 from ..mechanism import FORCE_KINDS, Case
+from ..result import is_balance
 
 
 def channel_errors(case: Case, engine: str, table: pd.DataFrame,
@@ -17,13 +18,15 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
 
     Returns ``(channels, verdict, reason)``; ``channels[name]`` holds kind, unit,
     ``max_abs`` (max |engine - reference| over the reference's samples), ``max_rel``
-    (``max_abs`` over the scale named in ``rel_to``: the reference channel's range, or for
-    energy the system's energy scale), ``tolerance`` and ``pass`` (None when
-    not gated: no tolerance, or channel undetermined). A gated channel that the engine's
-    output lacks, or that is NaN or infinite anywhere, fails with the reason in ``note``.
-    ``undetermined``: channels a self-equilibrating set of the redundant constraints
-    changes (from N = ker Phi_q^T, stored with the reference): never gated, whatever the
-    case file's tolerances say. Verdict: ``pass``, ``fail``, ``no-reference`` or ``not-gated``.
+    (``max_abs`` over the scale named in ``rel_to``, whose value is ``scale``: the reference
+    channel's range, or for energy the system's energy scale), ``tolerance`` and ``pass``
+    (None when not gated: no tolerance, or channel undetermined). A gated channel that the
+    engine's output lacks, or that is NaN or infinite anywhere, fails with the reason in
+    ``note``. ``undetermined``: channels a self-equilibrating set of the redundant
+    constraints changes (from N = ker Phi_q^T, stored with the reference): never gated,
+    whatever the case file's tolerances say. An energy channel's ``balance`` says whether it
+    is constant in exact physics (:func:`natcoord.result.is_balance`). Verdict: ``pass``,
+    ``fail``, ``no-reference`` or ``not-gated``.
     """
     spec = case.engine(engine)
     out: dict[str, dict] = {}
@@ -42,6 +45,8 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
         determined = ch.name not in undetermined
         entry = {"kind": ch.kind, "unit": ch.unit, "max_abs": None, "max_rel": None,
                  "tolerance": tol, "pass": None, "determined": determined, "note": ""}
+        if ch.kind == "energy":  # the report draws a balance's drift on the energy scale
+            entry["balance"] = is_balance(case, ch)
         bad = ("missing from this engine's results" if val is None else
                "not reported by this engine (all NaN)" if np.all(np.isnan(val)) else "")
         if ref is None:
@@ -61,6 +66,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
             if not np.isfinite(max_abs):
                 entry["note"] = "non-finite values (NaN or inf) in this engine's results"
             span, entry["rel_to"] = _scale(case, ch, ref)
+            entry["scale"] = span
             entry["max_abs"], entry["max_rel"] = max_abs, max_abs / span
             if not determined:
                 entry["note"] = "undetermined (redundant constraints): shown, not gated"
