@@ -184,9 +184,11 @@ class Builder:
             Mab[0, 1:] = Mab[1:, 0] = mass * cbar
             Mab[1:, 1:] = Dp @ Jo @ Dp.T
             maps = [b.G0[:, :-1]] + [g[:, :-1] for g in G]
-            for a in range(K + 1):
-                for c in range(K + 1):
-                    self._M += Mab[a, c] * maps[a].T @ maps[c]
+            cols = np.flatnonzero(np.any([np.any(x, axis=0) for x in maps], axis=0))
+            sub = [x[:, cols] for x in maps]  # the body's own columns: O(1) per body
+            Mb = sum(Mab[a, c] * sub[a].T @ sub[c] for a in range(K + 1)
+                     for c in range(K + 1))
+            self._M[np.ix_(cols, cols)] += Mb
             self._Q0 += mass * b.point_map(com)[:, :-1].T @ self.gravity
         self.bodies[name] = b
         if rigid:

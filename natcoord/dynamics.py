@@ -67,18 +67,17 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     cs = ConstraintSystem(model)
     n, T = model.n, len(times)
     Q, QD, QDD, LAM = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, cs.m))
-    if name != "index3":  # start from a consistent state (index3 projects itself)
+    compiled = getattr(form, "compiled_candidate", lambda *a: False)(method, h)
+    q0, qd0 = np.asarray(state.q, float), np.asarray(state.qd, float)
+    if name != "index3" and not compiled:  # start from a consistent state (index3 and the
         q0, qd0 = Index1Loop(model, {**options, "linsolve": "qr"}, Counters()).project(
-            t0, np.asarray(state.q, float), np.asarray(state.qd, float))
-    else:
-        q0, qd0 = np.asarray(state.q, float), np.asarray(state.qd, float)
+            t0, q0, qd0)                   # compiled loop project it themselves)
 
     def record(k, t, y):
         q, qd = form.state(t, y)
         Q[k], QD[k] = q, qd
         QDD[k] = form.accelerations(t, q, qd)
 
-    compiled = getattr(form, "compiled_candidate", lambda *a: False)(method, h)
     compile_s = kernels.ensure_compiled() if compiled else 0.0  # not stepping time
     plan0 = time.perf_counter()
     if compiled:
@@ -89,10 +88,18 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     if compiled and form.compiled_ready():
         Q[:], QD[:], QDD[:] = form.run_compiled(times, y, method, rtol, atol, h)
     else:
+        if compiled:  # not served after all: start from a consistent state here
+            y = np.concatenate(Index1Loop(model, {**options, "linsolve": "qr"},
+                                          Counters()).project(t0, q0, qd0))
         compiled = False
         time_loop(form, y, times, method=method, h=h, rtol=rtol, atol=atol, record=record)
     wall = time.perf_counter() - wall0
-    for k in range(T):  # outputs only: min-norm multipliers and drift
+    # outputs only: min-norm multipliers and drift at the samples
+    plan = getattr(form, "_plan", None) if compiled else None
+    done = np.zeros(T, bool)
+    if plan is not None:  # sparse, linear in the model's size; unique lambda where no row
+        done[:] = ~kernels.sample_outputs(plan, form._frc, Q, QD, LAM, cnt)  # is dependent
+    for k in np.flatnonzero(~done):
         LAM[k] = multipliers(model, cs, times[k], Q[k], QD[k], QDD[k])
         p, J, pt, _ = cs.all(Q[k], QD[k], times[k])
         cnt.max_phi = max(cnt.max_phi, float(np.max(np.abs(p), initial=0.0)))

@@ -22,7 +22,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from .errors import StepFailure
 
@@ -81,13 +80,11 @@ class DormandPrince5(ExplicitRK):
     B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
     E = B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200,
                       187 / 2100, 1 / 40])
-    from scipy.integrate._ivp.rk import RK45 as _RK45
-    P = np.array(_RK45.P, float)  # Hairer's order-4 dense output (stage 7 = f at y_new)
-    del _RK45
 
     @classmethod
     def dense(cls, f, t, y, y_new, h, K):
-        Q = K.T @ cls.P
+        from scipy.integrate._ivp.rk import RK45  # Hairer's order-4 dense output (stage 7
+        Q = K.T @ np.array(RK45.P, float)         # = f at y_new); imported when used
         return lambda x: y + h * (Q @ (x ** np.arange(1, 5)))
 
 
@@ -175,6 +172,7 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
     for k in range(1, len(times)):
         t0, t1 = float(times[k - 1]), float(times[k])
         if method in SCIPY_METHODS:
+            from scipy.integrate import solve_ivp  # imported when used: start-up time
             sol = solve_ivp(form.rhs, (t0, t1), y, method=method, rtol=rtol, atol=atol,
                             first_step=None if h_adapt is None else min(h_adapt, t1 - t0),
                             **({} if h is None else {"max_step": h}))

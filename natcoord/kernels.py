@@ -24,6 +24,7 @@ out of the stepping time.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import math
 import time
@@ -122,7 +123,13 @@ def _tableau_rk4():
             np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), False)
 
 
-TABLEAUX = {"dop853": _tableau_dop853(), "dopri5": _tableau_dopri5(), "rk4": _tableau_rk4()}
+TABLEAUX_OF = {"dop853": _tableau_dop853, "dopri5": _tableau_dopri5, "rk4": _tableau_rk4}
+
+
+@functools.cache
+def tableau(name: str) -> tuple:
+    """The compiled loop's tableau of ``name`` (built when first asked: start-up time)."""
+    return TABLEAUX_OF[name]()
 FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed step
 ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 
@@ -141,12 +148,13 @@ def _accel(plan, ws, gen, frc, q, qd, qdd, wg, cnt):
 
 
 @njit(cache=True)
-def _settle(plan, ws, gen, frc, q, qd, qdd, ptol, wg, cnt):
+def _settle(plan, ws, gen, frc, q, qd, qdd, ptol, wg, cnt, factored):
     """Project (q, qd) in place and evaluate qdd there; a status code. The sparse path
-    starts its simplified Newton from the factorization of the last evaluation."""
+    starts its simplified Newton from the factorization of the last evaluation when
+    ``factored`` (one was made near q)."""
     if wg is None:
         return kernels_sparse.settle(plan[0], plan[1], plan[2], frc, q, qd, qdd, ptol, ws,
-                                     cnt, True)
+                                     cnt, factored)
     kk, ii, jj, vv, M, rank_tol = gen
     st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
     if st != OK:
@@ -183,15 +191,15 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 @njit(cache=True)
 def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
-    """Explicit Runge-Kutta over ``times`` (T,) from a consistent (q0, qd0) (n,) at
-    times[0]: adaptive (embedded pair, steps cross the samples, dense output) or fixed
+    """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
+    on the constraints first: adaptive (embedded pair, steps cross the samples, dense output) or fixed
     steps (landing on every sample).
 
     ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`);
     else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
     arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` =
     (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
-    (:data:`TABLEAUX`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
+    (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
     no error control) and projection tolerance; ``out`` = (Q, QD, QDD (T, n), cnt
     (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
@@ -220,7 +228,7 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = _accel(plan, ws, gen, frc, y[:n], y[n:], qdd, wg, cnt)
+    st_code = _settle(plan, ws, gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt, False)
     if st_code != OK:
         return st_code
     f0[:n] = y[n:]
@@ -342,7 +350,7 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                     for p in range(s_st + n_ext):
                         s += D[r, p] * K[p, a]
                     Fd[3 + r, a] = hh * s
-        st_code = _settle(plan, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt)
+        st_code = _settle(plan, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt, True)
         if st_code != OK:
             return st_code
         f1[:n] = yn[n:]
@@ -370,7 +378,7 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = _settle(plan, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt)
+                st_code = _settle(plan, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt, True)
                 if st_code != OK:
                     return st_code
                 Q[k_out] = qs
@@ -427,8 +435,12 @@ def ensure_compiled() -> float:
     for general in (False, True):
         plan = None if general else sparsity.schur_plan(con, np.eye(2))
         for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
-            run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2), plan=plan,
-                M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13, cnt=None, h=h)
+            Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
+                           plan=plan, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13,
+                           cnt=None, h=h)
+        if plan is not None:
+            sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
+                max_phi=0.0, max_phi_dot=0.0))
     _READY = True
     COMPILE_TIME_S = time.perf_counter() - t0
     return COMPILE_TIME_S
@@ -442,7 +454,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
     a regular M) selects the sparse Schur path; without it the general path runs on ``M``
     (n, n) and ``rank_tol`` (relative, on |R_kk| / |R_00|). ``h``: a fixed step (s) for
     rk4 or dopri5, else adaptive steps at ``rtol``/``atol``."""
-    A, B, C, E5, E3, order, Aext, Cext, D, fsal = TABLEAUX[name]
+    A, B, C, E5, E3, order, Aext, Cext, D, fsal = tableau(name)
     tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
         raise ValueError(f"{name} (compiled): " + ("give a fixed step h" if h is None else
@@ -470,3 +482,19 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
     if status != OK:
         raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)}")
     return Q, QD, QDD
+
+
+def sample_outputs(plan, frc, Q, QD, LAM, cnt) -> np.ndarray:
+    """Multipliers LAM (T, m) (case row order) and the drift counters at every sample on
+    the sparse path; returns a bool (T,) mask of the samples with a dependent row, where
+    lambda is not unique (the caller takes the minimum-norm one there)."""
+    args = plan.kernel_args
+    lam, drift = np.zeros((len(Q), plan.m)), np.zeros((len(Q), 2))
+    dep = kernels_sparse.sample_outputs(*args, frc, np.ascontiguousarray(Q),
+                                        np.ascontiguousarray(QD), lam, drift,
+                                        kernels_sparse.workspace(args), np.zeros(N_COUNTERS))
+    LAM[:, plan.perm] = lam  # plan row r is case row perm[r]
+    if len(Q):
+        cnt.max_phi = max(cnt.max_phi, float(np.max(drift[:, 0])))
+        cnt.max_phi_dot = max(cnt.max_phi_dot, float(np.max(drift[:, 1])))
+    return dep.astype(bool)

@@ -276,3 +276,37 @@ def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
         _newton_step(I, O, ws, w, qd)
     cnt[C_PROJ] += 1
     return accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, False)
+
+
+@njit(cache=True)
+def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
+    """After a run, at every sample k: the multipliers LAM[k] (m,) in plan row order (the
+    unique ones when no row is dependent), and drift[k] = (max |Phi|, max |Phi_q qd|).
+    Returns a flag per sample (T,): 1 where a row was dependent (lambda not unique: the
+    caller takes the minimum-norm one there)."""
+    T = Q.shape[0]
+    n = Q.shape[1]
+    dep = np.zeros(T, np.int64)
+    qdd = np.zeros(n)
+    w, c, f = _seg(ws, O, W_W), _seg(ws, O, W_C), _seg(ws, O, W_F)
+    for k in range(T):
+        q, qd = Q[k], QD[k]
+        phi(I, F, O, q, w)
+        e = 0.0
+        for r in range(w.shape[0]):
+            e = max(e, abs(w[r]))
+        drift[k, 0] = e
+        jacobian(I, F, O, q, _seg(ws, O, W_J_))
+        drift[k, 1] = jx(I, O, _seg(ws, O, W_J_), qd, w)
+        if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_),
+                  _seg(ws, O, W_DIAG)) > 0:
+            dep[k] = 1
+        gamma(I, F, O, qd, c)
+        forces(frc, q, qd, f)
+        minv(I, F, O, f, qdd)
+        jx(I, O, _seg(ws, O, W_J_), qdd, w)
+        for r in range(w.shape[0]):
+            w[r] -= c[r]
+        solve(I, O, _seg(ws, O, W_L_), w)
+        LAM[k] = w
+    return dep

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-from scipy.interpolate import CubicSpline
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 from .mechanism import FORCE_KINDS, GROUND, PLANES, Case
 
@@ -164,6 +166,7 @@ def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     if n == 1:
         out[0] = 0.0
     elif n > 1:
+        from scipy.interpolate import CubicSpline  # imported when used: start-up time
         out[:n] = CubicSpline(t[:n], y[:n]).antiderivative()(t[:n])
     return out
 
@@ -184,6 +187,7 @@ def _point(case: Case, body: str, point: str) -> np.ndarray:
 
 def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
     """The case's output channels from a neutral motion: column ``t`` then one per channel."""
+    import pandas as pd  # imported when used: start-up time
     cols: dict[str, np.ndarray] = {"t": motion.t}
     axis_index = {"x": 0, "y": 1, "z": 2}
     for ch in case.channels:
@@ -231,6 +235,7 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
 def methods_table(case: Case, run) -> pd.DataFrame:
     """Force channels of every reaction method of a run (``run.methods``: method ->
     Motion): column ``t`` then ``<channel>@<method>``."""
+    import pandas as pd  # imported when used: start-up time
     cols: dict[str, np.ndarray] = {}
     for method, motion in run.methods.items():
         table = evaluate_channels(case, motion)
