@@ -71,6 +71,32 @@ def test_error_falls_as_the_accuracy_tightens():
     assert steps[0] < steps[1] < steps[2], steps
 
 
+def test_wall_time_is_the_stepping_and_steps_are_the_integrators(monkeypatch):
+    """wall_time_s times the Manager's calls alone, the readout goes to
+    counters['readout_time_s'], and the step count (rows of the in-memory state storage)
+    equals the states trajectory's length, which the Manager is made to record here too."""
+    import time
+
+    import opensim as osim
+
+    managers = []
+    initialize, record = osim.Manager.initialize, osim.Manager.setRecordStatesTrajectory
+
+    def recording_initialize(self, state):
+        record(self, True)
+        managers.append(self)
+        return initialize(self, state)
+
+    monkeypatch.setattr(osim.Manager, "initialize", recording_initialize)
+    t0 = time.perf_counter()
+    run = ec.run("simbody", ec.case("four_bar"))
+    total = time.perf_counter() - t0
+    assert run.n_steps == managers[-1].getStatesTrajectory().getSize() - 1 > 100
+    readout = run.counters["readout_time_s"]
+    assert 0 < readout and 0 < run.wall_time_s
+    assert run.build_time_s + run.wall_time_s + readout <= total
+
+
 def test_redundant_rods_give_the_determined_reactions():
     """parallelogram_3d: six ConstantDistanceConstraint rods on a free plate, one redundant.
     The determined K5, M6 (11.18 N) match natcoord to 1e-10 N (measured 9.4e-12); the
