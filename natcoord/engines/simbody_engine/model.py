@@ -52,11 +52,18 @@ def vec3(osim, x) -> object:
 
 
 def body_fixed_xyz(R: np.ndarray) -> np.ndarray:
-    """Body-fixed X-Y-Z Euler angles (rad) of a rotation R = Rx(a) Ry(b) Rz(c)."""
-    b = np.arcsin(np.clip(R[0, 2], -1.0, 1.0))
-    a = np.arctan2(-R[1, 2], R[2, 2])
-    c = np.arctan2(-R[0, 1], R[0, 0])
-    return np.array([a, b, c])
+    """Body-fixed X-Y-Z Euler angles (rad) of a rotation R = Rx(a) Ry(b) Rz(c).
+
+    b from atan2, not asin(R[0, 2]): near b = +-90 deg (a slider along world z: its frame's
+    X is z) asin loses half the digits, a 1.5e-8 rad tilt that put a05's slider 1.05e-8 m
+    off its start. Near there a alone is ill-conditioned (only a and c together matter),
+    so c is taken from what Rx(a) Ry(b) leaves of R: R reproduced to round-off."""
+    cb = np.hypot(R[1, 2], R[2, 2])
+    b = np.arctan2(R[0, 2], cb)
+    a = np.arctan2(-R[1, 2], R[2, 2]) if cb > 1e-12 else np.arctan2(R[2, 1], R[1, 1])
+    ca, sa, cy, sy = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+    rest = np.array([[cy, sy * sa, -sy * ca], [0.0, ca, sa], [sy, -cy * sa, cy * ca]]) @ R
+    return np.array([a, b, np.arctan2(rest[1, 0], rest[0, 0])])
 
 
 def basis_with(first: np.ndarray, second: np.ndarray | None = None, column: int = 2):
