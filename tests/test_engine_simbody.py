@@ -131,6 +131,22 @@ def test_flyball_slider_starts_where_natcoord_assembled_it():
     simulate.initial_state(osim, b, 1e-9)  # raises when a body starts off
 
 
+def test_bricard_loop_revolute_held_at_two_axis_points():
+    """a04: J6 closes the loop with an axis the tree turns away; without loop_axis_offset
+    that is Unsupported, with a second PointConstraint 1 m along the axis the 1-DOF Bricard
+    motion and its determined reaction differences match the reference (measured P3
+    1.1e-9 m, J1-J3 1.7e-8 N, J1-J6 y 5.6e-9 N; one PointConstraint alone would leave a
+    2-DOF 5R+S loop, 0.06 m off by 0.5 s in MuJoCo)."""
+    from natcoord.errors import Unsupported
+
+    with pytest.raises(Unsupported, match="loop_axis_offset"):
+        ec.run("simbody", ec.case("a04_bricard"))
+    run, err = _errors("a04_bricard", {"loop_axis_offset": 1.0})
+    assert max(err["xP3"], err["yP3"], err["zP3"]) < 1e-8, err
+    assert max(err["J1mJ3_x"], err["J1mJ3_z"], err["J1mJ6_y"]) < 2e-7, err
+    assert run.counters["qerr_max"] < 1e-10
+
+
 def test_redundant_rods_give_the_determined_reactions():
     """parallelogram_3d: six ConstantDistanceConstraint rods on a free plate, one redundant.
     The determined K5, M6 (11.18 N) match natcoord to 1e-10 N (measured 9.4e-12); the

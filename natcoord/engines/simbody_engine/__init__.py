@@ -19,8 +19,10 @@ Model
 * Inertia about the centre of mass in body axes, exact (a point mass or a slender rod keeps
   its singular tensor when it cannot turn about the missing axis); a particle gets
   ``particle_inertia`` kg m^2 per kg, which acts only when it can turn.
-* Loops: ``PointConstraint`` at the joint point. A 3-D loop revolute only when the tree
-  path keeps its axis aligned (else Unsupported: a WeldConstraint would lock it). Massless
+* Loops: ``PointConstraint`` at the joint point. A 3-D loop revolute whose axis the tree
+  path does not keep aligned needs ``loop_axis_offset`` > 0 (m): a second PointConstraint
+  that far along the axis (one axial row redundant; the joint force is the sum of both);
+  otherwise Unsupported (a WeldConstraint would lock it). Massless
   rods: ``ConstantDistanceConstraint`` (exact, no substitute body).
 * Springs: ``ExpressionBasedPointToPointForce`` with expression ``k*(d-l0)+c*ddot``
   (positive pulls the points together). Constant loads: ``PrescribedForce`` with constant
@@ -84,6 +86,8 @@ DEFAULTS = {
     "dt": None,  # s: a fixed step instead (fixed-step integrators only)
     "step_limit": 100_000,  # internal steps per output interval before Simbody gives up (a
     # stall, e.g. five_bar at accuracy 1e-10 near its -180 deg singular position, fails fast)
+    "loop_axis_offset": 0.0,  # m: > 0 holds a loop-closing 3-D revolute's axis by a 2nd
+    # PointConstraint that far along it (0: such a loop is Unsupported)
     "min_step": 1e-12,  # s: a step Simbody would shrink below this is an error, not a stall
     "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
     "velocity_check": 1e-9,  # m/s, rad/s: start must match natcoord's initial rates

@@ -185,22 +185,36 @@ def _path_turns(b: Built, parents: dict, a: str, c: str) -> list[np.ndarray | st
     return turns
 
 
-def _add_loop(osim, b: Built, j: Joint, parents: dict):
+def _add_loop(osim, b: Built, j: Joint, parents: dict, axis_offset: float = 0.0):
+    """A PointConstraint at the loop joint's point; a 3-D revolute whose axis the tree does
+    not keep aligned gets a second one ``axis_offset`` m along its axis (the two points on
+    the axis line pin it: 6 rows, the axial one redundant, so Simbody's least-squares
+    multipliers split the axial force; the joint's force is their sum, determined)."""
     if j.type not in ("revolute", "spherical"):
         raise Unsupported(f"loop-closing {j.type} joint {j.name!r}: {WHY_POINT}")
     (a, c), (pa, pc) = j.bodies, j.points
+    ra, rc = node_point(b.case, a, pa), node_point(b.case, c, pc)
+    points = [(ra, rc)]
     if j.type == "revolute" and b.case.dimension == 3 and not b.planar:
         axis = frame_of(b.frames, a).R @ j.axis
         for t in _path_turns(b, parents, a, c):
             if isinstance(t, str) or np.linalg.norm(cross(t, axis)) > 1e-12 * np.linalg.norm(t):
-                raise Unsupported(f"loop-closing 3-D revolute {j.name!r}: the tree does not "
-                                  "keep its axis aligned, and a WeldConstraint would lock "
-                                  "its rotation")
-    con = osim.PointConstraint(_phys(b, a), vec3(osim, node_point(b.case, a, pa)),
-                               _phys(b, c), vec3(osim, node_point(b.case, c, pc)))
-    con.setName(f"loop_{j.name}")
-    b.model.addConstraint(con)
-    b.loops.append((j, con, a, c))
+                if axis_offset <= 0:
+                    raise Unsupported(f"loop-closing 3-D revolute {j.name!r}: the tree does "
+                                      "not keep its axis aligned, and a WeldConstraint would "
+                                      "lock its rotation (setting loop_axis_offset > 0: a "
+                                      "second PointConstraint along the axis)")
+                e = axis / np.linalg.norm(axis) * axis_offset
+                points.append((ra + frame_of(b.frames, a).R.T @ e,
+                               rc + frame_of(b.frames, c).R.T @ e))
+                b.notes.append(f"loop revolute {j.name!r}: a second PointConstraint "
+                               f"{axis_offset:g} m along its axis")
+                break
+    for k, (p1, p2) in enumerate(points):
+        con = osim.PointConstraint(_phys(b, a), vec3(osim, p1), _phys(b, c), vec3(osim, p2))
+        con.setName(f"loop_{j.name}" + (f"_axis{k}" if k else ""))
+        b.model.addConstraint(con)
+        b.loops.append((j, con, a, c))
 
 
 def _add_rod(osim, b: Built, rod):
@@ -308,7 +322,7 @@ def build(osim, case3: Case, frames: dict[str, Frame], planar: bool, s: dict) ->
             b.notes.append(f"particle {body.name!r} gets rotational inertia "
                            f"{s['particle_inertia']:g} kg m^2 per kg (it can turn)")
     for j in loops:
-        _add_loop(osim, b, j, parents)
+        _add_loop(osim, b, j, parents, float(s.get("loop_axis_offset") or 0.0))
     if loops:
         b.notes.append(f"loop joint(s) {', '.join(j.name for j in loops)} closed by "
                        "PointConstraint")

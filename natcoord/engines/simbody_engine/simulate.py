@@ -140,8 +140,10 @@ def sample(osim, b: Built, states, T: int):
         for j, oj, sign in b.tree:
             forces[j.name][i] = sign * np3(oj.calcReactionOnChildExpressedInGround(state)
                                            .get(1))
-        for j, con, _a, _c in b.loops:
-            forces[j.name][i] = _constraint_force(osim, con, state, 1)
+        for j, _con, _a, _c in b.loops:
+            forces[j.name][i] = 0.0
+        for j, con, _a, _c in b.loops:  # a revolute held at two axis points: the sum
+            forces[j.name][i] += _constraint_force(osim, con, state, 1)
         for rod, con, n1, r1, n2, r2 in b.rods:
             f2 = _constraint_force(osim, con, state, 1)
             p1, _ = _point_state(_body(b, ground, n1), state, r1)
