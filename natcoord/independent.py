@@ -23,7 +23,13 @@ the residual of that over-determined system checks the Kane dynamics.
 Supported: 2-D cases of revolute and prismatic joints, bodies, particles, gravity, constant
 forces and torques, channels ``angle``, ``position``, ``velocity``, ``energy`` and
 ``reaction``. Anything else raises :class:`natcoord.errors.Unsupported`. Redundant loop
-constraints (e.g. parallel cranks) are not handled: the loop Jacobian must have full rank.
+constraints (e.g. five_bar's two parallel couplers) are not handled: the loop Jacobian
+must have full rank at t = 0. It may lose rank at isolated positions where two branches of
+the loop cross (IFToMM A02's horizontal position: parallelogram and anti-parallelogram
+cross, the Jacobian has rank 2 of 4 and no choice of dependent coordinates is solvable
+there): Newton starts from the last solution moved along the loop's tangent there, which
+keeps the branch the motion is on, and the integrator's stages land near the crossing,
+never on it (``min_sigma``: the smallest singular value of the dependent columns met).
 """
 
 from __future__ import annotations
@@ -296,7 +302,8 @@ class JointModel:
                     [Q], sp.Matrix([num(r.dot(N.x)), num(r.dot(N.y))]), "numpy")
         self._angle = {b.name: sp.lambdify([Q], num(frames[b.name][1]), "numpy")
                        for b in case.bodies}
-        self._qd = self.q0[self.dep].copy()
+        self.min_sigma = np.inf
+        self.restart()
 
     # ---- configuration --------------------------------------------------------------
     def _solve_loop(self, q: np.ndarray, free: np.ndarray, extra=None) -> np.ndarray:
@@ -364,18 +371,40 @@ class JointModel:
             return np.zeros(self.n)
         return np.linalg.lstsq(np.vstack(rows), np.concatenate(rhs), rcond=None)[0]
 
+    def restart(self) -> None:
+        """Start the dependent-coordinate continuation again from q0."""
+        self._last = (self.q0[self.ind].copy(), self.q0[self.dep].copy(),
+                      self._tangent(self.q0))
+
+    def _tangent(self, q: np.ndarray) -> np.ndarray:
+        """d q_dep / d q_ind (d, k) on the loop at q: -Phi_dep^-1 Phi_ind."""
+        if not self.m:
+            return np.zeros((0, len(self.ind)))
+        J = np.asarray(self._J(q), float).reshape(self.m, self.n)
+        return np.linalg.solve(J[:, self.dep], -J[:, self.ind])
+
     def full(self, qi: np.ndarray, ui: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """All coordinates and rates from the independent ones (loop closed by Newton)."""
+        """All coordinates and rates from the independent ones (loop closed by Newton).
+
+        Newton starts from the last solution moved along the loop's tangent there: where
+        two branches of the loop cross (A02's horizontal position, the parallelogram and
+        the anti-parallelogram) the start from the last solution alone may fall to the
+        other branch; the tangent keeps the branch the motion is on."""
         q = np.empty(self.n)
-        q[self.ind], q[self.dep] = qi, self._qd
+        q[self.ind] = qi
         if self.m:
+            qi0, qd0, tangent = self._last
+            q[self.dep] = qd0 + tangent @ (qi - qi0)
             q = self._solve_loop(q, self.dep)
-            self._qd = q[self.dep]
+            J = np.asarray(self._J(q), float).reshape(self.m, self.n)
+            self.min_sigma = min(self.min_sigma,
+                                 float(np.linalg.svd(J[:, self.dep], compute_uv=False)[-1]))
+            tangent = np.linalg.solve(J[:, self.dep], -J[:, self.ind])
+            self._last = (q[self.ind].copy(), q[self.dep].copy(), tangent)
         u = np.empty(self.n)
         u[self.ind] = ui
         if self.m:
-            J = np.asarray(self._J(q), float).reshape(self.m, self.n)
-            u[self.dep] = np.linalg.solve(J[:, self.dep], -J[:, self.ind] @ ui)
+            u[self.dep] = tangent @ ui
         return q, u
 
     def accelerations(self, q: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -398,7 +427,8 @@ class JointModel:
         """scipy's solve_ivp over ``times`` (s) in the independent coordinates; ``kw`` go
         to solve_ivp (e.g. ``dense_output``, ``events``)."""
         s = {**SETTINGS, **(settings or {})}
-        self._qd = self.q0[self.dep].copy()
+        self.restart()
+        self.min_sigma = np.inf  # the smallest singular value of Phi_dep met (1)
         y0 = np.concatenate([self.q0[self.ind], self.u0[self.ind]])
         sol = solve_ivp(self.rhs, (times[0], times[-1]), y0, method=s["method"],
                         rtol=s["rtol"], atol=s["atol"], t_eval=times, **kw)
@@ -410,7 +440,7 @@ class JointModel:
         """The case's channels at ``times`` from states ``y`` (2k, T); channels of kinds
         this derivation does not produce are left out."""
         k = len(self.ind)
-        self._qd = self.q0[self.dep].copy()
+        self.restart()
         cols = {"t": np.asarray(times, float)}
         rows = []
         for i in range(len(times)):

@@ -71,6 +71,82 @@ def test_error_falls_as_the_accuracy_tightens():
     assert steps[0] < steps[1] < steps[2], steps
 
 
+def test_wall_time_is_the_stepping_and_steps_are_the_integrators(monkeypatch):
+    """wall_time_s times the Manager's calls alone, the readout goes to
+    counters['readout_time_s'], and the step count (rows of the in-memory state storage)
+    equals the states trajectory's length, which the Manager is made to record here too."""
+    import time
+
+    import opensim as osim
+
+    managers = []
+    initialize, record = osim.Manager.initialize, osim.Manager.setRecordStatesTrajectory
+
+    def recording_initialize(self, state):
+        record(self, True)
+        managers.append(self)
+        return initialize(self, state)
+
+    monkeypatch.setattr(osim.Manager, "initialize", recording_initialize)
+    t0 = time.perf_counter()
+    run = ec.run("simbody", ec.case("four_bar"))
+    total = time.perf_counter() - t0
+    assert run.n_steps == managers[-1].getStatesTrajectory().getSize() - 1 > 100
+    readout = run.counters["readout_time_s"]
+    assert 0 < readout and 0 < run.wall_time_s
+    assert run.build_time_s + run.wall_time_s + readout <= total
+
+
+def test_joint_frame_euler_angles_reproduce_the_rotation_at_gimbal_lock():
+    """Body-fixed X-Y-Z angles of the joint frames give back the rotation to round-off,
+    also at 90 deg pitch (a slider along world z), where asin(R[0, 2]) lost 1.5e-8 rad."""
+    from scipy.spatial.transform import Rotation
+
+    from natcoord.engines.simbody_engine.model import basis_with, body_fixed_xyz
+
+    mats = [Rotation.random(random_state=k).as_matrix() for k in range(200)]
+    mats += [basis_with(s * e, column=c) for e in np.eye(3) for s in (1, -1) for c in (0, 2)]
+    mats += [Rotation.from_euler("XYZ", [a, s * np.pi / 2 + d, 0.7]).as_matrix()
+             for a in (-2.0, 0.0, 1.0) for s in (1, -1) for d in (0.0, 1e-9, -1e-7)]
+    for R in mats:
+        back = Rotation.from_euler("XYZ", body_fixed_xyz(R)).as_matrix()
+        assert np.max(np.abs(back - R)) < 1e-14
+
+
+def test_flyball_slider_starts_where_natcoord_assembled_it():
+    """a05's slider slides along world z (its joint frame at 90 deg pitch): Simbody's model
+    with every coordinate 0 puts every body within 1e-9 m and m/s of natcoord's start (it
+    was 1.05e-8 m off from the Euler angles alone)."""
+    import opensim as osim
+
+    from natcoord.engines.base import initial_body_states, merged
+    from natcoord.engines.planar import lift_case, lift_init
+    from natcoord.engines.simbody_engine import DEFAULTS, _quiet, model, simulate
+
+    _quiet(osim)
+    c = ec.case("a05_flyball_governor")
+    case3 = lift_case(c)
+    frames = lift_init(case3, initial_body_states(c))
+    b = model.build(osim, case3, frames, False, merged(DEFAULTS, {}))
+    simulate.initial_state(osim, b, 1e-9)  # raises when a body starts off
+
+
+def test_bricard_loop_revolute_held_at_two_axis_points():
+    """a04: J6 closes the loop with an axis the tree turns away; without loop_axis_offset
+    that is Unsupported, with a second PointConstraint 1 m along the axis the 1-DOF Bricard
+    motion and its determined reaction differences match the reference (measured P3
+    1.1e-9 m, J1-J3 1.7e-8 N, J1-J6 y 5.6e-9 N; one PointConstraint alone would leave a
+    2-DOF 5R+S loop, 0.06 m off by 0.5 s in MuJoCo)."""
+    from natcoord.errors import Unsupported
+
+    with pytest.raises(Unsupported, match="loop_axis_offset"):
+        ec.run("simbody", ec.case("a04_bricard"))
+    run, err = _errors("a04_bricard", {"loop_axis_offset": 1.0})
+    assert max(err["xP3"], err["yP3"], err["zP3"]) < 1e-8, err
+    assert max(err["J1mJ3_x"], err["J1mJ3_z"], err["J1mJ6_y"]) < 2e-7, err
+    assert run.counters["qerr_max"] < 1e-10
+
+
 def test_redundant_rods_give_the_determined_reactions():
     """parallelogram_3d: six ConstantDistanceConstraint rods on a free plate, one redundant.
     The determined K5, M6 (11.18 N) match natcoord to 1e-10 N (measured 9.4e-12); the

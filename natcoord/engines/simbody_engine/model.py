@@ -52,11 +52,18 @@ def vec3(osim, x) -> object:
 
 
 def body_fixed_xyz(R: np.ndarray) -> np.ndarray:
-    """Body-fixed X-Y-Z Euler angles (rad) of a rotation R = Rx(a) Ry(b) Rz(c)."""
-    b = np.arcsin(np.clip(R[0, 2], -1.0, 1.0))
-    a = np.arctan2(-R[1, 2], R[2, 2])
-    c = np.arctan2(-R[0, 1], R[0, 0])
-    return np.array([a, b, c])
+    """Body-fixed X-Y-Z Euler angles (rad) of a rotation R = Rx(a) Ry(b) Rz(c).
+
+    b from atan2, not asin(R[0, 2]): near b = +-90 deg (a slider along world z: its frame's
+    X is z) asin loses half the digits, a 1.5e-8 rad tilt that put a05's slider 1.05e-8 m
+    off its start. Near there a alone is ill-conditioned (only a and c together matter),
+    so c is taken from what Rx(a) Ry(b) leaves of R: R reproduced to round-off."""
+    cb = np.hypot(R[1, 2], R[2, 2])
+    b = np.arctan2(R[0, 2], cb)
+    a = np.arctan2(-R[1, 2], R[2, 2]) if cb > 1e-12 else np.arctan2(R[2, 1], R[1, 1])
+    ca, sa, cy, sy = np.cos(a), np.sin(a), np.cos(b), np.sin(b)
+    rest = np.array([[cy, sy * sa, -sy * ca], [0.0, ca, sa], [sy, -cy * sa, cy * ca]]) @ R
+    return np.array([a, b, np.arctan2(rest[1, 0], rest[0, 0])])
 
 
 def basis_with(first: np.ndarray, second: np.ndarray | None = None, column: int = 2):
@@ -178,22 +185,36 @@ def _path_turns(b: Built, parents: dict, a: str, c: str) -> list[np.ndarray | st
     return turns
 
 
-def _add_loop(osim, b: Built, j: Joint, parents: dict):
+def _add_loop(osim, b: Built, j: Joint, parents: dict, axis_offset: float = 0.0):
+    """A PointConstraint at the loop joint's point; a 3-D revolute whose axis the tree does
+    not keep aligned gets a second one ``axis_offset`` m along its axis (the two points on
+    the axis line pin it: 6 rows, the axial one redundant, so Simbody's least-squares
+    multipliers split the axial force; the joint's force is their sum, determined)."""
     if j.type not in ("revolute", "spherical"):
         raise Unsupported(f"loop-closing {j.type} joint {j.name!r}: {WHY_POINT}")
     (a, c), (pa, pc) = j.bodies, j.points
+    ra, rc = node_point(b.case, a, pa), node_point(b.case, c, pc)
+    points = [(ra, rc)]
     if j.type == "revolute" and b.case.dimension == 3 and not b.planar:
         axis = frame_of(b.frames, a).R @ j.axis
         for t in _path_turns(b, parents, a, c):
             if isinstance(t, str) or np.linalg.norm(cross(t, axis)) > 1e-12 * np.linalg.norm(t):
-                raise Unsupported(f"loop-closing 3-D revolute {j.name!r}: the tree does not "
-                                  "keep its axis aligned, and a WeldConstraint would lock "
-                                  "its rotation")
-    con = osim.PointConstraint(_phys(b, a), vec3(osim, node_point(b.case, a, pa)),
-                               _phys(b, c), vec3(osim, node_point(b.case, c, pc)))
-    con.setName(f"loop_{j.name}")
-    b.model.addConstraint(con)
-    b.loops.append((j, con, a, c))
+                if axis_offset <= 0:
+                    raise Unsupported(f"loop-closing 3-D revolute {j.name!r}: the tree does "
+                                      "not keep its axis aligned, and a WeldConstraint would "
+                                      "lock its rotation (setting loop_axis_offset > 0: a "
+                                      "second PointConstraint along the axis)")
+                e = axis / np.linalg.norm(axis) * axis_offset
+                points.append((ra + frame_of(b.frames, a).R.T @ e,
+                               rc + frame_of(b.frames, c).R.T @ e))
+                b.notes.append(f"loop revolute {j.name!r}: a second PointConstraint "
+                               f"{axis_offset:g} m along its axis")
+                break
+    for k, (p1, p2) in enumerate(points):
+        con = osim.PointConstraint(_phys(b, a), vec3(osim, p1), _phys(b, c), vec3(osim, p2))
+        con.setName(f"loop_{j.name}" + (f"_axis{k}" if k else ""))
+        b.model.addConstraint(con)
+        b.loops.append((j, con, a, c))
 
 
 def _add_rod(osim, b: Built, rod):
@@ -301,7 +322,7 @@ def build(osim, case3: Case, frames: dict[str, Frame], planar: bool, s: dict) ->
             b.notes.append(f"particle {body.name!r} gets rotational inertia "
                            f"{s['particle_inertia']:g} kg m^2 per kg (it can turn)")
     for j in loops:
-        _add_loop(osim, b, j, parents)
+        _add_loop(osim, b, j, parents, float(s.get("loop_axis_offset") or 0.0))
     if loops:
         b.notes.append(f"loop joint(s) {', '.join(j.name for j in loops)} closed by "
                        "PointConstraint")
