@@ -355,6 +355,32 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
     return result
 
 
+def _scaling(sizes: str, quiet: bool = False) -> dict:
+    from .suite import scaling
+
+    try:
+        ns = [int(x) for x in sizes.split(",") if x.strip()]
+    except ValueError:
+        ns = []
+    if not ns or min(ns) < 1:
+        _fail(f"--scaling: expected positive integers N separated by commas, got {sizes!r}")
+    say = (lambda *a: None) if quiet else out.print
+    say(f"scaling: natcoord on N-four-bars N = {', '.join(map(str, ns))}")
+    result = scaling.scaling(ns)
+    table = Table(title=f"natcoord cost per step by size ({result['method']})")
+    for col in ("N", "coordinates", "rows", "build s", "plan s", "us/step", "us/rhs"):
+        table.add_column(col)
+    for r in result["records"]:
+        table.add_row(str(r["N"]), str(r["n"]), str(r["m"]), f"{r['build_time_s']:.2f}",
+                      f"{r['plan_time_s']:.3f}", f"{r['us_per_step']:.1f}",
+                      f"{r['us_per_rhs']:.2f}")
+    say(table)
+    if "step_cost_ratio" in result:
+        say(f"cost per step grew {result['step_cost_ratio']:.1f}x for {result['size_ratio']:g}x "
+            "the couplers")
+    return result
+
+
 def _g(x, fmt="{:.3g}", none="—"):
     return none if x is None else fmt.format(x)
 
@@ -406,9 +432,13 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
               timeout: Timeout = DEFAULT_TIMEOUT_S,
               cases_dir: CasesDir = None, references: RefDir = None,
               as_json: Annotated[bool, typer.Option(
-                  "--json", help="Print bench.json to stdout instead of the tables.")] = False):
+                  "--json", help="Print bench.json to stdout instead of the tables.")] = False,
+              scaling: Annotated[str | None, typer.Option(
+                  help="Also natcoord's cost per step on generated N-four-bars of these N "
+                       "(comma-separated, e.g. 64,512).", show_default=False)] = None):
     """Measure the cost per case x engine: best of repeats (single-threaded BLAS), fixed
-    cost, cost per step and per right-hand side, natcoord's cold start."""
+    cost, cost per step and per right-hand side, natcoord's cold start; with --scaling,
+    how natcoord's cost per step grows with the size of a mechanism."""
     from .suite import bench
     from .suite.outdir import publishing
 
@@ -418,6 +448,8 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
                         resolve(references, "references"), timeout, quiet=as_json)
+        if scaling:
+            result["scaling"] = _scaling(scaling, quiet=as_json)
         bench.store(result, staging, resolve(history, "reports/bench"))
     if as_json:
         import json

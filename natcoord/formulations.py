@@ -27,6 +27,7 @@ then ``post_step``). Multipliers are computed once per output sample by
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -168,12 +169,19 @@ def compiled_forces(model) -> tuple | None:
 
 
 def _is_spd(M: np.ndarray) -> bool:
-    try:
-        np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        return False
-    w = np.linalg.eigvalsh(M)
-    return w[0] > 1e-10 * w[-1]
+    """M (n, n) symmetric positive definite, judged block by block over its coupled
+    coordinates (cheap for a large, block-diagonal M)."""
+    from .sparsity import blocks
+    for idx in blocks(M):
+        B = M[np.ix_(idx, idx)]
+        try:
+            np.linalg.cholesky(B)
+        except np.linalg.LinAlgError:
+            return False
+        w = np.linalg.eigvalsh(B)
+        if not w[0] > 1e-10 * w[-1]:
+            return False
+    return True
 
 
 # ---- formulations ---------------------------------------------------------------------
@@ -221,17 +229,23 @@ class Index1Loop(FormulationLoop):
         mode = self.opt["linsolve"]
         if mode not in ("auto", "schur", "qr"):
             raise ValueError(f"linsolve {mode!r}: expected auto, schur or qr")
-        self.Minv = np.linalg.inv(self.M) if _is_spd(self.M) else None
-        if mode == "schur" and self.Minv is None:
+        self.regular = _is_spd(self.M)
+        if mode == "schur" and not self.regular:
             raise ValueError("linsolve 'schur' needs a regular mass matrix")
         self.mode = mode
+
+    @functools.cached_property
+    def Minv(self) -> np.ndarray:
+        """M^-1 (n, n), dense, for the Python Schur path (block by block)."""
+        from .sparsity import block_inverse
+        return block_inverse(self.M).toarray()
 
     def init(self, t, q, qd):
         if self.mode == "auto" and hasattr(self, "_plan"):  # compiled: no rank decision
             self.mode = "schur" if self._plan is not None else "qr"
         if self.mode == "auto":
             r = np.linalg.matrix_rank(self.cs.jacobian(q, t), self.opt["rank_tol"])
-            self.mode = "schur" if self.Minv is not None and r == self.cs.m else "qr"
+            self.mode = "schur" if self.regular and r == self.cs.m else "qr"
         return np.concatenate([q, qd])
 
     def state(self, t, y):
@@ -255,8 +269,9 @@ class Index1Loop(FormulationLoop):
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
         sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`)."""
         from .sparsity import schur_plan
-        sparse = self.Minv is not None and self.opt["linsolve"] != "qr"
+        sparse = self.regular and self.opt["linsolve"] != "qr"
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None
+        self._plan_args = None if self._plan is None else self._plan.kernel_args
 
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
@@ -270,7 +285,7 @@ class Index1Loop(FormulationLoop):
         if not hasattr(self, "_plan"):
             self.prepare_compiled()
         return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
-                           plan=self._plan, M=self.M, rank_tol=self.opt["rank_tol"],
+                           plan=self._plan_args, M=self.M, rank_tol=self.opt["rank_tol"],
                            rtol=rtol, atol=atol, ptol=self.opt["project_tol"], cnt=self.cnt,
                            h=h)
 

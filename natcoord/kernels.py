@@ -192,8 +192,8 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 @njit(cache=True)
 def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
-    on the constraints first: adaptive (embedded pair, steps cross the samples, dense output) or fixed
-    steps (landing on every sample).
+    on the constraints first: adaptive (embedded pair, steps cross the samples, dense
+    output) or fixed steps (landing on every sample).
 
     ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`);
     else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
@@ -434,9 +434,10 @@ def ensure_compiled() -> float:
     times = np.linspace(0.0, 0.02, 3)
     for general in (False, True):
         plan = None if general else sparsity.schur_plan(con, np.eye(2))
+        args = None if plan is None else plan.kernel_args
         for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
             Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
-                           plan=plan, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13,
+                           plan=args, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13,
                            cnt=None, h=h)
         if plan is not None:
             sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
@@ -450,10 +451,11 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
         rtol, atol, ptol, cnt, h=None, h0: float = 0.0, max_steps: int = 10_000_000):
     """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n). Raises RuntimeError.
 
-    ``frc`` from :func:`pack_forces`. ``plan`` (:func:`natcoord.sparsity.schur_plan`, for
-    a regular M) selects the sparse Schur path; without it the general path runs on ``M``
-    (n, n) and ``rank_tol`` (relative, on |R_kk| / |R_00|). ``h``: a fixed step (s) for
-    rk4 or dopri5, else adaptive steps at ``rtol``/``atol``."""
+    ``frc`` from :func:`pack_forces`. ``plan`` (the ``kernel_args`` of
+    :func:`natcoord.sparsity.schur_plan`, for a regular M) selects the sparse Schur path;
+    without it the general path runs on ``M`` (n, n) and ``rank_tol`` (relative, on
+    |R_kk| / |R_00|). ``h``: a fixed step (s) for rk4 or dopri5, else adaptive steps at
+    ``rtol``/``atol``."""
     A, B, C, E5, E3, order, Aext, Cext, D, fsal = tableau(name)
     tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
@@ -466,7 +468,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
            np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
            as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
-    args = (sparsity.empty_plan(n) if plan is None else plan).kernel_args
+    args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
@@ -484,17 +486,18 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
     return Q, QD, QDD
 
 
-def sample_outputs(plan, frc, Q, QD, LAM, cnt) -> np.ndarray:
+def sample_outputs(plan, frc, Q, QD, LAM, cnt, args=None) -> np.ndarray:
     """Multipliers LAM (T, m) (case row order) and the drift counters at every sample on
     the sparse path; returns a bool (T,) mask of the samples with a dependent row, where
-    lambda is not unique (the caller takes the minimum-norm one there)."""
-    args = plan.kernel_args
-    lam, drift = np.zeros((len(Q), plan.m)), np.zeros((len(Q), 2))
+    lambda is not unique (the caller takes the minimum-norm one there). ``args``: the
+    plan's ``kernel_args`` when already packed."""
+    args = plan.kernel_args if args is None else args
+    lam, dr = np.zeros((len(Q), plan.m)), np.zeros((len(Q), 2))
     dep = kernels_sparse.sample_outputs(*args, frc, np.ascontiguousarray(Q),
-                                        np.ascontiguousarray(QD), lam, drift,
+                                        np.ascontiguousarray(QD), lam, dr,
                                         kernels_sparse.workspace(args), np.zeros(N_COUNTERS))
     LAM[:, plan.perm] = lam  # plan row r is case row perm[r]
     if len(Q):
-        cnt.max_phi = max(cnt.max_phi, float(np.max(drift[:, 0])))
-        cnt.max_phi_dot = max(cnt.max_phi_dot, float(np.max(drift[:, 1])))
+        cnt.max_phi = max(cnt.max_phi, float(np.max(dr[:, 0])))
+        cnt.max_phi_dot = max(cnt.max_phi_dot, float(np.max(dr[:, 1])))
     return dep.astype(bool)

@@ -113,15 +113,21 @@ def empty_plan(n: int) -> SchurPlan:
                      z1, z, z, z, z1, 0, DEP_TOL, z)
 
 
+def blocks(M: np.ndarray) -> list[np.ndarray]:
+    """Index sets (sorted) of the coordinates M couples: the connected components of its
+    pattern (M block-diagonal up to a permutation)."""
+    k, label = connected_components(sp.csr_matrix(np.asarray(M) != 0.0), directed=False)
+    order = np.argsort(label, kind="stable")
+    return np.split(order, np.cumsum(np.bincount(label, minlength=k))[:-1])
+
+
 def block_inverse(M: np.ndarray) -> sp.csr_matrix:
     """M^-1 of a symmetric positive definite M (n, n), inverted block by block over the
     connected components of its pattern (so M^-1 has exactly M's block pattern)."""
     M = np.asarray(M, float)
     n = len(M)
-    k, label = connected_components(sp.csr_matrix(M != 0.0), directed=False)
     rows, cols, vals = [], [], []
-    for b in range(k):
-        idx = np.flatnonzero(label == b)
+    for idx in blocks(M):
         inv = np.linalg.inv(M[np.ix_(idx, idx)])
         r, c = np.meshgrid(idx, idx, indexing="ij")
         rows.append(r.ravel())
