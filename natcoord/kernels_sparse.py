@@ -216,16 +216,24 @@ def accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, fresh):
     cnt[C_RHS] += 1
     if fresh:
         refactor(I, F, O, q, ws, cnt)
+    w = multipliers(I, F, O, frc, q, qd, qdd, ws)
+    sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
+    return OK
+
+
+@njit(cache=True)
+def multipliers(I, F, O, frc, q, qd, f_over_m, ws):
+    """lambda (m,) from W lambda = J M^-1 F - c with the factorization in ``ws`` (returned
+    as the work vector it was solved in); ``f_over_m`` (n,) receives M^-1 F."""
     w, c, f = _seg(ws, O, W_W), _seg(ws, O, W_C), _seg(ws, O, W_F)
     gamma(I, F, O, qd, c)
     forces(frc, q, qd, f)
-    minv(I, F, O, f, qdd)
-    jx(I, O, _seg(ws, O, W_J_), qdd, w)
+    minv(I, F, O, f, f_over_m)
+    jx(I, O, _seg(ws, O, W_J_), f_over_m, w)
     for r in range(w.shape[0]):
         w[r] -= c[r]
     solve(I, O, _seg(ws, O, W_L_), w)
-    sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
-    return OK
+    return w
 
 
 @njit(cache=True)
@@ -287,8 +295,8 @@ def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
     T = Q.shape[0]
     n = Q.shape[1]
     dep = np.zeros(T, np.int64)
-    qdd = np.zeros(n)
-    w, c, f = _seg(ws, O, W_W), _seg(ws, O, W_C), _seg(ws, O, W_F)
+    mf = np.zeros(n)  # M^-1 F, scratch
+    w = _seg(ws, O, W_W)
     for k in range(T):
         q, qd = Q[k], QD[k]
         phi(I, F, O, q, w)
@@ -301,12 +309,5 @@ def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
         if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_),
                   _seg(ws, O, W_DIAG)) > 0:
             dep[k] = 1
-        gamma(I, F, O, qd, c)
-        forces(frc, q, qd, f)
-        minv(I, F, O, f, qdd)
-        jx(I, O, _seg(ws, O, W_J_), qdd, w)
-        for r in range(w.shape[0]):
-            w[r] -= c[r]
-        solve(I, O, _seg(ws, O, W_L_), w)
-        LAM[k] = w
+        LAM[k] = multipliers(I, F, O, frc, q, qd, mf, ws)
     return dep

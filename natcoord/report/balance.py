@@ -18,6 +18,7 @@ import numpy as np
 import pandas as pd
 import plotly.graph_objects as go
 
+from .look import style
 from .sampling import envelope, f32
 
 REFERENCE_COLOR = "#222222"
@@ -69,18 +70,11 @@ def figure(name: str, series: dict[str, tuple[np.ndarray, np.ndarray]],
             line={"color": REFERENCE_COLOR if ref else colors.get(who, "#7f7f7f"),
                   "width": 1.8 if ref else 1.4, **({"dash": "dash"} if ref else {})},
             hovertemplate=f"{who}<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>"))
-    axis = {"showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
-            "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
-            "exponentformat": "power"}
-    fig.update_layout(
-        template="none", height=HEIGHT, margin={"l": 70, "r": 14, "t": 20, "b": 90},
-        font={"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12},
-        legend={"orientation": "h", "x": 0, "xanchor": "left", "y": -0.22, "yanchor": "top",
-                "font": {"size": 11}},
-        hovermode="closest", paper_bgcolor="white", plot_bgcolor="white")
-    fig.update_xaxes(title_text="t [s]", **axis)
+    style(fig, HEIGHT, bottom=90, legend={"orientation": "h", "x": 0, "xanchor": "left",
+                                          "y": -0.22, "yanchor": "top"})
+    fig.update_xaxes(title_text="t [s]")
     fig.update_yaxes(title_text="|drift| / energy scale" if scale else "|drift| [J]",
-                     type="log", **axis)
+                     type="log")
     if not fig.data:
         fig.add_annotation(text="no data", showarrow=False, xref="paper", yref="paper",
                            x=0.5, y=0.5)

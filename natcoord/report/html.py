@@ -35,6 +35,7 @@ from plotly.subplots import make_subplots
 from ..mechanism import FORCE_KINDS
 from . import balance, redundant, speed, trends
 from .lazy import FigureStore
+from .look import style
 from .sampling import MAX_POINTS, envelope, f32, stride  # noqa: F401 (MAX_POINTS: tests)
 
 ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
@@ -379,20 +380,6 @@ def channel_figure(
             text="no data", showarrow=False, xref="paper", yref="paper", x=0.5, y=0.5
         )
     return fig
-
-
-def style(fig: go.Figure, height: int) -> None:
-    """The report's look for a summary figure (trends, work-precision)."""
-    axis = {"showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
-            "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
-            "exponentformat": "power"}
-    fig.update_layout(
-        template="none", height=height, margin={"l": 70, "r": 14, "t": 20, "b": 60},
-        font={"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12},
-        legend={"font": {"size": 11}}, hovermode="closest", paper_bgcolor="white",
-        plot_bgcolor="white")
-    fig.update_xaxes(**axis)
-    fig.update_yaxes(**axis)
 
 
 # ---------------------------------------------------------------- building the page
