@@ -19,6 +19,7 @@ steps are shortened to land on every sample instead.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -94,7 +95,9 @@ class DormandPrince853(ExplicitRK):
     name, order = "dop853", 7  # order of the error estimate, for the step control
 
     @staticmethod
-    def _tableau():
+    @functools.cache
+    def tableau():
+        """(A, B, C, E5, E3), built when first asked (start-up time)."""
         from scipy.integrate._ivp import dop853_coefficients as d
         A = np.zeros((13, 13))
         A[:12, :12] = d.A[:12, :12]
@@ -105,7 +108,7 @@ class DormandPrince853(ExplicitRK):
     @classmethod
     def stages(cls, f, t, y, h):
         """One step: (y_new, (h E5 K, h E3 K), K (13, N)) for Hairer's error norm."""
-        A, B, C, E5, E3 = cls.TABLEAU
+        A, B, C, E5, E3 = cls.tableau()
         K = np.empty((13, len(y)))
         for i in range(13):
             K[i] = f(t + C[i] * h, y + h * (A[i, :i] @ K[:i]))
@@ -130,7 +133,6 @@ class DormandPrince853(ExplicitRK):
         return at
 
 
-DormandPrince853.TABLEAU = DormandPrince853._tableau()
 
 SCIPY_METHODS = ("DOP853", "RK45", "Radau", "LSODA", "BDF")
 INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "dop853": DormandPrince853,
