@@ -113,7 +113,7 @@ def drift(kk, ii, jj, vv, q, qd, w, J, cnt):
         cnt[C_PHID] = max(cnt[C_PHID], abs(s))
 
 
-ROUNDOFF = 16 * 2.2e-16  # |Phi| that evaluating a quadratic row at |q| ~ 1 m cannot beat
+ROUNDOFF = 4 * 2.2e-16  # |Phi| that evaluating a quadratic row at |q| ~ 1 m cannot beat
 
 
 @njit(cache=True)
