@@ -351,6 +351,12 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                         s += D[r, p] * K[p, a]
                     Fd[3 + r, a] = hh * s
         st_code = _settle(plan, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt, True)
+        if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
+            cnt[C_REJ] += 1                     # project back (near a singular position):
+            h = 0.5 * hh                        # reject it and try a shorter one
+            if h < 1e-14 * max(1.0, abs(t)):
+                return ERR_UNDERFLOW
+            continue
         if st_code != OK:
             return st_code
         f1[:n] = yn[n:]
