@@ -85,17 +85,13 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     compile_s = kernels.ensure_compiled(general=form._plan is None) if compiled else 0.0
     wall0 = time.perf_counter()
     y = form.init(t0, q0, qd0)
-    if compiled and form.compiled_ready():
+    if compiled:
         Q[:], QD[:], QDD[:] = form.run_compiled(times, y, method, rtol, atol, h)
     else:
-        if compiled:  # not served after all: start from a consistent state here
-            y = np.concatenate(Index1Loop(model, {**options, "linsolve": "qr"},
-                                          Counters()).project(t0, q0, qd0))
-        compiled = False
         time_loop(form, y, times, method=method, h=h, rtol=rtol, atol=atol, record=record)
     wall = time.perf_counter() - wall0
     # outputs only: min-norm multipliers and drift at the samples
-    plan = getattr(form, "_plan", None) if compiled else None
+    plan = form._plan if compiled else None
     done = np.zeros(T, bool)
     if plan is not None:  # sparse, linear in the model's size; unique lambda where no row
         done[:] = ~kernels.sample_outputs(plan, form._frc, Q, QD, LAM, cnt,  # is dependent

@@ -241,8 +241,6 @@ class Index1Loop(FormulationLoop):
         return block_inverse(self.M).toarray()
 
     def init(self, t, q, qd):
-        if self.mode == "auto" and hasattr(self, "_plan"):  # compiled: no rank decision
-            self.mode = "schur" if self._plan is not None else "qr"
         if self.mode == "auto":
             r = np.linalg.matrix_rank(self.cs.jacobian(q, t), self.opt["rank_tol"])
             self.mode = "schur" if self.regular and r == self.cs.m else "qr"
@@ -272,6 +270,8 @@ class Index1Loop(FormulationLoop):
         sparse = self.regular and self.opt["linsolve"] != "qr"
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None
         self._plan_args = None if self._plan is None else self._plan.kernel_args
+        if self.mode == "auto":  # the compiled paths need no rank decision
+            self.mode = "schur" if sparse else "qr"
 
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
@@ -280,9 +280,10 @@ class Index1Loop(FormulationLoop):
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``
-        (the sparse Schur path for a regular M, else the QR null-space form with M)."""
+        (the sparse Schur path for a regular M, else the QR null-space form with M), after
+        :meth:`prepare_compiled` (made here when it was not)."""
         from . import kernels
-        if not hasattr(self, "_plan"):
+        if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
         return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
                            plan=self._plan_args, M=self.M, rank_tol=self.opt["rank_tol"],

@@ -110,7 +110,6 @@ def test_slider_crank_3d_energy_and_dof(crank3d):
 def test_slider_crank_3d_agrees_with_pinocchio(crank3d, tmp_path):
     """Pinocchio (RK4, 4th order: 1.4e-4, 8.9e-6, 2.3e-7 rad at dt 5e-4, 2.5e-4, 1e-4)
     at dt 2.5e-4 must sit within its own measured error of natcoord."""
-    pytest.importorskip("pinocchio")
     from natcoord.engines import pinocchio_engine
     from natcoord.engines.base import initial_body_states
 

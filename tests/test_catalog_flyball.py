@@ -127,7 +127,6 @@ def test_mujoco_agrees_with_the_reference(case):
     s(t), the shaft angle and the energy over the whole 10 s, within the case's tolerance
     (a few times the measured difference, itself above the reference's own error
     estimate)."""
-    pytest.importorskip("mujoco")
     ref = load_reference(case.name, REFERENCES)
     assert ref is not None, "no stored reference: run natcoord reference update"
     spec = case.engine("mujoco")

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import mujoco  # noqa: E402,F401 - an engine is a real dependency: missing fails, never skips
 import numpy as np
 import pandas as pd
 import pytest
@@ -28,8 +29,6 @@ from natcoord.result import evaluate_channels
 
 from . import engine_checks as ec
 from .conftest import ROOT
-
-pytest.importorskip("mujoco")
 
 pytestmark = pytest.mark.engines
 

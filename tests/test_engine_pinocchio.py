@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pinocchio  # noqa: E402,F401 - an engine is a real dependency: missing fails, never skips
 import pytest
 
 from natcoord.engines import adapter
@@ -20,8 +21,6 @@ from natcoord.suite.references import load_reference
 
 from . import engine_checks as ec
 from .conftest import REFERENCES
-
-pytest.importorskip("pinocchio")
 
 pytestmark = pytest.mark.engines
 
