@@ -80,6 +80,54 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "(3.4e-7 m); PointOnLineConstraint (the two in-plane rows) instead stalls "
                   "the same at 1e-9 and 1e-10, CPodes fails at t = 0.71 s. Bounds ~3x",
     },
+}, 40: {  # 20 s, 20 singular passes (t = 0.72, 1.24, 2.69, 3.21, 4.65, ... s); natcoord: the lead's
+    "mujoco": {
+        "tolerance": "{ position = 1e-3, velocity = 6e-3, energy = 2.5e-3 }",
+        "reason": "RK4 dt 1e-4, 40 loops closed by connect equalities (solref 10 dt, solimp "
+                  "0.9999), N = 2's settings: against the exact one-equation solution "
+                  "2.9e-4 m, 2.0e-3 m/s, energy 8.5e-4 J (drift -8.5e-4 J) over 20 s "
+                  "(200000 steps, ~27 s stepping on a loaded machine); ~3x",
+    },
+    "pinocchio": {
+        "unsupported": "constraintDynamics (RK4 dt 1e-3, mu 1e-8) returns a non-finite "
+                       "acceleration at t = 2.69 s, the third singular horizontal position "
+                       "(the 40 loops lose rank 40), and by 2.6 s B0 is already 2.3e-3 m off "
+                       "the exact solution; mu 1e-6 or 1e-4, dt 5e-4 and 100 proximal "
+                       "iterations fail the same way between 2.67 and 3.18 s (mu 1e-4 "
+                       "opens a loop by 5.5 cm)",
+    },
+    "exudyn": {
+        "settings": '{ dt = 1e-3, linear_solver = "sparse", newton_atol = 1e-6 }',
+        "tolerance": "{ position = 1e-3, velocity = 6e-3, energy = 4e-2 }",
+        "reason": "generalized-alpha rho_inf 0.9, index 3, h 1e-3, EigenSparse (Exudyn's "
+                  "dense default costs ~10 ms a step with 243 coordinates: ~200 s): measured "
+                  "4.0e-4 m, 2.7e-3 m/s, energy 2.0e-2 J (drift -7.8e-5 J) over 20 s, "
+                  "~40000 Newton iterations, ~10 s. Newton absolute tolerance 1e-6: tighter, "
+                  "Newton stops at a singular position: rtol = atol = 1e-10 (N = 2's) at "
+                  "t = 1.24 s (residual 4e-8), rtol 1e-8 or atol 1e-8 at 8.58 s (residual "
+                  "3e-6); h 5e-4 stops at 0.72 s (atol 1e-10) or 8.58 s (atol 1e-6); "
+                  "rho_inf 0.8 or modified Newton give the same errors. ~2x",
+    },
+    "dart": {
+        "settings": '{ dt = 2e-4, erp = 1.0, loop_constraint = "ball" }',
+        "tolerance": "{ position = 6e-6, velocity = 3e-3, energy = 0.7 }",
+        "reason": "semi-implicit Euler dt 2e-4, ERP 1.0, 40 ball-joint loop constraints: "
+                  "measured 2.6e-6 m, 1.2e-3 m/s, energy 0.31 J (spread 0.62 J, drift "
+                  "-4.2e-2 J of ~620 J: first order, symplectic) over 20 s, ~87 s; dt 1e-4 "
+                  "(N = 2's) halves the errors (6.5e-7 m, 5.7e-4 m/s, 0.16 J) but takes "
+                  "~180 s. ~2x",
+    },
+    "simbody": {
+        "settings": "{ accuracy = 1e-6 }",
+        "tolerance": "{ position = 5e-6, velocity = 3e-5, energy = 7e-5 }",
+        "reason": "Simbody 3.9 (OpenSim 4.6 wheel): PinJoints, 40 loops closed by "
+                  "PointConstraint; RK-Merson at accuracy 1e-6 takes one step per 0.01 s "
+                  "output interval (2000 steps): measured 1.5e-6 m, 9.9e-6 m/s, energy "
+                  "2.2e-5 J over 20 s; ~15 s (+7 s readout). 1e-5 is identical; 1e-7 "
+                  "passes less well (2.5e-5 m, 2003 steps); N = 2's 5e-8 and 3e-8, 1e-8 "
+                  "stall at the fifth singular position (t = 4.65 s, no progress in 45 s), "
+                  "1e-9 at the first (0.72 s). Bounds ~3x",
+    },
 }}
 
 

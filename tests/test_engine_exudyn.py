@@ -158,6 +158,21 @@ def test_unsupported_and_bad_step():
         ex.run(dataclasses.replace(case, joints=(tube,)), init, {})
 
 
+def test_sparse_linear_solver_matches_dense():
+    # the sparse LU (for many bodies, e.g. a02_four_bar_n40) solves the same Newton systems:
+    # the same motion to round-off, and the run says which solver it used
+    path = str(CASES / "four_bar.toml")
+    dense_run, dense = _exudyn(path)
+    sparse_run, sparse = _exudyn(path, linear_solver="sparse")
+    assert any("EigenSparse" in n for n in sparse_run.notes)
+    assert not any("EigenSparse" in n for n in dense_run.notes)
+    for c in ("theta", "xA", "yA", "energy"):
+        assert np.max(np.abs(sparse[c] - dense[c])) < 1e-9, c
+    case = _case(path)
+    with pytest.raises(ValueError, match="linear_solver"):
+        adapter("exudyn").run(case, initial_body_states(case), {"linear_solver": "lu"})
+
+
 def test_solver_failure_raises():
     case = _case(str(CASES / "four_bar.toml"))
     with pytest.raises(RuntimeError, match="generalized-alpha failed on four_bar"):

@@ -52,7 +52,8 @@ DEFAULTS = {
                                     # Exudyn's default modified Newton (~7 iterations)
     "linear_solver": "auto",        # auto: EigenDense + ignoreSingularJacobian when the
                                     # constraints may be redundant (rods, 3-D), else
-                                    # Exudyn's default; or "default" | "singular"
+                                    # Exudyn's default (EXUdense); or "default" |
+                                    # "singular" | "sparse" (EigenSparse: many bodies)
     # "axial_inertia" (3-D uniform rods, relative to the largest moment): see bodies.py
 }
 
@@ -81,9 +82,9 @@ def _check(case: Case, s: dict) -> None:
     if s["solver"] != "generalized_alpha":
         raise Unsupported(f"solver {s['solver']!r}: only 'generalized_alpha' (index 3) is "
                           "offered; the index-2 trapezoidal variants drift by ~h^2")
-    if s["linear_solver"] not in ("auto", "default", "singular"):
-        raise ValueError(f"linear_solver {s['linear_solver']!r}: 'auto', 'default' or "
-                         "'singular'")
+    if s["linear_solver"] not in ("auto", "default", "singular", "sparse"):
+        raise ValueError(f"linear_solver {s['linear_solver']!r}: 'auto', 'default', "
+                         "'singular' or 'sparse'")
     for j in case.joints:
         if j.type not in JOINTS[case.dimension]:
             raise Unsupported(f"joint {j.name}: type {j.type!r} is not modelled in "

@@ -33,6 +33,8 @@ def integrator_notes(case: Case, s: dict, h: float) -> list[str]:
     if singular_solver(case, s):
         notes.append("linear solver EigenDense with ignoreSingularJacobian (redundant "
                      "constraints)")
+    elif s["linear_solver"] == "sparse":
+        notes.append("linear solver EigenSparse")
     return notes
 
 
@@ -55,6 +57,8 @@ def _settings(exu, case: Case, s: dict, n_steps: int):
     if singular_solver(case, s):
         sim.linearSolver.solverType = exu.LinearSolverType.EigenDense
         sim.linearSolver.ignoreSingularJacobian = True
+    elif s["linear_solver"] == "sparse":  # many bodies: the dense LU costs O(n^3) a Jacobian
+        sim.linearSolver.solverType = exu.LinearSolverType.EigenSparse
     sim.solution.file.write = False
     sim.solution.sensors.writePeriod = case.output_dt
     sim.show.computationTime = False
