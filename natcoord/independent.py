@@ -47,6 +47,7 @@ from .mechanism import GROUND, Case
 METHOD = "Kane's method in joint coordinates (sympy), coordinate partitioning, {solver}"
 SETTINGS = {"method": "DOP853", "rtol": 1e-13, "atol": 1e-15}
 CHECK = {"method": "DOP853", "rtol": 1e-11, "atol": 1e-13}
+MAX_BODIES = 12
 CHANNELS = ("angle", "position", "velocity", "energy", "reaction")
 
 
@@ -54,6 +55,9 @@ def supported(case: Case) -> str:
     """'' when the case can be derived here, else the reason it cannot."""
     if case.dimension != 2:
         return "only planar (2-D) cases"
+    if len(case.bodies) > MAX_BODIES:
+        return (f"{len(case.bodies)} bodies: the symbolic derivation is kept to "
+                f"{MAX_BODIES} (its expressions grow with every loop)")
     for what, items in (("drivers", case.drivers), ("rods", case.rods),
                         ("springs", case.springs)):
         if items:

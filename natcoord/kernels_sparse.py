@@ -29,9 +29,9 @@ from .kernels_general import (
     C_RHS,
     ERR_NEWTON,
     OK,
+    ROUNDOFF,
     forces,
     njit,
-    reachable,
 )
 from .sparsity import FLOAT, INT, WORK
 
@@ -61,16 +61,53 @@ def workspace(plan: tuple) -> np.ndarray:
     return np.zeros(int(O[_M - 1] - O[_WO]))
 
 
+@njit(cache=True, inline="always")
+def _split(a):
+    """Dekker's split of a into two halves of 26 bits (a = hi + lo exactly)."""
+    c = 134217729.0 * a
+    hi = c - (c - a)
+    return hi, a - hi
+
+
+@njit(cache=True, inline="always")
+def _two_prod(a, b):
+    """a * b = p + e exactly (Dekker; no fused multiply-add needed)."""
+    p = a * b
+    ah, al = _split(a)
+    bh, bl = _split(b)
+    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+
+
+@njit(cache=True, inline="always")
+def _two_sum(a, b):
+    """a + b = s + e exactly (Knuth)."""
+    s = a + b
+    bb = s - a
+    return s, (a - (s - bb)) + (b - bb)
+
+
 @njit(cache=True)
 def phi(I, F, O, q, out):
-    """out (m,) = Phi(q)."""
+    """out (m,) = Phi(q), summed without cancellation error: every product and sum carried
+    in two doubles (error-free transformations), so a row |r_b - r_a|^2 - L^2 of points
+    40 m from the origin is exact to its last bit rather than to u max|q|^2 ~ 4e-13 m^2,
+    which near a singular position is what decides how well a projection pins the motion
+    down."""
     kk, ii, jj, vv = _seg(I, O, PHI_K), _seg(I, O, PHI_I), _seg(I, O, PHI_J), _seg(F, O, PHI_V)
     n = q.shape[0]
     out[:] = 0.0
+    err = np.zeros(out.shape[0])
     for t in range(kk.shape[0]):
         a = q[ii[t]] if ii[t] < n else 1.0
         b = q[jj[t]] if jj[t] < n else 1.0
-        out[kk[t]] += 0.5 * vv[t] * a * b
+        p, e = _two_prod(0.5 * vv[t], a)
+        p2, e2 = _two_prod(p, b)
+        r = kk[t]
+        s, e3 = _two_sum(out[r], p2)
+        out[r] = s
+        err[r] += e3 + e2 + e * b
+    for r in range(out.shape[0]):
+        out[r] += err[r]
 
 
 @njit(cache=True)
@@ -244,13 +281,24 @@ def _newton_step(I, O, ws, w, x):
 
 
 @njit(cache=True)
+def _reachable(tol, q):
+    """The projection tolerance that q's own resolution allows: ``tol``, or a few ulp of
+    max|q| (m^2 per m of row length) when that is larger; :func:`phi` adds no round-off
+    of its own."""
+    big = 1.0
+    for a in range(q.shape[0]):
+        big = max(big, abs(q[a]))
+    return max(tol, ROUNDOFF * big)
+
+
+@njit(cache=True)
 def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
     in ``ws`` (``factored``: one made near q, e.g. at the last stage or sample; refreshed
     at the current q when the contraction is slow), factor once at the projected q, project
     qd on Phi_q qd = 0 with it and evaluate qdd there. Returns a status code."""
     w = _seg(ws, O, W_W)
-    tol = reachable(tol, q)
+    tol = _reachable(tol, q)
     phi(I, F, O, q, w)
     e = 0.0
     for r in range(w.shape[0]):
