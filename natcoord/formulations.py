@@ -35,7 +35,7 @@ import scipy.linalg
 
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
-from .kernels_general import ROUNDOFF
+from .kernels_general import reachable
 from .solver import Index1, Index3, Maggi
 
 
@@ -347,8 +347,7 @@ class Index1Loop(FormulationLoop):
         """Newton projection of q on Phi(q, t) = 0, then qd on Phi_q qd = -Phi_t."""
         self._drift(t, q, qd)
         cs = self.cs
-        tol = max(self.opt["project_tol"],  # what Phi's round-off allows (kernels_general)
-                  ROUNDOFF * max(1.0, float(np.max(np.abs(q), initial=0.0))) ** 2)
+        tol = reachable(self.opt["project_tol"], q, 2)  # what Phi's round-off allows
         q = q.copy()
         corr = None
         for _ in range(10):

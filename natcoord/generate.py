@@ -84,10 +84,9 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
     "natcoord": {
         "settings": '{ coordinates = "shared", method = "dop853", linsolve = "schur", '
                     'rtol = 5e-12, atol = 5e-14, project_tol = 1e-14, reference = { '
-                    'coordinates = "shared", method = "dop853", linsolve = "schur", '
-                    'rtol = 1e-12, atol = 1e-14, project_tol = 1e-14 }, reference_check = { '
-                    'coordinates = "shared", method = "dop853", linsolve = "schur", '
-                    'rtol = 5e-12, atol = 5e-14, project_tol = 1e-14 } }',
+                    'method = "dop853", linsolve = "schur", rtol = 1e-12, atol = 1e-14, '
+                    'project_tol = 1e-14 }, reference_check = { method = "dop853", '
+                    'linsolve = "schur", rtol = 5e-12, atol = 5e-14, project_tol = 1e-14 } }',
         "tolerance": "{ position = 1e-8, velocity = 6e-8, energy = 1e-7 }",
         "reason": "the shared points of the natural coordinates (82 coordinates, 81 rod "
                   "rows), index-1 Schur path, dop853 rtol 5e-12, projection to 1e-14 m with "

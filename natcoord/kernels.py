@@ -130,6 +130,8 @@ TABLEAUX_OF = {"dop853": _tableau_dop853, "dopri5": _tableau_dopri5, "rk4": _tab
 def tableau(name: str) -> tuple:
     """The compiled loop's tableau of ``name`` (built when first asked: start-up time)."""
     return TABLEAUX_OF[name]()
+
+
 FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed step
 ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 

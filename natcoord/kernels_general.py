@@ -117,14 +117,16 @@ ROUNDOFF = 4 * 2.2e-16  # |Phi| that evaluating a quadratic row at |q| ~ 1 m can
 
 
 @njit(cache=True)
-def reachable(tol, q):
-    """The projection tolerance (m) that Phi's evaluation can reach at q: ``tol``, or the
-    round-off of rows quadratic in coordinates as large as max|q| when that is larger (a
-    chain 60 m long cannot be projected to 1e-13 m)."""
+def reachable(tol, q, power):
+    """The projection tolerance (m) that Phi's evaluation can reach at q: ``tol``, or
+    ROUNDOFF max|q|^power when that is larger. ``power`` 2: a plain sum of products, whose
+    rows quadratic in coordinates as large as max|q| carry that round-off (a chain 60 m long
+    cannot be projected to 1e-13 m); 1: an exact sum (:func:`kernels_sparse.phi`), left
+    with the resolution of q itself."""
     big = 1.0
     for a in range(q.shape[0]):
         big = max(big, abs(q[a]))
-    return max(tol, ROUNDOFF * big * big)
+    return max(tol, ROUNDOFF * big ** power)
 
 
 @njit(cache=True)
@@ -382,7 +384,7 @@ def project_general(kk, ii, jj, vv, rank_tol, q, qd, tol, wg, cnt):
     J, w = wg[0], wg[1]
     m = J.shape[0]
     wg[15][0] = -1
-    tol = reachable(tol, q)
+    tol = reachable(tol, q, 2)
     drift(kk, ii, jj, vv, q, qd, w, J, cnt)
     rk = -1
     for it in range(11):

@@ -29,9 +29,9 @@ from .kernels_general import (
     C_RHS,
     ERR_NEWTON,
     OK,
-    ROUNDOFF,
     forces,
     njit,
+    reachable,
 )
 from .sparsity import FLOAT, INT, WORK
 
@@ -45,7 +45,7 @@ _M = _WO + len(WORK) + 1
 (PHI_K, PHI_I, PHI_J, JAC_PTR, JAC_OTHER, GAM_K, GAM_I, GAM_J, J_ROW, J_COL, MI_PTR, MI_COL,
  Y_PTR, Y_J, YPTR, YCOL, W_PTR, W_J, W_Y, ENV_FIRST, ENV_PTR) = range(len(INT))
 PHI_V, JAC_V, GAM_V, MI_VAL, Y_COEF = range(_FO, _FO + len(FLOAT))
-W_J_, W_Y_, W_L_, W_DIAG, W_W, W_C, W_F = range(_WO, _WO + len(WORK))
+W_J_, W_Y_, W_L_, W_W, W_C, W_F = range(_WO, _WO + len(WORK))
 
 
 @njit(cache=True, inline="always")
@@ -55,7 +55,7 @@ def _seg(A, O, k):
 
 
 def workspace(plan: tuple) -> np.ndarray:
-    """The work array of plan (I, F, O): values of J, Y, L, the diagonal of W, and three
+    """The work array of plan (I, F, O): values of J, Y, L and three
     vectors (m, m, n)."""
     O = plan[2]
     return np.zeros(int(O[_M - 1] - O[_WO]))
@@ -92,22 +92,24 @@ def phi(I, F, O, q, out):
     in two doubles (error-free transformations), so a row |r_b - r_a|^2 - L^2 of points
     40 m from the origin is exact to its last bit rather than to u max|q|^2 ~ 4e-13 m^2,
     which near a singular position is what decides how well a projection pins the motion
-    down."""
+    down. The plan holds the terms sorted by row."""
     kk, ii, jj, vv = _seg(I, O, PHI_K), _seg(I, O, PHI_I), _seg(I, O, PHI_J), _seg(F, O, PHI_V)
     n = q.shape[0]
     out[:] = 0.0
-    err = np.zeros(out.shape[0])
+    r, hi, lo = -1, 0.0, 0.0  # the current row's sum, as hi + lo
     for t in range(kk.shape[0]):
+        if kk[t] != r:
+            if r >= 0:
+                out[r] = hi + lo
+            r, hi, lo = kk[t], 0.0, 0.0
         a = q[ii[t]] if ii[t] < n else 1.0
         b = q[jj[t]] if jj[t] < n else 1.0
         p, e = _two_prod(0.5 * vv[t], a)
         p2, e2 = _two_prod(p, b)
-        r = kk[t]
-        s, e3 = _two_sum(out[r], p2)
-        out[r] = s
-        err[r] += e3 + e2 + e * b
-    for r in range(out.shape[0]):
-        out[r] += err[r]
+        hi, e3 = _two_sum(hi, p2)
+        lo += e3 + e2 + e * b
+    if r >= 0:
+        out[r] = hi + lo
 
 
 @njit(cache=True)
@@ -168,7 +170,7 @@ def sub_y(I, O, Yv, w, x):
 
 
 @njit(cache=True)
-def factor(I, F, O, Jv, Yv, Lv, diag):
+def factor(I, F, O, Jv, Yv, Lv):
     """Y = M^-1 J^T and the envelope Cholesky L of W = J Y, in place; returns the number
     of dependent rows (a pivot below dep_tol of its row's diagonal: its L[r, r] = 0)."""
     y_ptr, y_j, y_coef = _seg(I, O, Y_PTR), _seg(I, O, Y_J), _seg(F, O, Y_COEF)
@@ -199,7 +201,6 @@ def factor(I, F, O, Jv, Yv, Lv, diag):
                 s -= Lv[pr + k - fr] * Lv[pc + k - first[c]]
             Lv[pr + c - fr] = s / dc
         d = Lv[pr + r - fr]
-        diag[r] = d
         s = d
         for k in range(fr, r):
             s -= Lv[pr + k - fr] * Lv[pr + k - fr]
@@ -241,8 +242,7 @@ def solve(I, O, Lv, b):
 def refactor(I, F, O, q, ws, cnt):
     """J, Y and L at q into the work array ``ws``."""
     jacobian(I, F, O, q, _seg(ws, O, W_J_))
-    factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_),
-           _seg(ws, O, W_DIAG))
+    factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
     cnt[C_FACT] += 1
 
 
@@ -281,24 +281,13 @@ def _newton_step(I, O, ws, w, x):
 
 
 @njit(cache=True)
-def _reachable(tol, q):
-    """The projection tolerance that q's own resolution allows: ``tol``, or a few ulp of
-    max|q| (m^2 per m of row length) when that is larger; :func:`phi` adds no round-off
-    of its own."""
-    big = 1.0
-    for a in range(q.shape[0]):
-        big = max(big, abs(q[a]))
-    return max(tol, ROUNDOFF * big)
-
-
-@njit(cache=True)
 def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
     in ``ws`` (``factored``: one made near q, e.g. at the last stage or sample; refreshed
     at the current q when the contraction is slow), factor once at the projected q, project
     qd on Phi_q qd = 0 with it and evaluate qdd there. Returns a status code."""
     w = _seg(ws, O, W_W)
-    tol = _reachable(tol, q)
+    tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
     phi(I, F, O, q, w)
     e = 0.0
     for r in range(w.shape[0]):
@@ -354,8 +343,7 @@ def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
         drift[k, 0] = e
         jacobian(I, F, O, q, _seg(ws, O, W_J_))
         drift[k, 1] = jx(I, O, _seg(ws, O, W_J_), qd, w)
-        if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_),
-                  _seg(ws, O, W_DIAG)) > 0:
+        if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_)) > 0:
             dep[k] = 1
         LAM[k] = multipliers(I, F, O, frc, q, qd, mf, ws)
     return dep

@@ -35,13 +35,13 @@ INT = ("phi_k", "phi_i", "phi_j", "jac_ptr", "jac_other", "gam_k", "gam_i", "gam
        "J_col", "Mi_ptr", "Mi_col", "y_ptr", "y_j", "Y_ptr", "Y_col", "w_ptr", "w_j", "w_y",
        "env_first", "env_ptr")
 FLOAT = ("phi_v", "jac_v", "gam_v", "Mi_val", "y_coef")
-WORK = ("J", "Y", "L", "diag", "w", "c", "F")  # the compiled path's work array (values)
+WORK = ("J", "Y", "L", "w", "c", "F")  # the compiled path's work array (values)
 
 
 class SchurPlan(NamedTuple):
     """Flat index arrays of one model (all int64 / float64, C-contiguous).
 
-    phi_k, phi_i, phi_j, phi_v (nt,)   every triplet over qh = [q, 1], rows permuted
+    phi_k, phi_i, phi_j, phi_v (nt,)   every triplet over qh = [q, 1], rows permuted, sorted by row
     jac_ptr (nJ+1,), jac_other, jac_v   J[e] = sum v qh[other] over jac_ptr[e]:jac_ptr[e+1]
     gam_k, gam_i, gam_j, gam_v (ng,)   c[k] -= v qd_i qd_j (triplets with i, j < n)
     J_row, J_col (nJ,)                 the entries of J (sorted by row)
@@ -92,7 +92,7 @@ class SchurPlan(NamedTuple):
         ints = [getattr(self, k) for k in INT]
         floats = [getattr(self, k) for k in FLOAT]
         m, nJ, nY = self.m, len(self.jac_ptr) - 1, len(self.y_ptr) - 1
-        work = [nJ, nY, self.envelope, m, m, m, len(self.Mi_ptr) - 1]
+        work = [nJ, nY, self.envelope, m, m, len(self.Mi_ptr) - 1]
         off = [np.concatenate([[0], np.cumsum([len(a) for a in arrs])])
                for arrs in (ints, floats)] + [np.concatenate([[0], np.cumsum(work)])]
         O = np.concatenate(off + [[m, round(self.dep_tol * 1e18)]]).astype(np.int64)
@@ -209,8 +209,9 @@ def schur_plan(con, M: np.ndarray, dep_tol: float = DEP_TOL) -> SchurPlan:
     wj = np.concatenate(wj) if wj else np.zeros(0, np.int64)
     wy = np.concatenate(wy) if wy else np.zeros(0, np.int64)
     jo, yo, wo = (np.argsort(x, kind="stable") for x in (inv, y_slot, w_slot))
+    po = np.argsort(k, kind="stable")  # Phi's terms row by row (one running sum per row)
     return SchurPlan(
-        _i64(k), _i64(i), _i64(j), _f64(v),
+        _i64(k[po]), _i64(i[po]), _i64(j[po]), _f64(v[po]),
         _ptr(inv, len(J_row)), _i64(j[onq][jo]), _f64(v[onq][jo]),
         _i64(k[gam]), _i64(i[gam]), _i64(j[gam]), _f64(v[gam]),
         _i64(J_row), _i64(J_col),

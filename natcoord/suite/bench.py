@@ -75,12 +75,10 @@ COLD_SAMPLES = 10  # output intervals of the cold-start run
 COLD_REPEATS = 3
 
 
-def cost_fit(points: Sequence[tuple[float, float]]) -> tuple[float, float] | None:
-    """The line ``wall = fixed + slope * x`` through ``(x, wall)`` points (x: steps or
-    right-hand sides of a run, wall: its best wall time in s), least squares with ``fixed
-    >= 0``: when the free intercept comes out negative (noise), the line through the origin.
-    Returns ``(fixed_s, slope_s)``, or None when the points do not determine a positive
-    slope (one distinct x, or the shorter run not cheaper: noise larger than the work)."""
+def _line(points: Sequence[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray, float,
+                                                          float] | None:
+    """(x, w, slope, intercept) of the free least-squares line through the usable points
+    (finite, positive), or None with fewer than two distinct x."""
     x = np.array([p[0] for p in points], dtype=float)
     w = np.array([p[1] for p in points], dtype=float)
     ok = np.isfinite(x) & np.isfinite(w) & (x > 0) & (w > 0)
@@ -88,6 +86,19 @@ def cost_fit(points: Sequence[tuple[float, float]]) -> tuple[float, float] | Non
     if len(np.unique(x)) < 2:
         return None
     slope, fixed = np.polyfit(x, w, 1)
+    return x, w, float(slope), float(fixed)
+
+
+def cost_fit(points: Sequence[tuple[float, float]]) -> tuple[float, float] | None:
+    """The line ``wall = fixed + slope * x`` through ``(x, wall)`` points (x: steps or
+    right-hand sides of a run, wall: its best wall time in s), least squares with ``fixed
+    >= 0``: when the free intercept comes out negative (noise), the line through the origin.
+    Returns ``(fixed_s, slope_s)``, or None when the points do not determine a positive
+    slope (one distinct x, or the shorter run not cheaper: noise larger than the work)."""
+    line = _line(points)
+    if line is None:
+        return None
+    x, w, slope, fixed = line
     if fixed < 0:
         fixed, slope = 0.0, float(x @ w / (x @ x))
     if not slope > 0:
@@ -110,7 +121,8 @@ def explain_cost(full: dict, short: dict | None) -> dict:
              "repeats": len(short_s)}]
     for r in rows:
         r["us_per_step"] = 1e6 * r["wall_s"] / r["n_steps"] if r["n_steps"] else None
-    step = cost_fit([(r["n_steps"], r["wall_s"]) for r in rows])
+    by_step = [(r["n_steps"], r["wall_s"]) for r in rows]
+    step, free = cost_fit(by_step), _line(by_step)
     if step:
         out["fixed_s"], out["per_step_us"] = step[0], 1e6 * step[1]
     if all(isinstance(r["rhs"], (int, float)) for r in rows):
@@ -123,16 +135,8 @@ def explain_cost(full: dict, short: dict | None) -> dict:
         "points": rows, "determined": step is not None,
         # the free line's intercept: negative when the shorter run cost less per step (noise,
         # or a cost per step that grows with the run's length); the fit then uses 0
-        "free_fixed_s": _free_intercept([(r["n_steps"], r["wall_s"]) for r in rows])}
+        "free_fixed_s": None if free is None else free[3]}
     return out
-
-
-def _free_intercept(points) -> float | None:
-    x = np.array([p[0] for p in points], dtype=float)
-    w = np.array([p[1] for p in points], dtype=float)
-    if len(np.unique(x)) < 2 or not np.all(np.isfinite(w)):
-        return None
-    return float(np.polyfit(x, w, 1)[1])
 
 
 def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
