@@ -329,9 +329,9 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
         c = result["cold_start"]
         say(f"natcoord cold start ({escape(c['case'])}, {c['duration_s']:g} s simulated, "
             f"fresh process, build time): " + (
-                f"{c['build_time_s']:.2f} s (import {c['import_s']:.2f} s, kernels from cache "
-                f"{c['kernel_load_s'] or 0:.2f} s, run {c['wall_time_s']:.3g} s), best of "
-                f"{len(c['samples_s'])}" if c["status"] == "ok" else
+                f"{c['build_time_s']:.2f} s (import {c['import_s']:.2f} s, plan and kernels "
+                f"from cache {c['kernel_load_s'] or 0:.2f} s, run {c['wall_time_s']:.3g} s), "
+                f"best of {len(c['samples_s'])}" if c["status"] == "ok" else
                 f"{c['status']}: {escape(c['reason'])}"))
     if work_precision:
         n = sum(len(bench.SWEEPS.get(e, [])) for e in names) * len(selected)

@@ -50,8 +50,9 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     ``solver`` (default ``Solver()``: index1, dop853, rtol 1e-10, atol 1e-12). ``dop853``
     (and adaptive ``dopri5``) on index1 runs as one compiled numba loop when the model
     allows, and so do fixed-step ``rk4`` and ``dopri5``; its compile/cache-load time
-    (``counters["compile_time_s"]``) and the model's sparsity plan
-    (``counters["plan_time_s"]``) are never in ``wall_time_s``. ``check``: test Eq. (37)
+    (``counters["compile_time_s"]``) and the model's sparsity plan and generated kernels
+    (``counters["plan_time_s"]``) are never in ``wall_time_s``; ``counters["path"]`` names
+    the loop that ran (:data:`natcoord.kernels.PATHS`, or ``python``). ``check``: test Eq. (37)
     at the initial state first.
     """
     solver = Solver() if solver is None else solver
@@ -82,7 +83,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     if compiled:
         form.prepare_compiled()  # model-only set-up (sparsity plan): not stepping time
     plan_s = time.perf_counter() - plan0
-    compile_s = kernels.ensure_compiled(general=form._plan is None) if compiled else 0.0
+    compile_s = kernels.ensure_compiled(form.compiled_path) if compiled else 0.0
     wall0 = time.perf_counter()
     y = form.init(t0, q0, qd0)
     if compiled:
@@ -104,6 +105,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
                                                             initial=0.0)))
     counters = cnt.as_dict() | {"formulation": name, "method": method,
                                 "compiled": bool(compiled), "compile_time_s": compile_s,
+                                "path": form.compiled_path if compiled else "python",
                                 "plan_time_s": plan_s}
     return Solution(times, Q, QD, QDD, LAM, counters, wall)
 

@@ -265,13 +265,25 @@ class Index1Loop(FormulationLoop):
 
     def prepare_compiled(self) -> None:
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
-        sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`)."""
+        sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`) and its
+        generated kernels (:func:`natcoord.codegen.load`, None when the model has none)."""
+        from . import codegen
         from .sparsity import schur_plan
         sparse = self.regular and self.opt["linsolve"] != "qr"
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None
         self._plan_args = None if self._plan is None else self._plan.kernel_args
+        self._kern = (codegen.load(self._plan, self._frc) if sparse and self.opt["generated"]
+                      else None)
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
+
+    @property
+    def compiled_path(self) -> str:
+        """After :meth:`prepare_compiled`: the compiled loop's path for this model (one of
+        :data:`natcoord.kernels.PATHS`)."""
+        if self._plan is None:
+            return "general"
+        return "sparse" if self._kern is None else "generated"
 
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
@@ -286,7 +298,8 @@ class Index1Loop(FormulationLoop):
         if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
         return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
-                           plan=self._plan_args, M=self.M, rank_tol=self.opt["rank_tol"],
+                           plan=self._plan_args, kern=self._kern, M=self.M,
+                           rank_tol=self.opt["rank_tol"],
                            rtol=rtol, atol=atol, ptol=self.opt["project_tol"], cnt=self.cnt,
                            h=h)
 

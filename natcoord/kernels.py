@@ -138,25 +138,26 @@ ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 
 # ---- one evaluation on either path ------------------------------------------------------
 @njit(cache=True)
-def _accel(plan, ws, gen, frc, q, qd, qdd, wg, cnt):
+def _accel(plan, gk, ws, gen, frc, q, qd, qdd, wg, cnt):
     """qdd (n,) at (q, qd), factoring at q; a status code. ``wg`` None: the sparse Schur
-    path on ``plan`` / ``ws``; else the general path on ``gen`` = (k, i, j, v, M, rank_tol)
-    (numba compiles the two apart: the ``wg is None`` branch is resolved when compiling)."""
+    path on ``plan`` / ``ws`` (``gk``: the model's generated kernels, or None); else the
+    general path on ``gen`` = (k, i, j, v, M, rank_tol) (numba compiles each apart: the
+    ``is None`` branches are resolved when compiling)."""
     if wg is None:
-        return kernels_sparse.accelerations(plan[0], plan[1], plan[2], frc, q, qd, qdd, ws,
-                                            cnt, True)
+        return kernels_sparse.accelerations(plan[0], plan[1], plan[2], gk, frc, q, qd, qdd,
+                                            ws, cnt, True)
     kk, ii, jj, vv, M, rank_tol = gen
     return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
-def _settle(plan, ws, gen, frc, q, qd, qdd, ptol, wg, cnt, factored):
+def _settle(plan, gk, ws, gen, frc, q, qd, qdd, ptol, wg, cnt, factored):
     """Project (q, qd) in place and evaluate qdd there; a status code. The sparse path
     starts its simplified Newton from the factorization of the last evaluation when
     ``factored`` (one was made near q)."""
     if wg is None:
-        return kernels_sparse.settle(plan[0], plan[1], plan[2], frc, q, qd, qdd, ptol, ws,
-                                     cnt, factored)
+        return kernels_sparse.settle(plan[0], plan[1], plan[2], gk, frc, q, qd, qdd, ptol,
+                                     ws, cnt, factored)
     kk, ii, jj, vv, M, rank_tol = gen
     st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
     if st != OK:
@@ -192,13 +193,27 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 
 @njit(cache=True)
-def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
+def _combine(y, h, c, s, K, out):
+    """out = y + h sum_{p < s} c[p] K[p] (rows of K; zero weights skipped)."""
+    N = y.shape[0]
+    for a in range(N):
+        out[a] = y[a]
+    for p in range(s):
+        w = h * c[p]
+        if w != 0.0:
+            for a in range(N):
+                out[a] += w * K[p, a]
+
+
+@njit(cache=True)
+def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
     on the constraints first: adaptive (embedded pair, steps cross the samples, dense
     output) or fixed steps (landing on every sample).
 
-    ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`);
-    else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
+    ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`;
+    ``gk`` the addresses of the model's generated kernels, :mod:`natcoord.codegen`, or
+    None); else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
     arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` =
     (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
@@ -216,6 +231,10 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     n_ext = Aext.shape[0]
     K = np.zeros((s_st + n_ext, N))
     Fd = np.zeros((D.shape[0] + 3, N))  # dop853 continuous extension (order 7)
+    wd = np.zeros(D.shape[0] + 3)       # its weights at one sample
+    zero = np.zeros(N)
+    x5 = np.zeros(N)   # the error estimates' combinations of the stages
+    x3 = np.zeros(N)
     yu = np.zeros(N)
     y = np.zeros(N)
     yn = np.zeros(N)
@@ -230,7 +249,7 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = _settle(plan, ws, gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt, False)
+    st_code = _settle(plan, gk, ws, gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt, False)
     if st_code != OK:
         return st_code
     f0[:n] = y[n:]
@@ -265,25 +284,16 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
         # stages
         K[0] = f0
         for st in range(1, s_st):
-            for a in range(N):
-                s = y[a]
-                for p in range(st):
-                    if A[st, p] != 0.0:
-                        s += hh * A[st, p] * K[p, a]
-                ys[a] = s
+            _combine(y, hh, A[st], st, K, ys)
             K[st, :n] = ys[n:]
-            st_code = _accel(plan, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
+            st_code = _accel(plan, gk, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
             if st_code != OK:
                 return st_code
             K[st, n:] = qdd
         if fsal:  # the last stage is at the new point
             yn[:] = ys
         else:
-            for a in range(N):
-                s = y[a]
-                for p in range(s_st):
-                    s += hh * B[p] * K[p, a]
-                yn[a] = s
+            _combine(y, hh, B, s_st, K, yn)
         # error norm
         err = 0.0
         if fixed:
@@ -291,27 +301,22 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
         elif dop853:
             e5 = 0.0
             e3 = 0.0
+            _combine(zero, 1.0, E5, s_st, K, x5)
+            _combine(zero, 1.0, E3, s_st, K, x3)
             for a in range(N):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
-                x5 = 0.0
-                x3 = 0.0
-                for p in range(s_st):
-                    x5 += E5[p] * K[p, a]
-                    x3 += E3[p] * K[p, a]
-                e5 += (x5 / sc) ** 2
-                e3 += (x3 / sc) ** 2
+                e5 += (x5[a] / sc) ** 2
+                e3 += (x3[a] / sc) ** 2
             if e5 == 0.0 and e3 == 0.0:
                 err = 0.0
             else:
                 err = hh * e5 / math.sqrt((e5 + 0.01 * e3) * N)
         else:
             e5 = 0.0
+            _combine(zero, 1.0, E5, s_st, K, x5)
             for a in range(N):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
-                x5 = 0.0
-                for p in range(s_st):
-                    x5 += E5[p] * K[p, a]
-                e5 += (hh * x5 / sc) ** 2
+                e5 += (hh * x5[a] / sc) ** 2
             err = math.sqrt(e5 / N)
         if not (err == err):
             return ERR_NONFINITE
@@ -331,14 +336,9 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
         if dop853 and inner:
             for e in range(n_ext):
                 st = s_st + e
-                for a in range(N):
-                    s = y[a]
-                    for p in range(st):
-                        if Aext[e, p] != 0.0:
-                            s += hh * Aext[e, p] * K[p, a]
-                    ys[a] = s
+                _combine(y, hh, Aext[e], st, K, ys)
                 K[st, :n] = ys[n:]
-                st_code = _accel(plan, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
+                st_code = _accel(plan, gk, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
                 if st_code != OK:
                     return st_code
                 K[st, n:] = qdd
@@ -347,12 +347,9 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 Fd[0, a] = dy
                 Fd[1, a] = hh * K[0, a] - dy
                 Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
-                for r in range(D.shape[0]):
-                    s = 0.0
-                    for p in range(s_st + n_ext):
-                        s += D[r, p] * K[p, a]
-                    Fd[3 + r, a] = hh * s
-        st_code = _settle(plan, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt, True)
+            for r in range(D.shape[0]):
+                _combine(zero, hh, D[r], s_st + n_ext, K, Fd[3 + r])
+        st_code = _settle(plan, gk, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt, True)
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
             h = 0.5 * hh                        # reject it and try a shorter one
@@ -374,19 +371,18 @@ def run_index1(plan, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 QDD[k_out] = f1[n:]
             else:
                 x = (tk - t) / hh
-                if dop853:
-                    nF = Fd.shape[0]
-                    for a in range(N):
-                        v = 0.0
-                        for i2 in range(nF):
-                            v += Fd[nF - 1 - i2, a]
-                            v *= x if i2 % 2 == 0 else 1.0 - x
-                        yu[a] = y[a] + v
+                if dop853:  # y + sum_i Fd[i] prod_{k = nF-1-i}^{nF-1} f_k, with f_k = x
+                    nF = Fd.shape[0]  # for even k and 1 - x for odd k
+                    c = 1.0
+                    for i2 in range(nF):
+                        c *= x if (nF - 1 - i2) % 2 == 0 else 1.0 - x
+                        wd[i2] = c
+                    _combine(y, 1.0, wd, nF, Fd, yu)
                     qs[:] = yu[:n]
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = _settle(plan, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt, True)
+                st_code = _settle(plan, gk, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt, False)
                 if st_code != OK:
                     return st_code
                 Q[k_out] = qs
@@ -423,16 +419,18 @@ def _drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
 
 _drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
 _drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse))
-_READY: set[bool] = set()  # the paths (general: True, sparse: False) compiled or loaded
+_READY: set[str] = set()  # the paths compiled or loaded in this process
+PATHS = ("sparse", "generated", "general")
 
 
-def ensure_compiled(general: bool | None = None) -> float:
-    """Compile (or load from numba's cache) the kernels of one path (``general`` True: the
-    QR null-space path, False: the sparse Schur path; None: both) by tiny runs, adaptive
-    and fixed-step; returns the seconds this call took (0 when already done in this
-    process). A run loads only the path it takes: half the start-up."""
-    paths = [g for g in ((False, True) if general is None else (general,)) if g not in _READY]
-    if not paths or not HAVE_NUMBA:
+def ensure_compiled(*paths: str) -> float:
+    """Compile (or load from numba's cache) the loop of the given paths (:data:`PATHS`:
+    the sparse Schur path with generic or generated kernels, the general QR null-space
+    path; none given: all) by tiny runs, adaptive and fixed-step; returns the seconds this
+    call took (0 when already done in this process). A run loads only the path it takes."""
+    from . import codegen
+    todo = [p for p in (paths or PATHS) if p not in _READY]
+    if not todo or not HAVE_NUMBA:
         return 0.0
     t0 = time.perf_counter()
     # a pendulum particle on a unit circle: n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2
@@ -440,29 +438,32 @@ def ensure_compiled(general: bool | None = None) -> float:
                           v=np.array([1.0, 1.0, -1.0]), m=1)
     frc = pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
     times = np.linspace(0.0, 0.02, 3)
-    for gen in paths:
-        plan = None if gen else sparsity.schur_plan(con, np.eye(2))
+    for path in todo:
+        plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
         args = None if plan is None else plan.kernel_args
+        kern = codegen.load(plan, frc) if path == "generated" else None
         for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
             Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
-                           plan=args, M=np.eye(2), rtol=1e-6, atol=1e-8, ptol=1e-13,
-                           cnt=None, h=h)
-        if plan is not None:
+                           plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
+                           ptol=1e-13, cnt=None, h=h)
+        if path == "sparse":
             sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
                 max_phi=0.0, max_phi_dot=0.0), args)
-        _READY.add(gen)
+        _READY.add(path)
     return time.perf_counter() - t0
 
 
-def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: float = 1e-9,
-        rtol, atol, ptol, cnt, h=None, h0: float = 0.0, max_steps: int = 10_000_000):
+def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
+        rank_tol: float = 1e-9, rtol, atol, ptol, cnt, h=None, h0: float = 0.0,
+        max_steps: int = 10_000_000):
     """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n). Raises RuntimeError.
 
     ``frc`` from :func:`pack_forces`. ``plan`` (the ``kernel_args`` of
     :func:`natcoord.sparsity.schur_plan`, for a regular M) selects the sparse Schur path;
     without it the general path runs on ``M`` (n, n) and ``rank_tol`` (relative, on
-    |R_kk| / |R_00|). ``h``: a fixed step (s) for rk4 or dopri5, else adaptive steps at
-    ``rtol``/``atol``."""
+    |R_kk| / |R_00|). ``kern``: the plan's generated kernels (:func:`natcoord.codegen.load`),
+    None for the generic ones. ``h``: a fixed step (s) for rk4 or dopri5, else adaptive
+    steps at ``rtol``/``atol``."""
     A, B, C, E5, E3, order, Aext, Cext, D, fsal = tableau(name)
     tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
@@ -479,8 +480,10 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, M=None, rank_tol: flo
     ws = kernels_sparse.workspace(args)
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
-    status = run_index1(args, ws, gen, wg, frc, tab, ctl, np.ascontiguousarray(times, float),
-                        np.array(q0, float), np.array(qd0, float), (Q, QD, QDD, c))
+    kern = kern if plan is not None else None  # generated kernels serve the sparse path
+    status = run_index1(args, kern, ws, gen, wg, frc, tab, ctl,
+                        np.ascontiguousarray(times, float), np.array(q0, float),
+                        np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:
         for slot, name_ in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),
                             (C_FACT, "factorizations"), (C_PROJ, "projections"),

@@ -35,6 +35,13 @@ from .kernels_general import (
 )
 from .sparsity import FLOAT, INT, WORK
 
+try:
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+except ImportError:  # pragma: no cover - numba is a dependency
+    intrinsic = None
+
 NEWTON_MAX = 12  # simplified-Newton iterations of one projection
 NEWTON_RATE = 0.25  # a slower contraction refreshes the factorization at the current q
 
@@ -46,6 +53,47 @@ _M = _WO + len(WORK) + 1
  Y_PTR, Y_J, YPTR, YCOL, W_PTR, W_J, W_Y, ENV_FIRST, ENV_PTR) = range(len(INT))
 PHI_V, JAC_V, GAM_V, MI_VAL, Y_COEF = range(_FO, _FO + len(FLOAT))
 W_J_, W_Y_, W_L_, W_W, W_C, W_F = range(_WO, _WO + len(WORK))
+
+
+if intrinsic is not None:
+    @intrinsic
+    def _ptr(typingctx, arr):
+        """The data pointer of a contiguous float64 array (for the generated kernels of
+        :mod:`natcoord.codegen`, which take pointers)."""
+        def codegen(context, builder, sig, args):
+            return cgutils.create_struct_proxy(sig.args[0])(context, builder,
+                                                            value=args[0]).data
+        return types.CPointer(arr.dtype)(arr), codegen
+
+    def _codegen_call(context, builder, sig, args):
+        """Call the C function at address args[0] (int64) with the pointers args[1:]."""
+        from llvmlite import ir
+        void = sig.return_type == types.void
+        rty = ir.VoidType() if void else context.get_value_type(sig.return_type)
+        fnty = ir.FunctionType(rty, [context.get_value_type(a) for a in sig.args[1:]])
+        out = builder.call(builder.inttoptr(args[0], fnty.as_pointer()), args[1:])
+        return context.get_dummy_value() if void else out
+
+    # call(ret, address, p0, p1[, p2[, p3]]): the generated kernels travel as an array of
+    # addresses, which the dispatcher types for nothing (first-class function objects cost
+    # it tens of microseconds a call)
+    @intrinsic
+    def _call2(typingctx, ret, address, p0, p1):
+        return ret.instance_type(ret, address, p0, p1), \
+            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
+                                                  args[1:])
+
+    @intrinsic
+    def _call3(typingctx, ret, address, p0, p1, p2):
+        return ret.instance_type(ret, address, p0, p1, p2), \
+            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
+                                                  args[1:])
+
+    @intrinsic
+    def _call4(typingctx, ret, address, p0, p1, p2, p3):
+        return ret.instance_type(ret, address, p0, p1, p2, p3), \
+            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
+                                                  args[1:])
 
 
 @njit(cache=True, inline="always")
@@ -61,21 +109,29 @@ def workspace(plan: tuple) -> np.ndarray:
     return np.zeros(int(O[_M - 1] - O[_WO]))
 
 
-@njit(cache=True, inline="always")
-def _split(a):
-    """Dekker's split of a into two halves of 26 bits (a = hi + lo exactly)."""
-    c = 134217729.0 * a
-    hi = c - (c - a)
-    return hi, a - hi
+if intrinsic is not None:
+    @intrinsic
+    def _fma(typingctx, a, b, c):
+        """a * b + c rounded once (LLVM's fma: the processor's instruction where it has
+        one)."""
+        def codegen(context, builder, sig, args):
+            from llvmlite import ir
+            d = ir.DoubleType()
+            f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]),
+                                               "llvm.fma.f64")
+            return builder.call(f, args)
+        return types.float64(types.float64, types.float64, types.float64), codegen
+else:  # pragma: no cover - numba is a dependency
+    def _fma(a, b, c):
+        from fractions import Fraction
+        return float(Fraction(a) * Fraction(b) + Fraction(c))
 
 
 @njit(cache=True, inline="always")
 def _two_prod(a, b):
-    """a * b = p + e exactly (Dekker; no fused multiply-add needed)."""
+    """a * b = p + e exactly (the error of the product by one fused multiply-add)."""
     p = a * b
-    ah, al = _split(a)
-    bh, bl = _split(b)
-    return p, ((ah * bh - p) + ah * bl + al * bh) + al * bl
+    return p, _fma(a, b, -p)
 
 
 @njit(cache=True, inline="always")
@@ -239,23 +295,54 @@ def solve(I, O, Lv, b):
 
 
 @njit(cache=True)
-def refactor(I, F, O, q, ws, cnt):
-    """J, Y and L at q into the work array ``ws``."""
-    jacobian(I, F, O, q, _seg(ws, O, W_J_))
-    factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
+def refactor(I, F, O, gk, q, ws, cnt):
+    """J, Y and L at q into the work array ``ws`` (``gk``: the model's generated kernels of
+    :mod:`natcoord.codegen`, or None for the generic ones; numba compiles the two apart)."""
+    if gk is None:
+        jacobian(I, F, O, q, _seg(ws, O, W_J_))
+        factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
+    else:
+        _call2(types.int64, gk[1], _ptr(q), _ptr(ws))
     cnt[C_FACT] += 1
 
 
 @njit(cache=True)
-def accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, fresh):
+def accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, fresh):
     """qdd (n,) of Eq. (6) at (q, qd); ``fresh``: factor at q first (else ``ws`` holds
     the factorization at this q already)."""
     cnt[C_RHS] += 1
-    if fresh:
-        refactor(I, F, O, q, ws, cnt)
-    w = multipliers(I, F, O, frc, q, qd, qdd, ws)
-    sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
+    if gk is None:
+        if fresh:
+            refactor(I, F, O, gk, q, ws, cnt)
+        w = multipliers(I, F, O, frc, q, qd, qdd, ws)
+        sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
+    elif fresh:
+        cnt[C_FACT] += 1
+        _call4(types.void, gk[5], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
+    else:
+        _call4(types.void, gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
     return OK
+
+
+@njit(cache=True)
+def _phi_max(I, F, O, gk, q, w):
+    """w (m,) = Phi(q); returns max |w|."""
+    if gk is None:
+        phi(I, F, O, q, w)
+    else:
+        _call2(types.void, gk[0], _ptr(q), _ptr(w))
+    e = 0.0
+    for r in range(w.shape[0]):
+        e = max(e, abs(w[r]))
+    return e
+
+
+@njit(cache=True)
+def _jx(I, O, gk, ws, x, w):
+    """w (m,) = J x with the stored J; returns max |w|."""
+    if gk is None:
+        return jx(I, O, _seg(ws, O, W_J_), x, w)
+    return _call3(types.float64, gk[4], _ptr(ws), _ptr(x), _ptr(w))
 
 
 @njit(cache=True)
@@ -274,27 +361,27 @@ def multipliers(I, F, O, frc, q, qd, f_over_m, ws):
 
 
 @njit(cache=True)
-def _newton_step(I, O, ws, w, x):
+def _newton_step(I, O, gk, ws, w, x):
     """x -= Y L^-T L^-1 w (an M-orthogonal correction with the stored factorization)."""
-    solve(I, O, _seg(ws, O, W_L_), w)
-    sub_y(I, O, _seg(ws, O, W_Y_), w, x)
+    if gk is None:
+        solve(I, O, _seg(ws, O, W_L_), w)
+        sub_y(I, O, _seg(ws, O, W_Y_), w, x)
+    else:
+        _call3(types.void, gk[3], _ptr(ws), _ptr(w), _ptr(x))
 
 
 @njit(cache=True)
-def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
+def settle(I, F, O, gk, frc, q, qd, qdd, tol, ws, cnt, factored):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
     in ``ws`` (``factored``: one made near q, e.g. at the last stage or sample; refreshed
     at the current q when the contraction is slow), factor once at the projected q, project
     qd on Phi_q qd = 0 with it and evaluate qdd there. Returns a status code."""
     w = _seg(ws, O, W_W)
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
-    phi(I, F, O, q, w)
-    e = 0.0
-    for r in range(w.shape[0]):
-        e = max(e, abs(w[r]))
+    e = _phi_max(I, F, O, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)
     if not factored and e >= tol:
-        refactor(I, F, O, q, ws, cnt)
+        refactor(I, F, O, gk, q, ws, cnt)
     prev = math.inf
     fresh = False  # the factorization is at the current q (true Newton this iteration)
     it = 0
@@ -302,25 +389,22 @@ def settle(I, F, O, frc, q, qd, qdd, tol, ws, cnt, factored):
         if it >= NEWTON_MAX:
             return ERR_NEWTON
         if e > NEWTON_RATE * prev and not fresh:
-            refactor(I, F, O, q, ws, cnt)
+            refactor(I, F, O, gk, q, ws, cnt)
             fresh = True
         else:
             fresh = False
-        _newton_step(I, O, ws, w, q)
+        _newton_step(I, O, gk, ws, w, q)
         cnt[C_NEWTON] += 1
         prev = e
-        phi(I, F, O, q, w)
-        e = 0.0
-        for r in range(w.shape[0]):
-            e = max(e, abs(w[r]))
+        e = _phi_max(I, F, O, gk, q, w)
         it += 1
-    refactor(I, F, O, q, ws, cnt)
-    ev = jx(I, O, _seg(ws, O, W_J_), qd, w)
+    refactor(I, F, O, gk, q, ws, cnt)
+    ev = _jx(I, O, gk, ws, qd, w)
     cnt[C_PHID] = max(cnt[C_PHID], ev)
     if ev > tol:
-        _newton_step(I, O, ws, w, qd)
+        _newton_step(I, O, gk, ws, w, qd)
     cnt[C_PROJ] += 1
-    return accelerations(I, F, O, frc, q, qd, qdd, ws, cnt, False)
+    return accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, False)
 
 
 @njit(cache=True)

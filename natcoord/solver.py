@@ -95,13 +95,16 @@ class Formulation:
 @dataclass(frozen=True)
 class Index1(Formulation):
     """Index-1 Lagrange equations. ``baumgarte`` (alpha, beta) 1/s; ``compiled``: run as
-    one numba loop when the model allows (adaptive dop853/dopri5 with projection)."""
+    one numba loop when the model allows (adaptive dop853/dopri5 with projection);
+    ``generated``: on its Schur path, with kernels written out for the model
+    (:mod:`natcoord.codegen`) when it allows, else the generic sparse kernels."""
 
     name: ClassVar[str] = "index1"
     stabilization: str = "projection"
     baumgarte: tuple[float, float] = (10.0, 10.0)
     linsolve: str = "auto"
     compiled: bool = True
+    generated: bool = True
 
     def __post_init__(self):
         super().__post_init__()
@@ -112,8 +115,10 @@ class Index1(Formulation):
             raise ValueError(f"Index1: baumgarte must be (alpha, beta), got {self.baumgarte!r}")
         for x in self.baumgarte:
             _positive("Index1", "baumgarte", x)
-        if not isinstance(self.compiled, bool):
-            raise ValueError(f"Index1: compiled must be true or false, got {self.compiled!r}")
+        for flag in ("compiled", "generated"):
+            if not isinstance(getattr(self, flag), bool):
+                raise ValueError(f"Index1: {flag} must be true or false, "
+                                 f"got {getattr(self, flag)!r}")
         object.__setattr__(self, "baumgarte", tuple(float(x) for x in self.baumgarte))
 
 

@@ -13,12 +13,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord import casefile, casemodel, kernels, sparsity
+from natcoord import casefile, casemodel, codegen, kernels, sparsity
 from natcoord import kernels_sparse as ks
 from natcoord.drivers import ConstraintSystem
 from natcoord.dynamics import integrate
 from natcoord.formulations import Counters, Index1Loop, compiled_forces
-from natcoord.solver import Fixed, Index1, Solver
+from natcoord.solver import Adaptive, Fixed, Index1, Solver
 
 from .conftest import CASES
 
@@ -71,7 +71,7 @@ def test_plan_reproduces_dense_algebra(name):
     ws = ks.workspace(plan.kernel_args)
     J = cs.con.jacobian(np.asarray(st.q, float))[plan.perm]  # plan rows: RCM order
     cnt = np.zeros(kernels.N_COUNTERS)
-    ks.refactor(I, F, O, np.asarray(st.q, float), ws, cnt)
+    ks.refactor(I, F, O, None, np.asarray(st.q, float), ws, cnt)
     nJ, nY = len(plan.jac_ptr) - 1, len(plan.y_ptr) - 1
     Jv = ws[:nJ]
     Jp = np.zeros_like(J)
@@ -107,14 +107,18 @@ def test_semidefinite_factor_solves_a_redundant_system():
     M = np.asarray(model.M, float)
     q, qd = np.asarray(st.q, float), np.asarray(st.qd, float)
     out = []
-    for c in (con, Con):
+    for c in (con, Con):  # generic and generated kernels, without and with the copy
         plan = sparsity.schur_plan(c, M)
         I, F, O = plan.kernel_args
-        ws = ks.workspace(plan.kernel_args)
-        qdd = np.zeros(model.n)
-        ks.accelerations(I, F, O, frc, q, qd, qdd, ws, np.zeros(kernels.N_COUNTERS), True)
-        out.append(qdd)
-    assert np.max(np.abs(out[0] - out[1])) < 1e-12 * max(1.0, np.max(np.abs(out[0])))
+        for gk in (None, codegen.load(plan, frc)):
+            ws = ks.workspace(plan.kernel_args)
+            qdd = np.zeros(model.n)
+            ks.accelerations(I, F, O, gk, frc, q, qd, qdd, ws, np.zeros(kernels.N_COUNTERS),
+                             True)
+            out.append(qdd)
+    assert len(out) == 4
+    for other in out[1:]:
+        assert np.max(np.abs(out[0] - other)) < 1e-12 * max(1.0, np.max(np.abs(out[0])))
     ref = Index1Loop(model, {"linsolve": "qr"}, Counters()).accelerations(0.0, q, qd)
     assert np.max(np.abs(out[0] - ref)) < 1e-10 * max(1.0, np.max(np.abs(ref)))
 
@@ -158,3 +162,46 @@ def test_phi_carries_no_round_off_far_from_the_origin():
     ks.phi(I, F, O, q, out)
     assert np.max(np.abs(out[np.argsort(plan.perm)] - exact)) < 4e-16  # plan row order
     assert np.max(np.abs(con.phi(q) - exact)) > 1e-14  # what the two-double sum is for
+
+
+REGULAR = ["slider_crank", "four_bar", "a02_four_bar_n2", "slider_crank_3d", "a04_bricard"]
+
+
+@pytest.mark.parametrize("name", REGULAR)
+def test_generated_kernels_equal_the_generic_ones(name):
+    """The straight-line kernels written for the model (natcoord.codegen) against the
+    generic sparse kernels on the same plan: Phi at a perturbed pose; the accelerations
+    (factor and solve), a Newton correction and J x at the initial pose (where a redundant
+    system such as Bricard's is consistent) with random velocities; then a whole adaptive
+    dop853 run each way."""
+    case, model, st = _model(name)
+    M = np.asarray(model.M, float)
+    con = ConstraintSystem(model).con
+    frc = compiled_forces(model)
+    plan = sparsity.schur_plan(con, M)
+    I, F, O = plan.kernel_args
+    gk = codegen.load(plan, frc)
+    assert gk is not None
+    rng = np.random.default_rng(3)
+    q = np.asarray(st.q, float)
+    qp = q + 1e-4 * rng.standard_normal(model.n)
+    qd = np.asarray(st.qd, float) + rng.standard_normal(model.n)
+    res = []
+    for kern in (None, gk):
+        ws, cnt = ks.workspace(plan.kernel_args), np.zeros(kernels.N_COUNTERS)
+        w, qdd, x, v = np.zeros(plan.m), np.zeros(model.n), q.copy(), np.zeros(plan.m)
+        e = ks._phi_max(I, F, O, kern, qp, w)
+        phi = w.copy()
+        ks.accelerations(I, F, O, kern, frc, q, qd, qdd, ws, cnt, True)
+        ks._newton_step(I, O, kern, ws, w, x)
+        big = ks._jx(I, O, kern, ws, qd, v)
+        res.append((e, phi, qdd, x, big, v))
+    for a, b in zip(*res, strict=True):
+        scale = max(1.0, float(np.max(np.abs(a))))
+        assert np.max(np.abs(np.asarray(a) - np.asarray(b))) < 1e-12 * scale
+    sols = [integrate(model, st, case.times[case.times <= 0.5 + 1e-12],
+                      Solver(Index1(generated=g), "dop853", Adaptive(rtol=1e-9, atol=1e-11)))
+            for g in (False, True)]
+    assert sols[0].counters["steps"] > 5
+    assert np.max(np.abs(sols[0].q - sols[1].q)) < 1e-10 * max(1.0, np.max(np.abs(sols[0].q)))
+    assert np.max(np.abs(sols[0].qd - sols[1].qd)) < 1e-9 * max(1.0, np.max(np.abs(sols[0].qd)))

@@ -211,7 +211,8 @@ with open(sys.argv[1], "rb") as f:
 run = natcoord_engine.run(case, init, settings)
 t2 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "run_total_s": t2 - t1, "build_time_s": run.build_time_s,
-                  "kernel_load_s": run.counters.get("compile_time_s"),
+                  "kernel_load_s": run.counters.get("compile_time_s", 0.0)
+                  + run.counters.get("plan_time_s", 0.0), "path": run.counters.get("path"),
                   "wall_time_s": run.wall_time_s, "n_steps": run.n_steps}))
 """
 
