@@ -337,7 +337,7 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
         n = sum(len(bench.SWEEPS.get(e, [])) for e in names) * len(selected)
         say(f"work-precision: {n} runs")
         points = bench.work_precision(selected, names, references=references,
-                                      timeout_s=timeout,
+                                      repeats=repeats, timeout_s=timeout,
                                       progress=None if quiet else _progress_printer(n))
         result["work_precision"] = points
         result["time_to_accuracy"] = bench.time_to_accuracy(points)

@@ -16,10 +16,12 @@ each, whatever the model:
     jx(ws, x, w) -> float    w (m,) = J x; max |w|
     acc(q, qd, qdd, ws)      refactor and rhs in one
 
-The compiled loop (:func:`natcoord.kernels.run_index1`) takes them as first-class
-functions, so it is compiled once for every model; a model's functions are compiled on
-its first run (a fraction of a second to a few seconds: build time) and cached on disk
-under the hash of their source (``NATCOORD_CACHE_DIR``, default ``~/.cache/natcoord``).
+A singular M's model gets the same six from its dense plan
+(:func:`natcoord.sparsity.dense_plan`: M + alpha J^T J factored at every evaluation). The
+compiled loop (:func:`natcoord.kernels.run_index1`) takes their addresses and calls them
+through a numba intrinsic, so it is compiled once for every model; a model's functions are
+compiled on its first run (a few seconds: build time) and cached on disk under the hash of
+their source (``NATCOORD_CACHE_DIR``, default ``~/.cache/natcoord``).
 ``ws`` is the plan's work array (:func:`natcoord.kernels_sparse.workspace`); L's diagonal
 slots hold the inverse pivots here (0 for a dependent row), so that only these functions
 may read a work array they wrote. Units: SI.
@@ -40,6 +42,7 @@ import numpy as np
 from .sparsity import SchurPlan
 
 MAX_TERMS = 6000  # a larger model keeps the generic kernels (compile time grows with size)
+MAX_DENSE = 2500  # and a singular M's route above this many dense terms the QR path
 
 
 def cache_dir() -> Path:
@@ -50,12 +53,19 @@ def cache_dir() -> Path:
 
 
 def supported(plan: SchurPlan, frc: tuple) -> bool:
-    """Whether the generated kernels serve this model: forces Q0 + T q only (torques and
-    spring-dampers stay in the generic kernels) and a plan small enough to write out."""
-    _, T, _, toff, _, S, _ = frc
+    """Whether the generated kernels serve this model: forces Q0 + T q, spring-dampers and
+    planar torques (a spatial torque keeps the generic kernels), and a plan small enough
+    to write out."""
+    _, T, G, toff, _, S, _ = frc
+    n = len(plan.Y_ptr) - 1
     terms = (len(plan.phi_k) + len(plan.jac_other) + len(plan.y_coef) + len(plan.w_j)
              + 4 * plan.envelope + len(plan.gam_k))
-    return toff.shape[0] <= 1 and S.shape[0] == 0 and terms <= MAX_TERMS
+    if plan.alpha > 0:  # the factor of M + alpha J^T J and m solves with it: dense, so
+        dense = n * n * (plan.m + n) // 2  # kept to small models (compile time)
+        if dense > MAX_DENSE:
+            return False
+        terms += dense
+    return (toff.shape[0] <= 1 or G.shape[1] == 2) and terms <= MAX_TERMS
 
 
 def _num(x: float) -> str:
@@ -142,32 +152,122 @@ def _phi(plan: SchurPlan, n: int, w: _Writer) -> None:
     w("")
 
 
+class _Chol:
+    """A Cholesky factor L L^T of a symmetric (size, size) matrix written out entry by entry:
+    its non-zeros (the matrix's ``pattern`` below the diagonal and their fill) named
+    ``{prefix}{r}_{c}``, its inverse pivots ``{prefix}d{r}``, stored in ws at
+    ``base + slot(r, c)``."""
+
+    def __init__(self, size: int, pattern: set, prefix: str, base: int, slot):
+        self.size, self.prefix, self.base, self.slot = size, prefix, base, slot
+        nz = set(pattern)
+        self.terms: list[list[tuple[int, list[int]]]] = []  # per r: (c, [k, ...]), c < r
+        for r in range(size):
+            row = []
+            for c in range(r):
+                ks = [k for k in range(c) if (r, k) in nz and (c, k) in nz]
+                if ks or (r, c) in nz:
+                    nz.add((r, c))
+                    row.append((c, ks))
+            self.terms.append(row)
+        self.below = [[c for c, _ in t] for t in self.terms]  # L[r, c] != 0, c < r
+
+    def name(self, r: int, c: int) -> str:
+        return f"{self.prefix}{r}_{c}" if r != c else f"{self.prefix}d{r}"
+
+    def factor(self, w: _Writer, value, dep_tol: float | None) -> None:
+        """Factor the matrix whose entry (r, c), c <= r, is the expression ``value(r, c)``
+        (None: zero). ``dep_tol``: a semi-definite matrix, whose pivots below dep_tol of
+        their diagonal mark dependent rows (inverse pivot 0, counted in ``dep``); None: a
+        definite one (a non-positive pivot gives NaN, which the loop reports)."""
+        for r in range(self.size):
+            for c, ks in self.terms[r]:
+                fill = [(-1.0, f"{self.name(r, k)} * {self.name(c, k)}") for k in ks]
+                v = value(r, c)
+                w(f"{self.name(r, c)} = ({_lin(([(None, v)] if v else []) + fill)}) * "
+                  f"{self.name(c, c)}")
+                w(f"ws[{self.base + self.slot(r, c)}] = {self.name(r, c)}")
+            w(f"wd = {value(r, r) or '0.0'}")
+            sq = [(-1.0, f"{self.name(r, c)} * {self.name(r, c)}") for c in self.below[r]]
+            w(f"s = {_lin([(None, 'wd')] + sq)}")
+            d = self.name(r, r)
+            if dep_tol is None:
+                w(f"{d} = 1.0 / math.sqrt(s)")
+            else:
+                w(f"if s > {_num(dep_tol)} * wd and s > 0.0:")
+                w(f"{d} = 1.0 / math.sqrt(s)", 2)
+                w("else:")
+                w(f"{d} = 0.0", 2)
+                w("dep += 1", 2)
+            w(f"ws[{self.base + self.slot(r, r)}] = {d}")
+
+    def load(self, w: _Writer) -> None:
+        for r in range(self.size):
+            for c in self.below[r] + [r]:
+                w(f"{self.name(r, c)} = ws[{self.base + self.slot(r, c)}]")
+
+    def solve(self, w: _Writer, b: str, zeros: set | None = None) -> None:
+        """Locals b0.. <- (L L^T)^-1 b (a dependent row's 0); ``zeros``: the entries of b
+        known to be zero (not assigned by the caller, skipped until they fill)."""
+        zero = set(zeros or ())
+        for r in range(self.size):
+            terms = [(-1.0, f"{self.name(r, c)} * {b}{c}") for c in self.below[r]
+                     if c not in zero]
+            if r in zero and not terms:
+                continue
+            own = [] if r in zero else [(None, f"{b}{r}")]
+            w(f"{b}{r} = ({_lin(own + terms)}) * {self.name(r, r)}")
+            zero.discard(r)
+        for r in range(self.size - 1, -1, -1):
+            if r in zero:
+                continue
+            w(f"{b}{r} = {b}{r} * {self.name(r, r)}")
+            for c in self.below[r]:
+                if c in zero:
+                    w(f"{b}{c} = -{self.name(r, c)} * {b}{r}")
+                    zero.discard(c)
+                else:
+                    w(f"{b}{c} -= {self.name(r, c)} * {b}{r}")
+        for r in sorted(zero):
+            w(f"{b}{r} = 0.0")
+
+
 class _Structure:
-    """Names and the structural pattern of J, Y and L for the generated statements."""
+    """Names and the structural pattern of J, Y, the factor of W = J Y and, on a singular
+    M's route (``plan.alpha > 0``), the factor of M + alpha J^T J."""
 
-    def __init__(self, plan: SchurPlan, offsets: tuple[int, int, int]):
+    def __init__(self, plan: SchurPlan, offsets: tuple[int, int, int, int], M):
         self.plan = plan
-        self.oJ, self.oY, self.oL = offsets
-        m = plan.m
+        self.oJ, self.oY, self.oL, self.oG = offsets
+        m, n = plan.m, len(plan.Y_ptr) - 1
         first, ptr = plan.env_first, plan.env_ptr
-        self.slot = lambda r, c: int(ptr[r] + c - first[r])
-        # L's non-zeros: W's entries and their fill, in the order the factor makes them
-        nz = {self.slot(r, c) for r in range(m) for c in range(first[r], r + 1)
-              if plan.w_ptr[self.slot(r, c) + 1] > plan.w_ptr[self.slot(r, c)]}
-        self.row_terms: list[list[tuple[int, list[int]]]] = []  # per r: (c, [k...]) c < r
-        for r in range(m):
-            terms = []
-            for c in range(first[r], r):
-                ks = [k for k in range(max(first[r], first[c]), c)
-                      if self.slot(r, k) in nz and self.slot(c, k) in nz]
-                if ks or self.slot(r, c) in nz:
-                    nz.add(self.slot(r, c))
-                    terms.append((c, ks))
-            self.row_terms.append(terms)
-        self.nz = nz
-        self.below = [[c for c, _ in t] for t in self.row_terms]  # L[r, c] != 0, c < r
 
-    def load(self, w: _Writer, J=False, Y=False, L=False) -> None:
+        def slot(r, c):
+            return int(ptr[r] + c - first[r])
+        self.wslot = slot
+        pattern = {(r, c) for r in range(m) for c in range(first[r], r)
+                   if plan.w_ptr[slot(r, c) + 1] > plan.w_ptr[slot(r, c)]}
+        self.L = _Chol(m, pattern, "l", self.oL, slot)
+        self.rows: list[list[tuple[int, int]]] = [[] for _ in range(m)]  # (entry, column)
+        for e, (r, a) in enumerate(zip(plan.J_row, plan.J_col, strict=True)):
+            self.rows[r].append((e, int(a)))
+        self.G = None
+        if plan.alpha > 0:  # M + alpha J^T J: M's pattern and the pairs of every J row
+            self.M = np.asarray(M, float)
+            pm = {(a, b) for a in range(n) for b in range(a) if self.M[a, b] != 0.0}
+            pm |= {(max(a, b), min(a, b)) for row in self.rows for _, a in row
+                   for _, b in row if a != b}
+            self.G = _Chol(n, pm, "g", self.oG, lambda a, b: a * (a + 1) // 2 + b)
+
+    def mbar(self, a: int, b: int) -> str | None:
+        """Entry (a, b), b <= a, of M + alpha J^T J as an expression (None: zero)."""
+        terms = [(self.plan.alpha, f"j{e} * j{f}") for row in self.rows
+                 for e, x in row for f, y in row if x == a and y == b]
+        if self.M[a, b] != 0.0:
+            terms.append((float(self.M[a, b]), "1.0"))
+        return _lin(terms) if terms else None
+
+    def load(self, w: _Writer, J=False, Y=False, L=False, G=False) -> None:
         p = self.plan
         if J:
             for e in range(len(p.J_row)):
@@ -176,21 +276,9 @@ class _Structure:
             for e in range(len(p.Y_col)):
                 w(f"y{e} = ws[{self.oY + e}]")
         if L:
-            for r in range(p.m):
-                for c in self.below[r]:
-                    w(f"l{self.slot(r, c)} = ws[{self.oL + self.slot(r, c)}]")
-                w(f"d{r} = ws[{self.oL + self.slot(r, r)}]")
-
-    def solve(self, w: _Writer, b: str) -> None:
-        """b0..b{m-1} <- (L L^T)^-1 b (dependent rows 0), with the inverse pivots d."""
-        m = self.plan.m
-        for r in range(m):
-            terms = [(-1.0, f"l{self.slot(r, c)} * {b}{c}") for c in self.below[r]]
-            w(f"{b}{r} = ({_lin([(None, f'{b}{r}')] + terms)}) * d{r}")
-        for r in range(m - 1, -1, -1):
-            w(f"{b}{r} = {b}{r} * d{r}")
-            for c in self.below[r]:
-                w(f"{b}{c} -= l{self.slot(r, c)} * {b}{r}")
+            self.L.load(w)
+        if G and self.G is not None:
+            self.G.load(w)
 
     def sub_y(self, w: _Writer, b: str, target: str, base: str | None) -> None:
         """target[a] = base_a - sum_e Y[e] b[col e] over the coordinates a."""
@@ -206,16 +294,13 @@ class _Structure:
 
     def jx(self, w: _Writer, x: str, out: str) -> None:
         """out_r = sum_e J[e] x[col e] (locals ``out{r}``)."""
-        p = self.plan
-        by_row: list[list[str]] = [[] for _ in range(p.m)]
-        for e, (r, c) in enumerate(zip(p.J_row, p.J_col, strict=True)):
-            by_row[r].append(f"j{e} * {x.format(c)}")
-        for r in range(p.m):
-            w(f"{out}{r} = {_lin([(None, t) for t in by_row[r]])}")
+        for r in range(self.plan.m):
+            w(f"{out}{r} = {_lin([(None, f'j{e} * {x.format(a)}') for e, a in self.rows[r]])}")
 
 
 def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = True) -> None:
-    """J, Y and the envelope Cholesky, as :func:`natcoord.kernels_sparse.factor`."""
+    """J, Y and the factor of W, as :func:`natcoord.kernels_sparse.factor` (a singular M's
+    route: Y by solves with the factor of M + alpha J^T J, made first)."""
     if head:
         w("def refactor(q, ws):", 0)
     for e in range(len(plan.jac_ptr) - 1):
@@ -224,31 +309,30 @@ def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = 
                   else "1.0") for p in range(s, t)]
         w(f"j{e} = {_lin(terms)}")
         w(f"ws[{st.oJ + e}] = j{e}")
-    for e in range(len(plan.y_ptr) - 1):
-        s, t = plan.y_ptr[e], plan.y_ptr[e + 1]
-        w(f"y{e} = {_lin([(float(plan.y_coef[p]), f'j{plan.y_j[p]}') for p in range(s, t)])}")
-        w(f"ws[{st.oY + e}] = y{e}")
-    dep_tol = plan.dep_tol
+    if st.G is None:
+        for e in range(len(plan.y_ptr) - 1):
+            s, t = plan.y_ptr[e], plan.y_ptr[e + 1]
+            w(f"y{e} = {_lin([(float(plan.y_coef[p]), f'j{plan.y_j[p]}') for p in range(s, t)])}")
+            w(f"ws[{st.oY + e}] = y{e}")
+    else:
+        st.G.factor(w, st.mbar, None)
+        m = plan.m
+        for r in range(m):  # column r of Y: (M + alpha J^T J) y = J[r]^T
+            cols = {a: e for e, a in st.rows[r]}
+            for a, e in cols.items():
+                w(f"z{a} = j{e}")
+            st.G.solve(w, "z", set(range(n)) - set(cols))
+            for a in range(n):
+                w(f"y{a * m + r} = z{a}")
+                w(f"ws[{st.oY + a * m + r}] = z{a}")
     w("dep = 0")
-    for r in range(plan.m):
-        for c, ks in st.row_terms[r]:
-            sl = st.slot(r, c)
-            s, t = plan.w_ptr[sl], plan.w_ptr[sl + 1]
-            wrc = [(None, f"j{plan.w_j[p]} * y{plan.w_y[p]}") for p in range(s, t)]
-            fill = [(-1.0, f"l{st.slot(r, k)} * l{st.slot(c, k)}") for k in ks]
-            w(f"l{sl} = ({_lin(wrc + fill)}) * d{c}")
-            w(f"ws[{st.oL + sl}] = l{sl}")
-        sl = st.slot(r, r)
+
+    def value(r, c):
+        sl = st.wslot(r, c)
         s, t = plan.w_ptr[sl], plan.w_ptr[sl + 1]
-        w(f"wd = {_lin([(None, f'j{plan.w_j[p]} * y{plan.w_y[p]}') for p in range(s, t)])}")
-        sq = [(-1.0, f"l{st.slot(r, c)} * l{st.slot(r, c)}") for c in st.below[r]]
-        w(f"s = {_lin([(None, 'wd')] + sq)}")
-        w(f"if s > {_num(dep_tol)} * wd and s > 0.0:")
-        w(f"d{r} = 1.0 / math.sqrt(s)", 2)
-        w("else:")
-        w(f"d{r} = 0.0", 2)
-        w("dep += 1", 2)
-        w(f"ws[{st.oL + sl}] = d{r}")
+        return _lin([(None, f"j{plan.w_j[p]} * y{plan.w_y[p]}") for p in range(s, t)]) \
+            if t > s else None
+    st.L.factor(w, value, plan.dep_tol)
     if head:
         w("return dep")
         w("")
@@ -258,7 +342,8 @@ def _rhs(plan: SchurPlan, n: int, frc: tuple, st: _Structure, w: _Writer,
          fused: bool = False) -> None:
     """qdd = M^-1 F - Y lambda, (L L^T) lambda = J M^-1 F - c, as
     :func:`natcoord.kernels_sparse.accelerations` with the factorization in ws, or
-    ``fused``: factoring at q first (J, Y, L kept in registers, and stored)."""
+    ``fused``: factoring at q first (J, Y, L kept in registers, and stored). A singular
+    M's route: M + alpha J^T J for M and F + alpha J^T c for F."""
     Q0, T = frc[0], frc[1]
     Mi = np.zeros((n, n))
     for a in range(n):
@@ -269,27 +354,78 @@ def _rhs(plan: SchurPlan, n: int, frc: tuple, st: _Structure, w: _Writer,
         _refactor(plan, n, st, w, head=False)
     else:
         w("def rhs(q, qd, qdd, ws):", 0)
-        st.load(w, J=True, Y=True, L=True)
-    if T.shape[0] == 0:  # M^-1 F constant
-        mf = Mi @ Q0
-        for a in range(n):
-            w(f"mf{a} = {_num(mf[a])}")
-    else:
-        for a in range(n):
-            terms = [(float(T[a, b]), f"q[{b}]") for b in np.flatnonzero(T[a])]
-            w(f"f{a} = {_lin([(float(Q0[a]), '1.0')] + terms) if Q0[a] else _lin(terms)}")
-        for a in range(n):
-            w(f"mf{a} = {_lin([(float(Mi[a, b]), f'f{b}') for b in np.flatnonzero(Mi[a])])}")
+        st.load(w, J=True, Y=True, L=True, G=True)
     gam: list[list[tuple[float, str]]] = [[] for _ in range(plan.m)]
     for k, i, j, v in zip(plan.gam_k, plan.gam_i, plan.gam_j, plan.gam_v, strict=True):
         gam[k].append((float(v), f"qd[{i}] * qd[{j}]"))
+    if st.G is None and T.shape[0] == 0 and len(frc[3]) <= 1 and not len(frc[5]):
+        mf = Mi @ Q0  # M^-1 F constant
+        for a in range(n):
+            w(f"mf{a} = {_num(mf[a])}")
+    else:
+        _forces(frc, n, w)
+        if st.G is None:
+            for a in range(n):
+                w(f"mf{a} = {_lin([(float(Mi[a, b]), f'f{b}') for b in np.flatnonzero(Mi[a])])}")
+        else:  # mf = (M + alpha J^T J)^-1 (F + alpha J^T c), c = -qd^T H qd
+            for r in range(plan.m):
+                w(f"c{r} = {_lin([(-v, t) for v, t in gam[r]])}")
+            for a in range(n):
+                terms = [(plan.alpha, f"j{e} * c{r}") for r in range(plan.m)
+                         for e, x in st.rows[r] if x == a]
+                w(f"mf{a} = {_lin([(None, f'f{a}')] + terms)}")
+            st.G.solve(w, "mf")
     st.jx(w, "mf{}", "b")
     for r in range(plan.m):
         if gam[r]:  # b - c = b + sum v qd_i qd_j
             w(f"b{r} += {_lin(gam[r])}")
-    st.solve(w, "b")
+    st.L.solve(w, "b")
     st.sub_y(w, "b", "qdd", "mf{}")
     w("")
+
+
+def _affine(C: np.ndarray, x: str, affine: bool) -> list[str]:
+    """The rows of C[:, :n] x (+ C[:, n]) as expressions, C (d, n + 1)."""
+    n = C.shape[1] - 1
+    return [_lin(([(float(C[a, n]), "1.0")] if affine and C[a, n] else [])
+                 + [(float(C[a, b]), f"{x}[{b}]") for b in np.flatnonzero(C[a, :n])])
+            for a in range(C.shape[0])]
+
+
+def _forces(frc: tuple, n: int, w: _Writer) -> None:
+    """Locals f0.. = F(q, qd), as :func:`natcoord.kernels_general.forces`: Q0 + T q, planar
+    torques (min-norm point forces f_k = B_k^T g, (sum B_k B_k^T) g = tau) and
+    spring-dampers."""
+    Q0, T, G, toff, tau, S, spr = frc
+    for a in range(n):
+        terms = [(float(T[a, b]), f"q[{b}]") for b in np.flatnonzero(T[a])] \
+            if T.shape[0] else []
+        w(f"f{a} = {_lin(([(float(Q0[a]), '1.0')] if Q0[a] else []) + terms)}")
+
+    def add(C, comps):
+        for b in range(n):
+            terms = [(float(C[a, b]), comps[a]) for a in range(C.shape[0]) if C[a, b]]
+            if terms:
+                w(f"f{b} += {_lin(terms)}")
+    for t in range(len(toff) - 1):  # planar: d_k = G_k qh, B_k = [-d_y, d_x]
+        ks = range(toff[t], toff[t + 1])
+        for k in ks:
+            dx, dy = _affine(G[k], "q", True)
+            w(f"tx{k} = {dx}")
+            w(f"ty{k} = {dy}")
+        w(f"tg = {_num(tau[t, 0])} / ({' + '.join(f'tx{k} * tx{k} + ty{k} * ty{k}' for k in ks)})")
+        for k in ks:
+            add(G[k], [f"(-ty{k} * tg)", f"(tx{k} * tg)"])
+    for s_ in range(len(S)):  # spring-damper: tension k (l - l0) + c dl/dt along S qh
+        k_, c_, l0 = (float(x) for x in spr[s_])
+        ld, v = _affine(S[s_], "q", True), _affine(S[s_], "qd", False)
+        for a in range(len(ld)):
+            w(f"sx{a} = {ld[a]}")
+            w(f"sv{a} = {v[a]}")
+        w(f"sl = math.sqrt({' + '.join(f'sx{a} * sx{a}' for a in range(len(ld)))})")
+        w(f"ten = ({_num(k_)} * (sl - {_num(l0)}) + {_num(c_)} * "
+          f"({' + '.join(f'sx{a} * sv{a}' for a in range(len(ld)))}) / sl) / sl")
+        add(S[s_], [f"(-ten * sx{a})" for a in range(len(ld))])
 
 
 def _newton(plan: SchurPlan, st: _Structure, w: _Writer) -> None:
@@ -297,7 +433,7 @@ def _newton(plan: SchurPlan, st: _Structure, w: _Writer) -> None:
     st.load(w, Y=True, L=True)
     for r in range(plan.m):
         w(f"b{r} = w[{r}]")
-    st.solve(w, "b")
+    st.L.solve(w, "b")
     for r in range(plan.m):
         w(f"w[{r}] = b{r}")
     st.sub_y(w, "b", "x", None)
@@ -322,12 +458,13 @@ SIGNATURES = {"phi": "types.void(P, P)", "refactor": "types.int64(P, P)",
 NAMES = tuple(SIGNATURES)
 
 
-def source(plan: SchurPlan, frc: tuple) -> str:
-    """The module text of the model's six kernels (see the module doc)."""
+def source(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> str:
+    """The module text of the model's six kernels (see the module doc); ``M`` (n, n): the
+    mass matrix, for a singular M's route (:func:`natcoord.sparsity.dense_plan`)."""
     from . import kernels_sparse
-    n = len(plan.Mi_ptr) - 1
+    n = len(plan.Y_ptr) - 1
     O = plan.kernel_args[2]
-    offsets = tuple(int(O[kernels_sparse._WO + k]) for k in range(3))  # J, Y, L in ws
+    offsets = tuple(int(O[kernels_sparse._WO + k]) for k in (0, 1, 2, 6))  # J, Y, L, G
     w = _Writer()
     w('"""natcoord: generated kernels of one model (see natcoord.codegen)."""', 0)
     w("import math", 0)
@@ -337,7 +474,7 @@ def source(plan: SchurPlan, frc: tuple) -> str:
     # the helpers are compiled into the kernels: new helpers, new file
     w("# helpers: " + hashlib.sha1(Path(kernels_sparse.__file__).read_bytes()).hexdigest(), 0)
     w("", 0)
-    st = _Structure(plan, offsets)
+    st = _Structure(plan, offsets, M)
     body = _Writer()
     _phi(plan, n, body)
     _refactor(plan, n, st, body)
@@ -352,14 +489,14 @@ def source(plan: SchurPlan, frc: tuple) -> str:
     return "\n".join(w.lines) + "\n" + text + "\n"
 
 
-def load(plan: SchurPlan, frc: tuple) -> np.ndarray | None:
+def load(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> np.ndarray | None:
     """The addresses (int64, NAMES order) of the model's six compiled kernels, generated,
     written and compiled on the first call for this model and loaded from the disk cache
     after; None when the model is not :func:`supported` or the cache cannot be written.
     The kernels stay alive with their module (in ``sys.modules``)."""
     if not supported(plan, frc):
         return None
-    text = source(plan, frc)
+    text = source(plan, frc, M)
     import numba
     digest = hashlib.sha1((text + numba.__version__).encode()).hexdigest()[:20]
     name = f"natcoord_kernels_{digest}"

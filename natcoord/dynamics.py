@@ -81,7 +81,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
 
     plan0 = time.perf_counter()
     if compiled:
-        form.prepare_compiled()  # model-only set-up (sparsity plan): not stepping time
+        form.prepare_compiled(q0)  # model-only set-up (plan, kernels): not stepping time
     plan_s = time.perf_counter() - plan0
     compile_s = kernels.ensure_compiled(form.compiled_path) if compiled else 0.0
     wall0 = time.perf_counter()

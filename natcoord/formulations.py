@@ -28,6 +28,7 @@ then ``post_step``). Multipliers are computed once per output sample by
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -263,27 +264,45 @@ class Index1Loop(FormulationLoop):
             self._frc = compiled_forces(self.model)
         return self._frc is not None
 
-    def prepare_compiled(self) -> None:
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
         sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`) and its
-        generated kernels (:func:`natcoord.codegen.load`, None when the model has none)."""
+        generated kernels (:func:`natcoord.codegen.load`, None when the model has none).
+        A singular M takes the generated regularised route where it can
+        (:func:`natcoord.sparsity.dense_plan`, alpha from M and Phi_q at ``q0``), else the
+        general QR path."""
         from . import codegen
-        from .sparsity import schur_plan
-        sparse = self.regular and self.opt["linsolve"] != "qr"
+        from .sparsity import dense_plan, schur_plan
+        auto = self.opt["linsolve"] != "qr"
+        sparse = self.regular and auto
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None
         self._plan_args = None if self._plan is None else self._plan.kernel_args
         self._kern = (codegen.load(self._plan, self._frc) if sparse and self.opt["generated"]
                       else None)
+        if not self.regular and auto and self.opt["generated"]:
+            dense = dense_plan(self.cs.con, self.M, self._alpha(q0))
+            self._kern = codegen.load(dense, self._frc, self.M)
+            if self._kern is not None:  # the loop runs on it; outputs as the general path
+                self._plan_args = dense.kernel_args
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
+
+    def _alpha(self, q0) -> float:
+        """alpha of M + alpha J^T J: max diag M over max diag J^T J (at q0, or J's
+        coefficients alone), rounded to a power of two (one model, one set of kernels)."""
+        J = (self.cs.jacobian(np.asarray(q0, float), 0.0) if q0 is not None
+             else np.zeros((0, self.n)))
+        jj = float(np.max(np.sum(J * J, axis=0), initial=0.0)) or 1.0
+        mm = float(np.max(np.diag(self.M), initial=0.0)) or 1.0
+        return float(2.0 ** round(math.log2(mm / jj)))
 
     @property
     def compiled_path(self) -> str:
         """After :meth:`prepare_compiled`: the compiled loop's path for this model (one of
         :data:`natcoord.kernels.PATHS`)."""
-        if self._plan is None:
-            return "general"
-        return "sparse" if self._kern is None else "generated"
+        if self._kern is not None:
+            return "generated"
+        return "general" if self._plan is None else "sparse"
 
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both

@@ -52,7 +52,7 @@ _M = _WO + len(WORK) + 1
 (PHI_K, PHI_I, PHI_J, JAC_PTR, JAC_OTHER, GAM_K, GAM_I, GAM_J, J_ROW, J_COL, MI_PTR, MI_COL,
  Y_PTR, Y_J, YPTR, YCOL, W_PTR, W_J, W_Y, ENV_FIRST, ENV_PTR) = range(len(INT))
 PHI_V, JAC_V, GAM_V, MI_VAL, Y_COEF = range(_FO, _FO + len(FLOAT))
-W_J_, W_Y_, W_L_, W_W, W_C, W_F = range(_WO, _WO + len(WORK))
+W_J_, W_Y_, W_L_, W_W, W_C, W_F, W_G = range(_WO, _WO + len(WORK))
 
 
 if intrinsic is not None:

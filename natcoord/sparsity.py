@@ -35,7 +35,8 @@ INT = ("phi_k", "phi_i", "phi_j", "jac_ptr", "jac_other", "gam_k", "gam_i", "gam
        "J_col", "Mi_ptr", "Mi_col", "y_ptr", "y_j", "Y_ptr", "Y_col", "w_ptr", "w_j", "w_y",
        "env_first", "env_ptr")
 FLOAT = ("phi_v", "jac_v", "gam_v", "Mi_val", "y_coef")
-WORK = ("J", "Y", "L", "w", "c", "F")  # the compiled path's work array (values)
+WORK = ("J", "Y", "L", "w", "c", "F", "G")  # the compiled path's work array (values; G:
+# scratch of the generated kernels, see natcoord.codegen)
 
 
 class SchurPlan(NamedTuple):
@@ -51,6 +52,7 @@ class SchurPlan(NamedTuple):
     w_ptr (nL+1,), w_j, w_y            L[e] = sum J[w_j] Y[w_y] over w_ptr[e]:w_ptr[e+1] (W)
     env_first (m,), env_ptr (m+1,)     row r of L holds columns env_first[r]..r at env_ptr[r]
     m                                  rows; ``perm`` (m,) the case row of each plan row
+    scratch, alpha                     see :func:`dense_plan` (0 for a regular M)
     """
 
     phi_k: np.ndarray
@@ -82,6 +84,8 @@ class SchurPlan(NamedTuple):
     m: int
     dep_tol: float
     perm: np.ndarray
+    scratch: int = 0  # work the generated kernels keep beside these (M + alpha J^T J's L)
+    alpha: float = 0.0  # > 0: the regularised route of a singular M (see dense_plan)
 
     @property
     def kernel_args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -92,7 +96,7 @@ class SchurPlan(NamedTuple):
         ints = [getattr(self, k) for k in INT]
         floats = [getattr(self, k) for k in FLOAT]
         m, nJ, nY = self.m, len(self.jac_ptr) - 1, len(self.y_ptr) - 1
-        work = [nJ, nY, self.envelope, m, m, len(self.Mi_ptr) - 1]
+        work = [nJ, nY, self.envelope, m, m, len(self.Mi_ptr) - 1, self.scratch]
         off = [np.concatenate([[0], np.cumsum([len(a) for a in arrs])])
                for arrs in (ints, floats)] + [np.concatenate([[0], np.cumsum(work)])]
         O = np.concatenate(off + [[m, round(self.dep_tol * 1e18)]]).astype(np.int64)
@@ -150,6 +154,56 @@ def _ptr(slot: np.ndarray, size: int) -> np.ndarray:
     return _i64(np.searchsorted(np.sort(slot), np.arange(size + 1)))
 
 
+def _entries(k, i, n):
+    """The entries of J: one slot per (row, column) of the triplets on q, sorted by row:
+    (rows, columns, the slot of each triplet on q)."""
+    onq = i < n
+    ukey, inv = np.unique(k[onq] * n + i[onq], return_inverse=True)
+    return ukey // n, ukey % n, inv
+
+
+def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> SchurPlan:
+    """The plan of a singular M's regularised route, for the generated kernels only:
+
+        (M + alpha J^T J) qdd + J^T lambda = F + alpha J^T c,     J qdd = c
+
+    has the solution qdd of Eq. (6) for any alpha > 0, and M + alpha J^T J is positive
+    definite wherever ker M and ker J meet only in 0 (the existence condition). Its factor
+    changes with q, so Y = (M + alpha J^T J)^-1 J^T is dense (n, m), W = J Y is factored
+    over its full lower triangle, and ``scratch`` keeps the factor of M + alpha J^T J
+    (n (n + 1) / 2 entries); the M^-1 and Y-product lists are empty."""
+    k, i, j, v = (np.asarray(con.k, np.int64), np.asarray(con.i, np.int64),
+                  np.asarray(con.j, np.int64), np.asarray(con.v, float))
+    m, n = int(con.m), len(M)
+    onq = i < n
+    J_row, J_col, inv = _entries(k, i, n)
+    jo = np.argsort(inv, kind="stable")
+    Y_row, Y_col = np.repeat(np.arange(n), m), np.tile(np.arange(m), n)  # dense, by row
+    first = np.zeros(m, np.int64)
+    env_ptr = np.concatenate([[0], np.cumsum(np.arange(m) + 1)])
+    wj, wy, slot = [], [], []  # W[r, s] = sum_a J[r, a] Y[a, s], s <= r
+    for e, (r, a) in enumerate(zip(J_row, J_col, strict=True)):
+        for s_ in range(r + 1):
+            wj.append(e)
+            wy.append(a * m + s_)
+            slot.append(env_ptr[r] + s_)
+    wo = np.argsort(np.asarray(slot, np.int64), kind="stable")
+    gam = onq & (j < n)
+    po = np.argsort(k, kind="stable")
+    z, zf = np.zeros(0, np.int64), np.zeros(0)
+    return SchurPlan(
+        _i64(k[po]), _i64(i[po]), _i64(j[po]), _f64(v[po]),
+        _ptr(inv, len(J_row)), _i64(j[onq][jo]), _f64(v[onq][jo]),
+        _i64(k[gam]), _i64(i[gam]), _i64(j[gam]), _f64(v[gam]),
+        _i64(J_row), _i64(J_col), np.zeros(n + 1, np.int64), z, zf,
+        np.zeros(n * m + 1, np.int64), zf, z,
+        _i64(np.searchsorted(Y_row, np.arange(n + 1))), _i64(Y_col),
+        _ptr(np.asarray(slot, np.int64), int(env_ptr[-1])),
+        _i64(np.asarray(wj, np.int64)[wo]), _i64(np.asarray(wy, np.int64)[wo]),
+        first, _i64(env_ptr), m, float(dep_tol), np.arange(m, dtype=np.int64),
+        n * (n + 1) // 2, float(alpha))
+
+
 def schur_plan(con, M: np.ndarray, dep_tol: float = DEP_TOL) -> SchurPlan:
     """The plan for constraint triplets ``con`` (k, i, j, v, m over qh, see
     :class:`~natcoord.constraints.QuadraticConstraints`) and a regular mass matrix M (n, n)."""
@@ -166,10 +220,7 @@ def schur_plan(con, M: np.ndarray, dep_tol: float = DEP_TOL) -> SchurPlan:
     new = np.empty(m, np.int64)
     new[perm] = np.arange(m)
     k = new[k]
-    # J entries: one slot per (row, column), sorted by row
-    key = k[onq] * n + i[onq]
-    ukey, inv = np.unique(key, return_inverse=True)
-    J_row, J_col = ukey // n, ukey % n
+    J_row, J_col, inv = _entries(k, i, n)
     # Y = M^-1 J^T: Y[a, r] = sum_b Mi[a, b] J[r, b]; one product per (J entry, Mi[:, b] entry)
     MiT = Mi.tocsc()
     ya, yr, ycoef, yj = [], [], [], []

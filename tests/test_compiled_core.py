@@ -205,3 +205,45 @@ def test_generated_kernels_equal_the_generic_ones(name):
     assert sols[0].counters["steps"] > 5
     assert np.max(np.abs(sols[0].q - sols[1].q)) < 1e-10 * max(1.0, np.max(np.abs(sols[0].q)))
     assert np.max(np.abs(sols[0].qd - sols[1].qd)) < 1e-9 * max(1.0, np.max(np.abs(sols[0].qd)))
+
+
+@pytest.mark.parametrize("name", ["slider_crank", "pendulum"])
+def test_generated_forces_equal_the_generic_ones(name):
+    """A planar torque and a spring-damper added to a regular (slider_crank) and a singular
+    (pendulum: the regularised route) model: the generated kernels' accelerations equal the
+    generic kernels' (regular M) or the general QR path's (singular M) at a random state."""
+    from natcoord.kernels_general import pack_forces
+
+    _, model, st = _model(name)
+    n, M = model.n, np.asarray(model.M, float)
+    con = ConstraintSystem(model).con
+    base = compiled_forces(model)
+    G = np.zeros((2, 2, n + 1))  # torque 3 N m, spread over two difference vectors
+    G[0, 0, 0], G[0, 1, 1], G[0, 0, n] = 1.0, 1.0, -0.1
+    G[1, 0, 2], G[1, 1, 3], G[1, 1, n] = 1.0, 1.0, 0.2
+    S = np.zeros((1, 2, n + 1))  # spring from (0.3, -0.2) to the point (q0, q1)
+    S[0, 0, 0], S[0, 1, 1], S[0, 0, n], S[0, 1, n] = 1.0, 1.0, -0.3, 0.2
+    frc = pack_forces(base[0], None, G, np.array([0, 2]), np.array([[3.0, 0, 0]]), S,
+                      np.array([[50.0, 2.0, 0.4]]))
+    q = np.asarray(st.q, float)
+    qd = np.asarray(st.qd, float) + np.random.default_rng(5).standard_normal(n)
+    cnt = np.zeros(kernels.N_COUNTERS)
+    regular = name == "slider_crank"
+    plan = (sparsity.schur_plan(con, M) if regular else
+            sparsity.dense_plan(con, M, 1.0))
+    gk = codegen.load(plan, frc, None if regular else M)
+    assert gk is not None
+    I, F, O = plan.kernel_args
+    out = np.zeros(n)
+    ks.accelerations(I, F, O, gk, frc, q, qd, out, ks.workspace(plan.kernel_args), cnt, True)
+    if regular:
+        ref = np.zeros(n)
+        ks.accelerations(I, F, O, None, frc, q, qd, ref, ks.workspace(plan.kernel_args), cnt,
+                         True)
+    else:
+        from natcoord.kernels_general import acc_general, workspace
+        ref = np.zeros(n)
+        acc_general(con.k, con.i, con.j, con.v, M, 1e-9, frc, q, qd, ref,
+                    workspace(n, con.m), cnt)
+    assert np.max(np.abs(ref)) > 1.0
+    assert np.max(np.abs(out - ref)) < 1e-10 * np.max(np.abs(ref))

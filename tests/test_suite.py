@@ -172,3 +172,18 @@ def test_work_precision_reports_each_natcoord_formulation_apart():
     assert rows["natcoord (index1 dop853)"]["time_to_1e-09"] == 3.0
     assert rows["natcoord (index3 trapezoidal)"]["time_to_1e-06"] is None
     assert rows["mujoco"]["time_to_1e-06"] == 40.0 and rows["mujoco"]["time_to_1e-09"] is None
+
+
+def test_work_precision_times_each_point_like_a_bench_cell(monkeypatch):
+    """A sweep point runs once in a fresh process and then repeats in a second one (real
+    natcoord runs); its wall time is the best of every repeat, and its error is measured
+    against the stored reference."""
+    from natcoord.suite import bench
+
+    monkeypatch.setattr(bench, "SWEEPS", {"natcoord": [
+        {"formulation": "index1", "method": "dop853", "h": None, "rtol": 1e-8, "atol": 1e-10}]})
+    case = load_case(CASES / "slider_crank.toml")
+    (pt,) = bench.work_precision([case], ["natcoord"], references=REFERENCES, repeats=3)
+    assert pt["status"] == "ok" and pt["repeats"] == 3
+    assert 0 < pt["error"] < 1e-6  # rtol 1e-8 on the crank angle, against the reference
+    assert 0 < pt["wall_time_s"] < 1.0

@@ -139,6 +139,22 @@ def explain_cost(full: dict, short: dict | None) -> dict:
     return out
 
 
+def timed_runs(job, engine: str, tmp: Path, timeout_s: float, repeats: int,
+               settings: dict | None = None, per_run: float = 1.0) -> list[dict]:
+    """The run records of one timed cell, pinned to the bench's core: one run in a fresh
+    engine process, then ``repeats - 1`` more in a second process, as many as fit in
+    ``BATCH_S`` (``per_run``: the work of one repeat in whole runs). Every repeat's wall
+    time is in the records' ``samples_s``."""
+    runs = [run_subprocess(job, engine, tmp, timeout_s, settings, cpu=CORE)]
+    first = runs[0].get("wall_time_s") or 0.0
+    more = (repeats - 1 if first <= 0 else
+            min(repeats - 1, int(BATCH_S / (first * per_run))))
+    if runs[0]["status"] == "ok" and more > 0:
+        runs.append(run_subprocess(job, engine, tmp, timeout_s, settings, repeat=more,
+                                   cpu=CORE))
+    return runs
+
+
 def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
             references: Path | None = None) -> dict:
     """One cell's benchmark record: every repeat's wall time (``samples_s``), best, median,
@@ -147,12 +163,7 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
     ``[benchmark]``, the benchmark error of the run (``benchmark_error``)."""
     case = job.case
     job = dataclasses.replace(as_job(job), truncate=FIT_FRACTION)
-    runs = [run_subprocess(job, engine, tmp, timeout_s, cpu=CORE)]
-    first = runs[0].get("wall_time_s") or 0.0
-    more = (repeats - 1 if first <= 0 else
-            min(repeats - 1, int(BATCH_S / (first * (1 + FIT_FRACTION)))))
-    if runs[0]["status"] == "ok" and more > 0:
-        runs.append(run_subprocess(job, engine, tmp, timeout_s, repeat=more, cpu=CORE))
+    runs = timed_runs(job, engine, tmp, timeout_s, repeats, per_run=1 + FIT_FRACTION)
     ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
            "status": runs[-1]["status"],
@@ -298,11 +309,13 @@ def store(result: dict, out: Path, history_dir: Path | None = None) -> Path:
 
 
 def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
-                   references: Path = Path("references"), repeats: int = 1,
+                   references: Path = Path("references"), repeats: int = 5,
                    timeout_s: float = 600.0,
                    progress: Callable[[str, dict], None] | None = None) -> list[dict]:
     """Error of the first angle channel (``error``) and, for a case with a ``[benchmark]``,
-    the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep.
+    the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep:
+    every sweep point timed as a bench cell (:func:`timed_runs`: a fresh process, then up
+    to ``repeats - 1`` more runs in a second one), its best wall time.
 
     Returns one record per case x engine x setting, and per case x engine the time to
     reach each error in TARGETS (the cheapest point at or below it; None if none does).
@@ -317,8 +330,7 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                 continue
             for engine in engines:
                 for setting in SWEEPS.get(engine, []):
-                    runs = [run_subprocess(job, engine, Path(tmp), timeout_s, setting)
-                            for _ in range(repeats)]
+                    runs = timed_runs(job, engine, Path(tmp), timeout_s, repeats, setting)
                     ok = [r for r in runs if r["status"] == "ok"]
                     rec = {"case": case.name, "engine": engine, "setting": setting,
                            "variant": variant(setting), "channel": angle,
@@ -329,8 +341,10 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                         err = (float(np.max(np.abs(run[angle].to_numpy() -
                                                    ref[angle].to_numpy())))
                                if angle else None)
-                        rec |= {"error": err,
-                                "wall_time_s": min(r["wall_time_s"] for r in ok),
+                        rec |= {"error": err, "repeats": sum(len(r.get("samples_s") or [1])
+                                                             for r in ok),
+                                "wall_time_s": min(min(r.get("samples_s") or
+                                                       [r["wall_time_s"]]) for r in ok),
                                 "n_steps": ok[0]["n_steps"]}
                         if case.benchmark:
                             rec["benchmark_error"] = benchmark_error(case, csv, references)
