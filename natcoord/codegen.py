@@ -76,9 +76,7 @@ def _lin(terms: list[tuple[float | None, str]]) -> str:
     """A sum of ``coef * name`` (coef None: the name alone) as source; '0.0' when empty."""
     out = []
     for c, name in terms:
-        if c is None:
-            out.append(f"+ {name}")
-        elif c == 1.0:
+        if c is None or c == 1.0:
             out.append(f"+ {name}")
         elif c == -1.0:
             out.append(f"- {name}")

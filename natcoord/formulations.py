@@ -277,13 +277,12 @@ class Index1Loop(FormulationLoop):
         sparse = self.regular and auto
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None
         self._plan_args = None if self._plan is None else self._plan.kernel_args
-        self._kern = (codegen.load(self._plan, self._frc) if sparse and self.opt["generated"]
-                      else None)
-        if not self.regular and auto and self.opt["generated"]:
-            dense = dense_plan(self.cs.con, self.M, self._alpha(q0))
-            self._kern = codegen.load(dense, self._frc, self.M)
-            if self._kern is not None:  # the loop runs on it; outputs as the general path
-                self._plan_args = dense.kernel_args
+        self._kern = None
+        if auto and self.opt["generated"]:
+            plan = self._plan if sparse else dense_plan(self.cs.con, self.M, self._alpha(q0))
+            self._kern = codegen.load(plan, self._frc, self.M)
+            if self._kern is not None:  # a dense plan drives the loop only: the outputs
+                self._plan_args = plan.kernel_args  # stay on the general path
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
 

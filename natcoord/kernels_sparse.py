@@ -36,6 +36,7 @@ from .kernels_general import (
 from .sparsity import FLOAT, INT, WORK
 
 try:
+    from llvmlite import ir
     from numba import types
     from numba.core import cgutils
     from numba.extending import intrinsic
@@ -65,57 +66,35 @@ if intrinsic is not None:
                                                             value=args[0]).data
         return types.CPointer(arr.dtype)(arr), codegen
 
-    def _codegen_call(context, builder, sig, args):
-        """Call the C function at address args[0] (int64) with the pointers args[1:]."""
-        from llvmlite import ir
-        void = sig.return_type == types.void
-        rty = ir.VoidType() if void else context.get_value_type(sig.return_type)
-        fnty = ir.FunctionType(rty, [context.get_value_type(a) for a in sig.args[1:]])
-        out = builder.call(builder.inttoptr(args[0], fnty.as_pointer()), args[1:])
-        return context.get_dummy_value() if void else out
-
     # call(ret, address, p0, p1[, p2[, p3]]): the generated kernels travel as an array of
     # addresses, which the dispatcher types for nothing (first-class function objects cost
     # it tens of microseconds a call)
+    def _lower_call(context, builder, sig, args):
+        """Call the C function at address args[1] (int64) with the pointers args[2:],
+        returning sig.return_type (args[0] only carries that type)."""
+        void = sig.return_type == types.void
+        rty = ir.VoidType() if void else context.get_value_type(sig.return_type)
+        fnty = ir.FunctionType(rty, [context.get_value_type(a) for a in sig.args[2:]])
+        out = builder.call(builder.inttoptr(args[1], fnty.as_pointer()), args[2:])
+        return context.get_dummy_value() if void else out
+
     @intrinsic
     def _call2(typingctx, ret, address, p0, p1):
-        return ret.instance_type(ret, address, p0, p1), \
-            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
-                                                  args[1:])
+        return ret.instance_type(ret, address, p0, p1), _lower_call
 
     @intrinsic
     def _call3(typingctx, ret, address, p0, p1, p2):
-        return ret.instance_type(ret, address, p0, p1, p2), \
-            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
-                                                  args[1:])
+        return ret.instance_type(ret, address, p0, p1, p2), _lower_call
 
     @intrinsic
     def _call4(typingctx, ret, address, p0, p1, p2, p3):
-        return ret.instance_type(ret, address, p0, p1, p2, p3), \
-            lambda c, b, sig, args: _codegen_call(c, b, sig.replace(args=sig.args[1:]),
-                                                  args[1:])
+        return ret.instance_type(ret, address, p0, p1, p2, p3), _lower_call
 
-
-@njit(cache=True, inline="always")
-def _seg(A, O, k):
-    """Segment k of the packed array A (an integer, float or work segment by k)."""
-    return A[O[k]:O[k + 1]]
-
-
-def workspace(plan: tuple) -> np.ndarray:
-    """The work array of plan (I, F, O): values of J, Y, L and three
-    vectors (m, m, n)."""
-    O = plan[2]
-    return np.zeros(int(O[_M - 1] - O[_WO]))
-
-
-if intrinsic is not None:
     @intrinsic
     def _fma(typingctx, a, b, c):
         """a * b + c rounded once (LLVM's fma: the processor's instruction where it has
         one)."""
         def codegen(context, builder, sig, args):
-            from llvmlite import ir
             d = ir.DoubleType()
             f = cgutils.get_or_insert_function(builder.module, ir.FunctionType(d, [d, d, d]),
                                                "llvm.fma.f64")
@@ -125,6 +104,19 @@ else:  # pragma: no cover - numba is a dependency
     def _fma(a, b, c):
         from fractions import Fraction
         return float(Fraction(a) * Fraction(b) + Fraction(c))
+
+
+@njit(cache=True, inline="always")
+def _seg(A, O, k):
+    """Segment k of the packed array A (an integer, float or work segment by k)."""
+    return A[O[k]:O[k + 1]]
+
+
+def workspace(plan: tuple) -> np.ndarray:
+    """The work array of plan (I, F, O): values of J, Y, L, three vectors (m, m, n) and
+    the generated kernels' scratch (:data:`natcoord.sparsity.WORK`)."""
+    O = plan[2]
+    return np.zeros(int(O[_M - 1] - O[_WO]))
 
 
 @njit(cache=True, inline="always")
@@ -420,11 +412,7 @@ def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
     w = _seg(ws, O, W_W)
     for k in range(T):
         q, qd = Q[k], QD[k]
-        phi(I, F, O, q, w)
-        e = 0.0
-        for r in range(w.shape[0]):
-            e = max(e, abs(w[r]))
-        drift[k, 0] = e
+        drift[k, 0] = _phi_max(I, F, O, None, q, w)
         jacobian(I, F, O, q, _seg(ws, O, W_J_))
         drift[k, 1] = jx(I, O, _seg(ws, O, W_J_), qd, w)
         if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_)) > 0:

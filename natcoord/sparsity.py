@@ -162,6 +162,19 @@ def _entries(k, i, n):
     return ukey // n, ukey % n, inv
 
 
+def _triplet_lists(k, i, j, v, n, inv, nJ) -> tuple:
+    """The plan's first eleven fields (Phi's terms sorted by row, J's gather lists, gamma's
+    triplets) from the triplets with rows k in plan order, ``inv`` of :func:`_entries`
+    and its nJ entries."""
+    onq = i < n
+    jo = np.argsort(inv, kind="stable")
+    gam = onq & (j < n)
+    po = np.argsort(k, kind="stable")  # Phi's terms row by row (one running sum per row)
+    return (_i64(k[po]), _i64(i[po]), _i64(j[po]), _f64(v[po]),
+            _ptr(inv, nJ), _i64(j[onq][jo]),
+            _f64(v[onq][jo]), _i64(k[gam]), _i64(i[gam]), _i64(j[gam]), _f64(v[gam]))
+
+
 def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> SchurPlan:
     """The plan of a singular M's regularised route, for the generated kernels only:
 
@@ -175,9 +188,7 @@ def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> Sc
     k, i, j, v = (np.asarray(con.k, np.int64), np.asarray(con.i, np.int64),
                   np.asarray(con.j, np.int64), np.asarray(con.v, float))
     m, n = int(con.m), len(M)
-    onq = i < n
     J_row, J_col, inv = _entries(k, i, n)
-    jo = np.argsort(inv, kind="stable")
     Y_row, Y_col = np.repeat(np.arange(n), m), np.tile(np.arange(m), n)  # dense, by row
     first = np.zeros(m, np.int64)
     env_ptr = np.concatenate([[0], np.cumsum(np.arange(m) + 1)])
@@ -188,13 +199,9 @@ def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> Sc
             wy.append(a * m + s_)
             slot.append(env_ptr[r] + s_)
     wo = np.argsort(np.asarray(slot, np.int64), kind="stable")
-    gam = onq & (j < n)
-    po = np.argsort(k, kind="stable")
     z, zf = np.zeros(0, np.int64), np.zeros(0)
     return SchurPlan(
-        _i64(k[po]), _i64(i[po]), _i64(j[po]), _f64(v[po]),
-        _ptr(inv, len(J_row)), _i64(j[onq][jo]), _f64(v[onq][jo]),
-        _i64(k[gam]), _i64(i[gam]), _i64(j[gam]), _f64(v[gam]),
+        *_triplet_lists(k, i, j, v, n, inv, len(J_row)),
         _i64(J_row), _i64(J_col), np.zeros(n + 1, np.int64), z, zf,
         np.zeros(n * m + 1, np.int64), zf, z,
         _i64(np.searchsorted(Y_row, np.arange(n + 1))), _i64(Y_col),
@@ -254,17 +261,13 @@ def schur_plan(con, M: np.ndarray, dep_tol: float = DEP_TOL) -> SchurPlan:
     np.minimum.at(first, wr, ws)
     env_ptr = np.concatenate([[0], np.cumsum(np.arange(m) - first + 1)])
     w_slot = env_ptr[wr] + (ws - first[wr])
-    gam = onq & (j < n)
     ycoef = np.concatenate(ycoef) if ycoef else np.zeros(0)
     yj = np.concatenate(yj) if yj else np.zeros(0, np.int64)
     wj = np.concatenate(wj) if wj else np.zeros(0, np.int64)
     wy = np.concatenate(wy) if wy else np.zeros(0, np.int64)
-    jo, yo, wo = (np.argsort(x, kind="stable") for x in (inv, y_slot, w_slot))
-    po = np.argsort(k, kind="stable")  # Phi's terms row by row (one running sum per row)
+    yo, wo = (np.argsort(x, kind="stable") for x in (y_slot, w_slot))
     return SchurPlan(
-        _i64(k[po]), _i64(i[po]), _i64(j[po]), _f64(v[po]),
-        _ptr(inv, len(J_row)), _i64(j[onq][jo]), _f64(v[onq][jo]),
-        _i64(k[gam]), _i64(i[gam]), _i64(j[gam]), _f64(v[gam]),
+        *_triplet_lists(k, i, j, v, n, inv, len(J_row)),
         _i64(J_row), _i64(J_col),
         _i64(Mi.indptr), _i64(Mi.indices), _f64(Mi.data),
         _ptr(y_slot, len(Y_row)), _f64(ycoef[yo]), _i64(yj[yo]),
