@@ -151,10 +151,11 @@ def _phi(plan: SchurPlan, n: int, w: _Writer) -> None:
 
 
 class _Chol:
-    """A Cholesky factor L L^T of a symmetric (size, size) matrix written out entry by entry:
-    its non-zeros (the matrix's ``pattern`` below the diagonal and their fill) named
-    ``{prefix}{r}_{c}``, its inverse pivots ``{prefix}d{r}``, stored in ws at
-    ``base + slot(r, c)``."""
+    """A root-free Cholesky factor L D L^T of a symmetric (size, size) matrix written out
+    entry by entry: the non-zeros of the unit lower L (the matrix's ``pattern`` below the
+    diagonal and their fill) named ``{prefix}{r}_{c}``, the inverse pivots D^-1
+    ``{prefix}d{r}``, stored in ws at ``base + slot(r, c)``. No square roots: each pivot
+    costs one division on the factorization's critical path."""
 
     def __init__(self, size: int, pattern: set, prefix: str, base: int, slot):
         self.size, self.prefix, self.base, self.slot = size, prefix, base, slot
@@ -177,23 +178,24 @@ class _Chol:
         """Factor the matrix whose entry (r, c), c <= r, is the expression ``value(r, c)``
         (None: zero). ``dep_tol``: a semi-definite matrix, whose pivots below dep_tol of
         their diagonal mark dependent rows (inverse pivot 0, counted in ``dep``); None: a
-        definite one (a non-positive pivot gives NaN, which the loop reports)."""
+        definite one (a non-positive pivot gives NaN or inf, which the loop reports)."""
+        p = self.prefix
         for r in range(self.size):
-            for c, ks in self.terms[r]:
-                fill = [(-1.0, f"{self.name(r, k)} * {self.name(c, k)}") for k in ks]
+            for c, ks in self.terms[r]:  # u = L[r, c] D[c], then L[r, c]
+                fill = [(-1.0, f"{p}u{r}_{k} * {self.name(c, k)}") for k in ks]
                 v = value(r, c)
-                w(f"{self.name(r, c)} = ({_lin(([(None, v)] if v else []) + fill)}) * "
-                  f"{self.name(c, c)}")
+                w(f"{p}u{r}_{c} = {_lin(([(None, v)] if v else []) + fill)}")
+                w(f"{self.name(r, c)} = {p}u{r}_{c} * {self.name(c, c)}")
                 w(f"ws[{self.base + self.slot(r, c)}] = {self.name(r, c)}")
             w(f"wd = {value(r, r) or '0.0'}")
-            sq = [(-1.0, f"{self.name(r, c)} * {self.name(r, c)}") for c in self.below[r]]
+            sq = [(-1.0, f"{p}u{r}_{c} * {self.name(r, c)}") for c in self.below[r]]
             w(f"s = {_lin([(None, 'wd')] + sq)}")
             d = self.name(r, r)
             if dep_tol is None:
-                w(f"{d} = 1.0 / math.sqrt(s)")
+                w(f"{d} = 1.0 / s")
             else:
                 w(f"if s > {_num(dep_tol)} * wd and s > 0.0:")
-                w(f"{d} = 1.0 / math.sqrt(s)", 2)
+                w(f"{d} = 1.0 / s", 2)
                 w("else:")
                 w(f"{d} = 0.0", 2)
                 w("dep += 1", 2)
@@ -205,21 +207,23 @@ class _Chol:
                 w(f"{self.name(r, c)} = ws[{self.base + self.slot(r, c)}]")
 
     def solve(self, w: _Writer, b: str, zeros: set | None = None) -> None:
-        """Locals b0.. <- (L L^T)^-1 b (a dependent row's 0); ``zeros``: the entries of b
+        """Locals b0.. <- (L D L^T)^-1 b (a dependent row's 0); ``zeros``: the entries of b
         known to be zero (not assigned by the caller, skipped until they fill)."""
         zero = set(zeros or ())
-        for r in range(self.size):
+        for r in range(self.size):  # L z = b
             terms = [(-1.0, f"{self.name(r, c)} * {b}{c}") for c in self.below[r]
                      if c not in zero]
             if r in zero and not terms:
                 continue
             own = [] if r in zero else [(None, f"{b}{r}")]
-            w(f"{b}{r} = ({_lin(own + terms)}) * {self.name(r, r)}")
+            w(f"{b}{r} = {_lin(own + terms)}")
             zero.discard(r)
-        for r in range(self.size - 1, -1, -1):
+        for r in range(self.size):  # D^-1 z: independent products, off the critical path
+            if r not in zero:
+                w(f"{b}{r} = {b}{r} * {self.name(r, r)}")
+        for r in range(self.size - 1, -1, -1):  # L^T x = D^-1 z
             if r in zero:
                 continue
-            w(f"{b}{r} = {b}{r} * {self.name(r, r)}")
             for c in self.below[r]:
                 if c in zero:
                     w(f"{b}{c} = -{self.name(r, c)} * {b}{r}")

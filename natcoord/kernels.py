@@ -136,28 +136,20 @@ FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed st
 ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 
 
-# ---- one evaluation on either path ------------------------------------------------------
+# ---- the general path's evaluations ----------------------------------------------------
+# (the loop calls the sparse path's kernels directly: a wrapper choosing between the two
+# cost 50 ns a call, a quarter of a projection on a small model)
 @njit(cache=True)
-def _accel(plan, gk, ws, gen, frc, q, qd, qdd, wg, cnt):
-    """qdd (n,) at (q, qd), factoring at q; a status code. ``wg`` None: the sparse Schur
-    path on ``plan`` / ``ws`` (``gk``: the model's generated kernels, or None); else the
-    general path on ``gen`` = (k, i, j, v, M, rank_tol) (numba compiles each apart: the
-    ``is None`` branches are resolved when compiling)."""
-    if wg is None:
-        return kernels_sparse.accelerations(plan[0], plan[1], plan[2], gk, frc, q, qd, qdd,
-                                            ws, cnt, True)
+def _accel_general(gen, frc, q, qd, qdd, wg, cnt):
+    """qdd (n,) at (q, qd) on the general path, ``gen`` = (k, i, j, v, M, rank_tol); a
+    status code."""
     kk, ii, jj, vv, M, rank_tol = gen
     return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
-def _settle(plan, gk, ws, gen, frc, q, qd, qdd, ptol, wg, cnt, factored):
-    """Project (q, qd) in place and evaluate qdd there; a status code. The sparse path
-    starts its simplified Newton from the factorization of the last evaluation when
-    ``factored`` (one was made near q)."""
-    if wg is None:
-        return kernels_sparse.settle(plan[0], plan[1], plan[2], gk, frc, q, qd, qdd, ptol,
-                                     ws, cnt, factored)
+def _settle_general(gen, frc, q, qd, qdd, ptol, wg, cnt):
+    """Project (q, qd) in place and evaluate qdd there on the general path; a status code."""
     kk, ii, jj, vv, M, rank_tol = gen
     st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
     if st != OK:
@@ -214,7 +206,8 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`;
     ``gk`` the addresses of the model's generated kernels, :mod:`natcoord.codegen`, or
     None); else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
-    arrays (:func:`kernels_general.workspace`); ``frc``: :func:`pack_forces`; ``tab`` =
+    arrays (:func:`kernels_general.workspace`), None off that path; ``frc``:
+    :func:`pack_forces`, None with generated kernels (they carry the forces); ``tab`` =
     (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
@@ -222,6 +215,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
     """
     A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
+    I, F, O = plan
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
     Q, QD, QDD, cnt = out
     fixed = h_fixed > 0.0
@@ -249,7 +243,8 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = _settle(plan, gk, ws, gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt, False)
+    st_code = (kernels_sparse.settle(I, F, O, gk, frc, y[:n], y[n:], qdd, ptol, ws, cnt, False)
+               if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
     if st_code != OK:
         return st_code
     f0[:n] = y[n:]
@@ -286,7 +281,9 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
         for st in range(1, s_st):
             _combine(y, hh, A[st], st, K, ys)
             K[st, :n] = ys[n:]
-            st_code = _accel(plan, gk, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
+            st_code = (
+                kernels_sparse.accelerations(I, F, O, gk, frc, ys[:n], ys[n:], qdd, ws, cnt, True)
+                if wg is None else _accel_general(gen, frc, ys[:n], ys[n:], qdd, wg, cnt))
             if st_code != OK:
                 return st_code
             K[st, n:] = qdd
@@ -338,7 +335,10 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 st = s_st + e
                 _combine(y, hh, Aext[e], st, K, ys)
                 K[st, :n] = ys[n:]
-                st_code = _accel(plan, gk, ws, gen, frc, ys[:n], ys[n:], qdd, wg, cnt)
+                st_code = (
+                    kernels_sparse.accelerations(I, F, O, gk, frc, ys[:n], ys[n:], qdd, ws, cnt,
+                                                 True)
+                    if wg is None else _accel_general(gen, frc, ys[:n], ys[n:], qdd, wg, cnt))
                 if st_code != OK:
                     return st_code
                 K[st, n:] = qdd
@@ -349,7 +349,8 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
             for r in range(D.shape[0]):
                 _combine(zero, hh, D[r], s_st + n_ext, K, Fd[3 + r])
-        st_code = _settle(plan, gk, ws, gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt, True)
+        st_code = (kernels_sparse.settle(I, F, O, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, cnt, True)
+                   if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
             h = 0.5 * hh                        # reject it and try a shorter one
@@ -382,7 +383,9 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = _settle(plan, gk, ws, gen, frc, qs, qds, qdd, ptol, wg, cnt, False)
+                st_code = (
+                    kernels_sparse.settle(I, F, O, gk, frc, qs, qds, qdd, ptol, ws, cnt, False)
+                    if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
                     return st_code
                 Q[k_out] = qs
@@ -472,16 +475,19 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     Tn, n = len(times), len(q0)
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
-    gen = (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
-           np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
-           as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
+    # what a path does not use goes as None: the arrays of a tuple passed cost time at
+    # every call, and the None branches are compiled away
+    gen = None if plan is not None else (
+        np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
+        np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
+        as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
     kern = kern if plan is not None else None  # generated kernels serve the sparse path
-    status = run_index1(args, kern, ws, gen, wg, frc, tab, ctl,
+    status = run_index1(args, kern, ws, gen, wg, None if kern is not None else frc, tab, ctl,
                         np.ascontiguousarray(times, float), np.array(q0, float),
                         np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:

@@ -301,19 +301,29 @@ def refactor(I, F, O, gk, q, ws, cnt):
 @njit(cache=True)
 def accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, fresh):
     """qdd (n,) of Eq. (6) at (q, qd); ``fresh``: factor at q first (else ``ws`` holds
-    the factorization at this q already)."""
+    the factorization at this q already). ``frc`` None: the generated kernels ``gk`` carry
+    the forces (the compiled loop passes None there: a tuple of seven arrays costs more to
+    pass than the kernels take to run)."""
     cnt[C_RHS] += 1
-    if gk is None:
-        if fresh:
-            refactor(I, F, O, gk, q, ws, cnt)
-        w = multipliers(I, F, O, frc, q, qd, qdd, ws)
-        sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
-    elif fresh:
+    if frc is not None:
+        if gk is None:
+            if fresh:
+                refactor(I, F, O, gk, q, ws, cnt)
+            w = multipliers(I, F, O, frc, q, qd, qdd, ws)
+            sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
+            return OK
+    if fresh:
         cnt[C_FACT] += 1
-        _call4(types.void, gk[5], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
-    else:
-        _call4(types.void, gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
+    _generated_acc(gk, q, qd, qdd, ws, fresh)
     return OK
+
+
+@njit(cache=True, inline="always")
+def _generated_acc(gk, q, qd, qdd, ws, fresh):
+    """qdd by the generated kernels (fused with the factorization when ``fresh``); nothing
+    when ``gk`` is None (compiled away)."""
+    if gk is not None:
+        _call4(types.void, gk[5] if fresh else gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
 
 
 @njit(cache=True)

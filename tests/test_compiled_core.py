@@ -173,7 +173,8 @@ def test_generated_kernels_equal_the_generic_ones(name):
     generic sparse kernels on the same plan: Phi at a perturbed pose; the accelerations
     (factor and solve), a Newton correction and J x at the initial pose (where a redundant
     system such as Bricard's is consistent) with random velocities; then a whole adaptive
-    dop853 run each way."""
+    dop853 run each way, at a tolerance tight enough that A02's samples near its singular
+    position (where projecting a sample amplifies round-off a thousandfold) agree too."""
     case, model, st = _model(name)
     M = np.asarray(model.M, float)
     con = ConstraintSystem(model).con
@@ -200,7 +201,7 @@ def test_generated_kernels_equal_the_generic_ones(name):
         scale = max(1.0, float(np.max(np.abs(a))))
         assert np.max(np.abs(np.asarray(a) - np.asarray(b))) < 1e-12 * scale
     sols = [integrate(model, st, case.times[case.times <= 0.5 + 1e-12],
-                      Solver(Index1(generated=g), "dop853", Adaptive(rtol=1e-9, atol=1e-11)))
+                      Solver(Index1(generated=g), "dop853", Adaptive(rtol=1e-11, atol=1e-13)))
             for g in (False, True)]
     assert sols[0].counters["steps"] > 5
     assert np.max(np.abs(sols[0].q - sols[1].q)) < 1e-10 * max(1.0, np.max(np.abs(sols[0].q)))
