@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .constraints import ConstraintBuilder
+from .constraints import ROUNDOFF, ConstraintBuilder
 from .drivers import DriverRow
 from .model import GROUND, J2, Body, Element, JointForce, Model, Spring
 
@@ -183,6 +183,11 @@ class Builder:
             Mab[0, 0] = mass
             Mab[0, 1:] = Mab[1:, 0] = mass * cbar
             Mab[1:, 1:] = Dp @ Jo @ Dp.T
+            # symmetric, and an entry at round-off of the largest is an exact zero (1e-17
+            # from a rotated frame): zeroed, so that M's structural zeros stay zeros, and
+            # with them those of M^-1 and of the generated kernels
+            Mab = 0.5 * (Mab + Mab.T)
+            Mab[np.abs(Mab) < ROUNDOFF * np.max(np.abs(Mab))] = 0.0
             maps = [b.G0[:, :-1]] + [g[:, :-1] for g in G]
             cols = np.flatnonzero(np.any([np.any(x, axis=0) for x in maps], axis=0))
             sub = [x[:, cols] for x in maps]  # the body's own columns: O(1) per body

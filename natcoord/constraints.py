@@ -26,6 +26,7 @@ import numpy as np
 
 # cross(a, b) = a^T S b in 2-D
 S2 = np.array([[0.0, 1.0], [-1.0, 0.0]])
+ROUNDOFF = 1e-14  # relative size of a coefficient taken for round-off (see _emit)
 
 
 class ConstraintBuilder:
@@ -49,11 +50,19 @@ class ConstraintBuilder:
         return len(self.labels)
 
     def _emit(self, rows_i, rows_j, vals):
-        k = np.full(len(vals), self.m, dtype=np.int64)
-        self.k.append(k)
-        self.i.append(np.asarray(rows_i, dtype=np.int64))
-        self.j.append(np.asarray(rows_j, dtype=np.int64))
-        self.v.append(np.asarray(vals, dtype=float))
+        """One row's triplets, its round-off dropped: a coefficient below ROUNDOFF of the
+        largest of its kind in the row (quadratic, or linear in q) is the trace of an exact
+        zero (a direction at 90 degrees, a rotated frame) and goes, so that the row's
+        structure is its exact one (build drops the zeros)."""
+        ii, jj = np.asarray(rows_i, dtype=np.int64), np.asarray(rows_j, dtype=np.int64)
+        vv = np.array(vals, dtype=float)
+        for kind in ((ii < self.n) & (jj < self.n), (ii < self.n) != (jj < self.n)):
+            big = np.max(np.abs(vv[kind]), initial=0.0)
+            vv[kind & (np.abs(vv) < ROUNDOFF * big)] = 0.0
+        self.k.append(np.full(len(vv), self.m, dtype=np.int64))
+        self.i.append(ii)
+        self.j.append(jj)
+        self.v.append(vv)
 
     def linear(self, a: np.ndarray, label: str, length_dim: int = 1) -> int:
         """Add ``a @ qh = 0`` for a (n + 1,) row ``a``; returns the row index."""

@@ -66,6 +66,16 @@ if intrinsic is not None:
                                                             value=args[0]).data
         return types.CPointer(arr.dtype)(arr), codegen
 
+    @intrinsic
+    def _ptr_at(typingctx, arr, k):
+        """The pointer to arr[k] of a contiguous 1-D float64 array: a part of it for a
+        generated kernel without the slice (a view costs two atomic reference counts)."""
+        def codegen(context, builder, sig, args):
+            data = cgutils.create_struct_proxy(sig.args[0])(context, builder,
+                                                            value=args[0]).data
+            return builder.gep(data, [args[1]])
+        return types.CPointer(arr.dtype)(arr, k), codegen
+
     # call(ret, address, p0, p1[, p2[, p3]]): the generated kernels travel as an array of
     # addresses, which the dispatcher types for nothing (first-class function objects cost
     # it tens of microseconds a call)
