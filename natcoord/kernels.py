@@ -140,11 +140,12 @@ ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 # (the loop calls the sparse path's kernels directly: a wrapper choosing between the two
 # cost 50 ns a call, a quarter of a projection on a small model)
 @njit(cache=True)
-def _accel_general(gen, frc, q, qd, qdd, wg, cnt):
-    """qdd (n,) at (q, qd) on the general path, ``gen`` = (k, i, j, v, M, rank_tol); a
-    status code."""
+def _accel_general(gen, frc, y, qdd, wg, cnt):
+    """qdd (n,) at the state y = [q, qd] on the general path, ``gen`` = (k, i, j, v, M,
+    rank_tol); a status code."""
     kk, ii, jj, vv, M, rank_tol = gen
-    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
+    n = qdd.shape[0]
+    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, y[:n], y[n:], qdd, wg, cnt)
 
 
 @njit(cache=True)
@@ -185,16 +186,33 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
 
 
 @njit(cache=True)
-def _combine(y, h, c, s, K, out):
-    """out = y + h sum_{p < s} c[p] K[p] (rows of K; zero weights skipped)."""
+def _combine(y, h, C, row, s, K, out):
+    """out = y + h sum_{p < s} C[row, p] K[p] (rows of K; zero weights skipped)."""
     N = y.shape[0]
     for a in range(N):
         out[a] = y[a]
     for p in range(s):
-        w = h * c[p]
+        w = h * C[row, p]
         if w != 0.0:
             for a in range(N):
                 out[a] += w * K[p, a]
+
+
+@njit(cache=True)
+def _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
+    """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]) (ys,
+    qdd: scratch); a status code. Written without slices (see acc_state)."""
+    n = qdd.shape[0]
+    for st in range(lo, hi):
+        _combine(y, h, A, st, st, K, ys)
+        st_code = (kernels_sparse.acc_state(I, F, O, gk, frc, ys, qdd, ws, cnt)
+                   if wg is None else _accel_general(gen, frc, ys, qdd, wg, cnt))
+        if st_code != OK:
+            return st_code
+        for a in range(n):
+            K[st, a] = ys[n + a]
+            K[st, n + a] = qdd[a]
+    return OK
 
 
 @njit(cache=True)
@@ -224,8 +242,13 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     s_st = B.shape[0]
     n_ext = Aext.shape[0]
     K = np.zeros((s_st + n_ext, N))
+    Aall = np.zeros((s_st + n_ext, s_st + n_ext))  # the step's and the extension's stages
+    Aall[:s_st, :s_st] = A
+    Aall[s_st:, :] = Aext[:, :s_st + n_ext]
+    B2, E52, E32 = B.reshape((1, s_st)), E5.reshape((1, s_st)), E3.reshape((1, s_st))
     Fd = np.zeros((D.shape[0] + 3, N))  # dop853 continuous extension (order 7)
     wd = np.zeros(D.shape[0] + 3)       # its weights at one sample
+    wd2 = wd.reshape((1, wd.shape[0]))
     zero = np.zeros(N)
     x5 = np.zeros(N)   # the error estimates' combinations of the stages
     x3 = np.zeros(N)
@@ -278,19 +301,13 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             hh = min(h, tend - t)
         # stages
         K[0] = f0
-        for st in range(1, s_st):
-            _combine(y, hh, A[st], st, K, ys)
-            K[st, :n] = ys[n:]
-            st_code = (
-                kernels_sparse.accelerations(I, F, O, gk, frc, ys[:n], ys[n:], qdd, ws, cnt, True)
-                if wg is None else _accel_general(gen, frc, ys[:n], ys[n:], qdd, wg, cnt))
-            if st_code != OK:
-                return st_code
-            K[st, n:] = qdd
+        st_code = _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, hh, Aall, 1, s_st, K, ys, qdd)
+        if st_code != OK:
+            return st_code
         if fsal:  # the last stage is at the new point
             yn[:] = ys
         else:
-            _combine(y, hh, B, s_st, K, yn)
+            _combine(y, hh, B2, 0, s_st, K, yn)
         # error norm
         err = 0.0
         if fixed:
@@ -298,8 +315,8 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
         elif dop853:
             e5 = 0.0
             e3 = 0.0
-            _combine(zero, 1.0, E5, s_st, K, x5)
-            _combine(zero, 1.0, E3, s_st, K, x3)
+            _combine(zero, 1.0, E52, 0, s_st, K, x5)
+            _combine(zero, 1.0, E32, 0, s_st, K, x3)
             for a in range(N):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
                 e5 += (x5[a] / sc) ** 2
@@ -310,7 +327,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 err = hh * e5 / math.sqrt((e5 + 0.01 * e3) * N)
         else:
             e5 = 0.0
-            _combine(zero, 1.0, E5, s_st, K, x5)
+            _combine(zero, 1.0, E52, 0, s_st, K, x5)
             for a in range(N):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
                 e5 += (hh * x5[a] / sc) ** 2
@@ -331,24 +348,17 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             t1 = tend
         inner = k_out < T_out and times[k_out] < t1 - 1e-13 * max(1.0, abs(t1))
         if dop853 and inner:
-            for e in range(n_ext):
-                st = s_st + e
-                _combine(y, hh, Aext[e], st, K, ys)
-                K[st, :n] = ys[n:]
-                st_code = (
-                    kernels_sparse.accelerations(I, F, O, gk, frc, ys[:n], ys[n:], qdd, ws, cnt,
-                                                 True)
-                    if wg is None else _accel_general(gen, frc, ys[:n], ys[n:], qdd, wg, cnt))
-                if st_code != OK:
-                    return st_code
-                K[st, n:] = qdd
+            st_code = _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, hh, Aall, s_st,
+                              s_st + n_ext, K, ys, qdd)
+            if st_code != OK:
+                return st_code
             for a in range(N):
                 dy = yn[a] - y[a]
                 Fd[0, a] = dy
                 Fd[1, a] = hh * K[0, a] - dy
                 Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
             for r in range(D.shape[0]):
-                _combine(zero, hh, D[r], s_st + n_ext, K, Fd[3 + r])
+                _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
         st_code = (kernels_sparse.settle(I, F, O, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, cnt, True)
                    if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
@@ -378,7 +388,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                     for i2 in range(nF):
                         c *= x if (nF - 1 - i2) % 2 == 0 else 1.0 - x
                         wd[i2] = c
-                    _combine(y, 1.0, wd, nF, Fd, yu)
+                    _combine(y, 1.0, wd2, 0, nF, Fd, yu)
                     qs[:] = yu[:n]
                     qds[:] = yu[n:]
                 else:

@@ -324,16 +324,31 @@ def accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, fresh):
             return OK
     if fresh:
         cnt[C_FACT] += 1
-    _generated_acc(gk, q, qd, qdd, ws, fresh)
+    _generated_acc(gk, _ptr(q), _ptr(qd), qdd, ws, fresh)
+    return OK
+
+
+@njit(cache=True)
+def acc_state(I, F, O, gk, frc, y, qdd, ws, cnt):
+    """qdd (n,) at the state y = [q, qd] (2n,), factoring there (a stage of the loop); a
+    status code. The generated kernels get pointers into y: slicing it costs two atomic
+    reference counts, a tenth of a stage on a small model."""
+    n = qdd.shape[0]
+    if frc is not None:
+        if gk is None:
+            return accelerations(I, F, O, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
+    cnt[C_RHS] += 1
+    cnt[C_FACT] += 1
+    _generated_acc(gk, _ptr(y), _ptr_at(y, n), qdd, ws, True)
     return OK
 
 
 @njit(cache=True, inline="always")
-def _generated_acc(gk, q, qd, qdd, ws, fresh):
-    """qdd by the generated kernels (fused with the factorization when ``fresh``); nothing
-    when ``gk`` is None (compiled away)."""
+def _generated_acc(gk, pq, pqd, qdd, ws, fresh):
+    """qdd by the generated kernels from pointers to q and qd (fused with the factorization
+    when ``fresh``); nothing when ``gk`` is None (compiled away)."""
     if gk is not None:
-        _call4(types.void, gk[5] if fresh else gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
+        _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, _ptr(qdd), _ptr(ws))
 
 
 @njit(cache=True)
