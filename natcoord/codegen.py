@@ -5,25 +5,26 @@ The plan (:mod:`natcoord.sparsity`) holds every product of one evaluation as ind
 which the generic kernels (:mod:`natcoord.kernels_sparse`) walk at run time. For a small
 model the walk costs more than the arithmetic: this module writes those lists out as
 Python source with one statement per entry -- constants folded (M^-1 Q0, the rows'
-coefficients), structural zeros of the Cholesky factor dropped, no index array, no loop --
+coefficients), W factored as L D L^T without square roots and the factor's structural zeros
+dropped, no index array, no loop --
 and compiles it with numba into six C-callable functions (``cfunc``) of one signature
 each, whatever the model:
 
     phi(q, out)              out (m,) = Phi(q), every row summed in two doubles
-    refactor(q, ws) -> int   J, Y = M^-1 J^T and L L^T = J Y at q into ws; dependent rows
+    refactor(q, ws) -> int   J, Y = M^-1 J^T and L D L^T = J Y at q into ws; dependent rows
     rhs(q, qd, qdd, ws)      qdd (n,) of Eq. (6) with the factorization in ws
-    newton(ws, w, x)         x (n,) -= Y (L L^T)^-1 w, w (m,) overwritten
+    newton(ws, w, x)         x (n,) -= Y (L D L^T)^-1 w, w (m,) overwritten
     jx(ws, x, w) -> float    w (m,) = J x; max |w|
     acc(q, qd, qdd, ws)      refactor and rhs in one
 
 A singular M's model gets the same six from its dense plan
-(:func:`natcoord.sparsity.dense_plan`: M + alpha J^T J factored at every evaluation). The
+(:func:`natcoord.sparsity.dense_plan`: M + alpha J_S^T J_S factored at every evaluation). The
 compiled loop (:func:`natcoord.kernels.run_index1`) takes their addresses and calls them
 through a numba intrinsic, so it is compiled once for every model; a model's functions are
 compiled on its first run (a few seconds: build time) and cached on disk under the hash of
 their source (``NATCOORD_CACHE_DIR``, default ``~/.cache/natcoord``).
 ``ws`` is the plan's work array (:func:`natcoord.kernels_sparse.workspace`); L's diagonal
-slots hold the inverse pivots here (0 for a dependent row), so that only these functions
+slots hold the inverse pivots D^-1 here (0 for a dependent row), so that only these functions
 may read a work array they wrote. Units: SI.
 """
 
@@ -60,7 +61,7 @@ def supported(plan: SchurPlan, frc: tuple) -> bool:
     n = len(plan.Y_ptr) - 1
     terms = (len(plan.phi_k) + len(plan.jac_other) + len(plan.y_coef) + len(plan.w_j)
              + 4 * plan.envelope + len(plan.gam_k))
-    if plan.alpha > 0:  # the factor of M + alpha J^T J and m solves with it: dense, so
+    if plan.alpha > 0:  # the factor of M + alpha J_S^T J_S and m solves with it: dense, so
         dense = n * n * (plan.m + n) // 2  # kept to small models (compile time)
         if dense > MAX_DENSE:
             return False
@@ -206,9 +207,10 @@ class _Chol:
             for c in self.below[r] + [r]:
                 w(f"{self.name(r, c)} = ws[{self.base + self.slot(r, c)}]")
 
-    def solve(self, w: _Writer, b: str, zeros: set | None = None) -> None:
+    def solve(self, w: _Writer, b: str, zeros: set | None = None) -> set:
         """Locals b0.. <- (L D L^T)^-1 b (a dependent row's 0); ``zeros``: the entries of b
-        known to be zero (not assigned by the caller, skipped until they fill)."""
+        known to be zero (not assigned by the caller, skipped until they fill). Returns the
+        entries of the solution that stay structurally zero."""
         zero = set(zeros or ())
         for r in range(self.size):  # L z = b
             terms = [(-1.0, f"{self.name(r, c)} * {b}{c}") for c in self.below[r]
@@ -232,11 +234,13 @@ class _Chol:
                     w(f"{b}{c} -= {self.name(r, c)} * {b}{r}")
         for r in sorted(zero):
             w(f"{b}{r} = 0.0")
+        return zero
 
 
 class _Structure:
     """Names and the structural pattern of J, Y, the factor of W = J Y and, on a singular
-    M's route (``plan.alpha > 0``), the factor of M + alpha J^T J."""
+    M's route (``plan.alpha > 0``), the factor of M + alpha J_S^T J_S and the structural
+    non-zeros of Y = (M + alpha J_S^T J_S)^-1 J^T."""
 
     def __init__(self, plan: SchurPlan, offsets: tuple[int, int, int, int], M):
         self.plan = plan
@@ -247,24 +251,38 @@ class _Structure:
         def slot(r, c):
             return int(ptr[r] + c - first[r])
         self.wslot = slot
-        pattern = {(r, c) for r in range(m) for c in range(first[r], r)
-                   if plan.w_ptr[slot(r, c) + 1] > plan.w_ptr[slot(r, c)]}
-        self.L = _Chol(m, pattern, "l", self.oL, slot)
         self.rows: list[list[tuple[int, int]]] = [[] for _ in range(m)]  # (entry, column)
         for e, (r, a) in enumerate(zip(plan.J_row, plan.J_col, strict=True)):
             self.rows[r].append((e, int(a)))
-        self.G = None
-        if plan.alpha > 0:  # M + alpha J^T J: M's pattern and the pairs of every J row
+        pattern = {(r, c) for r in range(m) for c in range(first[r], r)
+                   if plan.w_ptr[slot(r, c) + 1] > plan.w_ptr[slot(r, c)]}
+        self.G, self.ynz = None, None
+        if plan.alpha > 0:  # M + alpha J_S^T J_S: M's pattern and the pairs of the S rows
             self.M = np.asarray(M, float)
+            self.reg = [int(r) for r in plan.reg]
             pm = {(a, b) for a in range(n) for b in range(a) if self.M[a, b] != 0.0}
-            pm |= {(max(a, b), min(a, b)) for row in self.rows for _, a in row
-                   for _, b in row if a != b}
+            pm |= {(max(a, b), min(a, b)) for r in self.reg for _, a in self.rows[r]
+                   for _, b in self.rows[r] if a != b}
             self.G = _Chol(n, pm, "g", self.oG, lambda a, b: a * (a + 1) // 2 + b)
+            # column r of Y solves with that factor: its structural non-zeros, and W's
+            self.ynz = [set(range(n)) - self.G.solve(_Writer(), "z", set(range(n)) - {
+                a for _, a in self.rows[r]}) for r in range(m)]
+            pattern = {(r, c) for r in range(m) for c in range(r) if self.y_hits(r, c)}
+        self.L = _Chol(m, pattern, "l", self.oL, slot)
+
+    def y_hits(self, r: int, c: int) -> bool:
+        """Whether J[r] Y[:, c] has a structural non-zero term (always on a regular M's
+        route, whose plan lists only those)."""
+        return self.ynz is None or any(a in self.ynz[c] for _, a in self.rows[r])
+
+    def y_nonzero(self, a: int, c: int) -> bool:
+        """Whether Y[a, c] can be non-zero."""
+        return self.ynz is None or a in self.ynz[c]
 
     def mbar(self, a: int, b: int) -> str | None:
-        """Entry (a, b), b <= a, of M + alpha J^T J as an expression (None: zero)."""
-        terms = [(self.plan.alpha, f"j{e} * j{f}") for row in self.rows
-                 for e, x in row for f, y in row if x == a and y == b]
+        """Entry (a, b), b <= a, of M + alpha J_S^T J_S as an expression (None: zero)."""
+        terms = [(self.plan.alpha, f"j{e} * j{f}") for r in self.reg
+                 for e, x in self.rows[r] for f, y in self.rows[r] if x == a and y == b]
         if self.M[a, b] != 0.0:
             terms.append((float(self.M[a, b]), "1.0"))
         return _lin(terms) if terms else None
@@ -287,7 +305,8 @@ class _Structure:
         p = self.plan
         for a in range(len(p.Y_ptr) - 1):
             s, t = p.Y_ptr[a], p.Y_ptr[a + 1]
-            terms = [(-1.0, f"y{e} * {b}{p.Y_col[e]}") for e in range(s, t)]
+            terms = [(-1.0, f"y{e} * {b}{p.Y_col[e]}") for e in range(s, t)
+                     if self.y_nonzero(a, int(p.Y_col[e]))]
             if base is None:
                 if terms:
                     w(f"{target}[{a}] -= {' + '.join(t for _, t in terms)}")
@@ -302,7 +321,7 @@ class _Structure:
 
 def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = True) -> None:
     """J, Y and the factor of W, as :func:`natcoord.kernels_sparse.factor` (a singular M's
-    route: Y by solves with the factor of M + alpha J^T J, made first)."""
+    route: Y by solves with the factor of M + alpha J_S^T J_S, made first)."""
     if head:
         w("def refactor(q, ws):", 0)
     for e in range(len(plan.jac_ptr) - 1):
@@ -319,7 +338,7 @@ def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = 
     else:
         st.G.factor(w, st.mbar, None)
         m = plan.m
-        for r in range(m):  # column r of Y: (M + alpha J^T J) y = J[r]^T
+        for r in range(m):  # column r of Y: (M + alpha J_S^T J_S) y = J[r]^T
             cols = {a: e for e, a in st.rows[r]}
             for a, e in cols.items():
                 w(f"z{a} = j{e}")
@@ -331,9 +350,10 @@ def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = 
 
     def value(r, c):
         sl = st.wslot(r, c)
-        s, t = plan.w_ptr[sl], plan.w_ptr[sl + 1]
-        return _lin([(None, f"j{plan.w_j[p]} * y{plan.w_y[p]}") for p in range(s, t)]) \
-            if t > s else None
+        terms = [(None, f"j{plan.w_j[p]} * y{plan.w_y[p]}")
+                 for p in range(plan.w_ptr[sl], plan.w_ptr[sl + 1])
+                 if st.y_nonzero(int(plan.w_y[p]) // max(plan.m, 1), c)]
+        return _lin(terms) if terms else None
     st.L.factor(w, value, plan.dep_tol)
     if head:
         w("return dep")
@@ -342,10 +362,10 @@ def _refactor(plan: SchurPlan, n: int, st: _Structure, w: _Writer, head: bool = 
 
 def _rhs(plan: SchurPlan, n: int, frc: tuple, st: _Structure, w: _Writer,
          fused: bool = False) -> None:
-    """qdd = M^-1 F - Y lambda, (L L^T) lambda = J M^-1 F - c, as
+    """qdd = M^-1 F - Y lambda, (L D L^T) lambda = J M^-1 F - c, as
     :func:`natcoord.kernels_sparse.accelerations` with the factorization in ws, or
     ``fused``: factoring at q first (J, Y, L kept in registers, and stored). A singular
-    M's route: M + alpha J^T J for M and F + alpha J^T c for F."""
+    M's route: M + alpha J_S^T J_S for M and F + alpha J_S^T c_S for F."""
     Q0, T = frc[0], frc[1]
     Mi = np.zeros((n, n))
     for a in range(n):
@@ -369,11 +389,11 @@ def _rhs(plan: SchurPlan, n: int, frc: tuple, st: _Structure, w: _Writer,
         if st.G is None:
             for a in range(n):
                 w(f"mf{a} = {_lin([(float(Mi[a, b]), f'f{b}') for b in np.flatnonzero(Mi[a])])}")
-        else:  # mf = (M + alpha J^T J)^-1 (F + alpha J^T c), c = -qd^T H qd
-            for r in range(plan.m):
+        else:  # mf = (M + alpha J_S^T J_S)^-1 (F + alpha J_S^T c_S), c = -qd^T H qd
+            for r in st.reg:
                 w(f"c{r} = {_lin([(-v, t) for v, t in gam[r]])}")
             for a in range(n):
-                terms = [(plan.alpha, f"j{e} * c{r}") for r in range(plan.m)
+                terms = [(plan.alpha, f"j{e} * c{r}") for r in st.reg
                          for e, x in st.rows[r] if x == a]
                 w(f"mf{a} = {_lin([(None, f'f{a}')] + terms)}")
             st.G.solve(w, "mf")

@@ -287,7 +287,7 @@ class Index1Loop(FormulationLoop):
             self.mode = "schur" if sparse else "qr"
 
     def _alpha(self, q0) -> float:
-        """alpha of M + alpha J^T J: max diag M over max diag J^T J (at q0, or J's
+        """alpha of M + alpha J_S^T J_S: max diag M over max diag J^T J (at q0, or J's
         coefficients alone), rounded to a power of two (one model, one set of kernels)."""
         J = (self.cs.jacobian(np.asarray(q0, float), 0.0) if q0 is not None
              else np.zeros((0, self.n)))

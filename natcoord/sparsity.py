@@ -84,8 +84,9 @@ class SchurPlan(NamedTuple):
     m: int
     dep_tol: float
     perm: np.ndarray
-    scratch: int = 0  # work the generated kernels keep beside these (M + alpha J^T J's L)
+    scratch: int = 0  # work the generated kernels keep beside these (M + alpha J_S^T J_S's L)
     alpha: float = 0.0  # > 0: the regularised route of a singular M (see dense_plan)
+    reg: np.ndarray | None = None  # the rows regularising it (dense_plan)
 
     @property
     def kernel_args(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -178,17 +179,23 @@ def _triplet_lists(k, i, j, v, n, inv, nJ) -> tuple:
 def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> SchurPlan:
     """The plan of a singular M's regularised route, for the generated kernels only:
 
-        (M + alpha J^T J) qdd + J^T lambda = F + alpha J^T c,     J qdd = c
+        (M + alpha J_S^T J_S) qdd + J^T lambda = F + alpha J_S^T c_S,     J qdd = c
 
-    has the solution qdd of Eq. (6) for any alpha > 0, and M + alpha J^T J is positive
-    definite wherever ker M and ker J meet only in 0 (the existence condition). Its factor
-    changes with q, so Y = (M + alpha J^T J)^-1 J^T is dense (n, m), W = J Y is factored
-    over its full lower triangle, and ``scratch`` keeps the factor of M + alpha J^T J
-    (n (n + 1) / 2 entries); the M^-1 and Y-product lists are empty."""
+    has the solution qdd of Eq. (6) for any alpha > 0 and any set S of rows. With S the
+    rows that touch a coordinate moved by ker M (``reg``: a massless point's), J_S v = J v
+    for every v in ker M, so M + alpha J_S^T J_S is positive definite wherever ker M and
+    ker J meet only in 0 (the existence condition), and it couples fewer coordinates than
+    M + alpha J^T J. Its factor changes with q, so Y = (M + alpha J_S^T J_S)^-1 J^T is dense
+    (n, m), W = J Y is factored over its full lower triangle, and ``scratch`` keeps the
+    factor (n (n + 1) / 2 entries); the M^-1 and Y-product lists are empty."""
     k, i, j, v = (np.asarray(con.k, np.int64), np.asarray(con.i, np.int64),
                   np.asarray(con.j, np.int64), np.asarray(con.v, float))
     m, n = int(con.m), len(M)
     J_row, J_col, inv = _entries(k, i, n)
+    lam, V = np.linalg.eigh(0.5 * (M + M.T))
+    null = V[:, lam <= 1e-12 * max(float(lam[-1]), 1e-300)]  # a basis of ker M
+    moved = np.flatnonzero(np.any(np.abs(null) > 1e-12, axis=1))
+    reg = np.unique(J_row[np.isin(J_col, moved)])
     Y_row, Y_col = np.repeat(np.arange(n), m), np.tile(np.arange(m), n)  # dense, by row
     first = np.zeros(m, np.int64)
     env_ptr = np.concatenate([[0], np.cumsum(np.arange(m) + 1)])
@@ -208,7 +215,7 @@ def dense_plan(con, M: np.ndarray, alpha: float, dep_tol: float = DEP_TOL) -> Sc
         _ptr(np.asarray(slot, np.int64), int(env_ptr[-1])),
         _i64(np.asarray(wj, np.int64)[wo]), _i64(np.asarray(wy, np.int64)[wo]),
         first, _i64(env_ptr), m, float(dep_tol), np.arange(m, dtype=np.int64),
-        n * (n + 1) // 2, float(alpha))
+        n * (n + 1) // 2, float(alpha), _i64(reg))
 
 
 def schur_plan(con, M: np.ndarray, dep_tol: float = DEP_TOL) -> SchurPlan:

@@ -208,11 +208,15 @@ def test_generated_kernels_equal_the_generic_ones(name):
     assert np.max(np.abs(sols[0].qd - sols[1].qd)) < 1e-9 * max(1.0, np.max(np.abs(sols[0].qd)))
 
 
-@pytest.mark.parametrize("name", ["slider_crank", "pendulum"])
+@pytest.mark.parametrize("name", ["slider_crank", "pendulum", "five_bar"])
 def test_generated_forces_equal_the_generic_ones(name):
     """A planar torque and a spring-damper added to a regular (slider_crank) and a singular
-    (pendulum: the regularised route) model: the generated kernels' accelerations equal the
-    generic kernels' (regular M) or the general QR path's (singular M) at a random state."""
+    (pendulum, five_bar: the regularised route) model: the generated kernels' accelerations
+    equal the generic kernels' (regular M) or the general QR path's (singular M) at a
+    random state. five_bar's massless points are touched by five of its eight rows: only
+    those regularise M."""
+    from scipy.linalg import null_space
+
     from natcoord.kernels_general import pack_forces
 
     _, model, st = _model(name)
@@ -227,13 +231,18 @@ def test_generated_forces_equal_the_generic_ones(name):
     frc = pack_forces(base[0], None, G, np.array([0, 2]), np.array([[3.0, 0, 0]]), S,
                       np.array([[50.0, 2.0, 0.4]]))
     q = np.asarray(st.q, float)
-    qd = np.asarray(st.qd, float) + np.random.default_rng(5).standard_normal(n)
+    # a random admissible velocity (Phi_q qd = 0): five_bar's redundant rows leave the
+    # accelerations of any other without a solution
+    N = null_space(ConstraintSystem(model).jacobian(q, 0.0))
+    qd = np.asarray(st.qd, float) + N @ np.random.default_rng(5).standard_normal(N.shape[1])
     cnt = np.zeros(kernels.N_COUNTERS)
     regular = name == "slider_crank"
     plan = (sparsity.schur_plan(con, M) if regular else
             sparsity.dense_plan(con, M, 1.0))
     gk = codegen.load(plan, frc, None if regular else M)
     assert gk is not None
+    if name == "five_bar":
+        assert list(plan.reg) == [2, 3, 4, 5, 7]
     I, F, O = plan.kernel_args
     out = np.zeros(n)
     ks.accelerations(I, F, O, gk, frc, q, qd, out, ks.workspace(plan.kernel_args), cnt, True)
