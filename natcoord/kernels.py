@@ -132,6 +132,9 @@ def tableau(name: str) -> tuple:
     return TABLEAUX_OF[name]()
 
 
+SAMPLE_TRUST = 1e3  # a sample starts Newton from the last factorization (at the previous
+# sample or the step's end) when its residual is within this factor of the tolerance, else
+# it factors first (a refactor costs as much as about two simplified iterations)
 FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed step
 ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 
@@ -266,7 +269,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = (kernels_sparse.settle(I, F, O, gk, frc, y[:n], y[n:], qdd, ptol, ws, cnt, False)
+    st_code = (kernels_sparse.settle(I, F, O, gk, frc, y[:n], y[n:], qdd, ptol, ws, cnt, 0.0)
                if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
     if st_code != OK:
         return st_code
@@ -359,8 +362,9 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
             for r in range(D.shape[0]):
                 _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
-        st_code = (kernels_sparse.settle(I, F, O, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, cnt, True)
-                   if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
+        st_code = (  # the last stage factored at yn: Newton from it
+            kernels_sparse.settle(I, F, O, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, cnt, math.inf)
+            if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
             h = 0.5 * hh                        # reject it and try a shorter one
@@ -394,7 +398,8 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
                 st_code = (
-                    kernels_sparse.settle(I, F, O, gk, frc, qs, qds, qdd, ptol, ws, cnt, False)
+                    kernels_sparse.settle(I, F, O, gk, frc, qs, qds, qdd, ptol, ws, cnt,
+                                          SAMPLE_TRUST)
                     if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
                     return st_code

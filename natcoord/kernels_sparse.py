@@ -398,16 +398,18 @@ def _newton_step(I, O, gk, ws, w, x):
 
 
 @njit(cache=True)
-def settle(I, F, O, gk, frc, q, qd, qdd, tol, ws, cnt, factored):
+def settle(I, F, O, gk, frc, q, qd, qdd, tol, ws, cnt, trust):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
-    in ``ws`` (``factored``: one made near q, e.g. at the last stage or sample; refreshed
-    at the current q when the contraction is slow), factor once at the projected q, project
-    qd on Phi_q qd = 0 with it and evaluate qdd there. Returns a status code."""
+    in ``ws`` (made near q: at the last stage, sample or step end; refreshed at the current
+    q when the contraction is slow), factor once at the projected q, project qd on
+    Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``trust``: the
+    stored factorization starts Newton while max |Phi| <= trust tol (inf: it was made at
+    this q; 0: factor first)."""
     w = _seg(ws, O, W_W)
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
     e = _phi_max(I, F, O, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)
-    if not factored and e >= tol:
+    if e >= tol and e > trust * tol:
         refactor(I, F, O, gk, q, ws, cnt)
     prev = math.inf
     fresh = False  # the factorization is at the current q (true Newton this iteration)
