@@ -202,13 +202,13 @@ def _combine(y, h, C, row, s, K, out):
 
 
 @njit(cache=True)
-def _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
+def _stages(P, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
     """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]) (ys,
     qdd: scratch); a status code. Written without slices (see acc_state)."""
     n = qdd.shape[0]
     for st in range(lo, hi):
         _combine(y, h, A, st, st, K, ys)
-        st_code = (kernels_sparse.acc_state(I, F, O, gk, frc, ys, qdd, ws, cnt)
+        st_code = (kernels_sparse.acc_state(P, gk, frc, ys, qdd, ws, cnt)
                    if wg is None else _accel_general(gen, frc, ys, qdd, wg, cnt))
         if st_code != OK:
             return st_code
@@ -219,16 +219,19 @@ def _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
 
 
 @njit(cache=True)
-def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
+def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
     on the constraints first: adaptive (embedded pair, steps cross the samples, dense
     output) or fixed steps (landing on every sample).
 
-    ``wg`` None: the sparse Schur path on ``plan``/``ws`` (:mod:`natcoord.kernels_sparse`;
-    ``gk`` the addresses of the model's generated kernels, :mod:`natcoord.codegen`, or
-    None); else the general path on ``gen`` = (k, i, j, v, M, rank_tol) with ``wg`` its work
-    arrays (:func:`kernels_general.workspace`), None off that path; ``frc``:
-    :func:`pack_forces`, None with generated kernels (they carry the forces); ``tab`` =
+    ``wg`` None: the sparse Schur path on the work array ``ws`` and its vector ``w``
+    (:mod:`natcoord.kernels_sparse`), by the generic kernels on the plan ``P`` = (I, F, O)
+    or, P None, by the model's generated kernels ``gk`` (addresses, :mod:`natcoord.codegen`;
+    ``NO_GK`` with a plan); else the general path on ``gen`` = (k, i, j, v, M, rank_tol)
+    with ``wg`` its work arrays (:func:`kernels_general.workspace`), None off that path;
+    ``frc``: :func:`pack_forces`, None with generated kernels (they carry the forces). What
+    a path does not use goes as None: a tuple's arrays cost time at every call, and numba
+    compiles the None branches away. ``tab`` =
     (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
@@ -236,7 +239,6 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
     """
     A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
-    I, F, O = plan
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
     Q, QD, QDD, cnt = out
     fixed = h_fixed > 0.0
@@ -269,7 +271,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = (kernels_sparse.settle(I, F, O, gk, frc, y[:n], y[n:], qdd, ptol, ws, cnt, 0.0)
+    st_code = (kernels_sparse.settle(P, gk, frc, y[:n], y[n:], qdd, ptol, ws, w, cnt, 0.0)
                if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
     if st_code != OK:
         return st_code
@@ -304,7 +306,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             hh = min(h, tend - t)
         # stages
         K[0] = f0
-        st_code = _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, hh, Aall, 1, s_st, K, ys, qdd)
+        st_code = _stages(P, gk, frc, gen, wg, ws, cnt, y, hh, Aall, 1, s_st, K, ys, qdd)
         if st_code != OK:
             return st_code
         if fsal:  # the last stage is at the new point
@@ -351,7 +353,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             t1 = tend
         inner = k_out < T_out and times[k_out] < t1 - 1e-13 * max(1.0, abs(t1))
         if dop853 and inner:
-            st_code = _stages(I, F, O, gk, frc, gen, wg, ws, cnt, y, hh, Aall, s_st,
+            st_code = _stages(P, gk, frc, gen, wg, ws, cnt, y, hh, Aall, s_st,
                               s_st + n_ext, K, ys, qdd)
             if st_code != OK:
                 return st_code
@@ -363,7 +365,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             for r in range(D.shape[0]):
                 _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
         st_code = (  # the last stage factored at yn: Newton from it
-            kernels_sparse.settle(I, F, O, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, cnt, math.inf)
+            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, math.inf)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
@@ -398,7 +400,7 @@ def run_index1(plan, gk, ws, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
                 st_code = (
-                    kernels_sparse.settle(I, F, O, gk, frc, qs, qds, qdd, ptol, ws, cnt,
+                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt,
                                           SAMPLE_TRUST)
                     if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
@@ -490,8 +492,6 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     Tn, n = len(times), len(q0)
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
-    # what a path does not use goes as None: the arrays of a tuple passed cost time at
-    # every call, and the None branches are compiled away
     gen = None if plan is not None else (
         np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
         np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
@@ -499,10 +499,13 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
+    w = ws[args[2][kernels_sparse.W_W]:args[2][kernels_sparse.W_W + 1]]
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
-    kern = kern if plan is not None else None  # generated kernels serve the sparse path
-    status = run_index1(args, kern, ws, gen, wg, None if kern is not None else frc, tab, ctl,
+    generated = kern is not None and plan is not None  # they serve the sparse path
+    status = run_index1(None if generated else args,
+                        kern if generated else kernels_sparse.NO_GK, ws, w, gen, wg,
+                        None if generated else frc, tab, ctl,
                         np.ascontiguousarray(times, float), np.array(q0, float),
                         np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:

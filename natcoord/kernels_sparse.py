@@ -43,6 +43,7 @@ try:
 except ImportError:  # pragma: no cover - numba is a dependency
     intrinsic = None
 
+NO_GK = np.zeros(0, np.int64)  # no generated kernels (see refactor)
 NEWTON_MAX = 12  # simplified-Newton iterations of one projection
 NEWTON_RATE = 0.25  # a slower contraction refreshes the factorization at the current q
 
@@ -297,67 +298,63 @@ def solve(I, O, Lv, b):
 
 
 @njit(cache=True)
-def refactor(I, F, O, gk, q, ws, cnt):
-    """J, Y and L at q into the work array ``ws`` (``gk``: the model's generated kernels of
-    :mod:`natcoord.codegen`, or None for the generic ones; numba compiles the two apart)."""
-    if gk is None:
+def refactor(P, gk, q, ws, cnt):
+    """J, Y and L at q into the work array ``ws``: by the generic kernels on the plan
+    ``P`` = (I, F, O), or, P None, by the model's generated kernels ``gk`` (addresses, see
+    :mod:`natcoord.codegen`; :data:`NO_GK` with a plan). The generated path passes no plan
+    and no force tuple: their arrays cost more to pass than its kernels take to run, and
+    numba compiles the None branches away."""
+    if P is None:
+        _call2(types.int64, gk[1], _ptr(q), _ptr(ws))
+    else:
+        I, F, O = P
         jacobian(I, F, O, q, _seg(ws, O, W_J_))
         factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
-    else:
-        _call2(types.int64, gk[1], _ptr(q), _ptr(ws))
     cnt[C_FACT] += 1
 
 
 @njit(cache=True)
-def accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, fresh):
+def accelerations(P, gk, frc, q, qd, qdd, ws, cnt, fresh):
     """qdd (n,) of Eq. (6) at (q, qd); ``fresh``: factor at q first (else ``ws`` holds
-    the factorization at this q already). ``frc`` None: the generated kernels ``gk`` carry
-    the forces (the compiled loop passes None there: a tuple of seven arrays costs more to
-    pass than the kernels take to run)."""
+    the factorization at this q already). ``frc``: the packed forces, None with generated
+    kernels (they carry them)."""
     cnt[C_RHS] += 1
-    if frc is not None:
-        if gk is None:
-            if fresh:
-                refactor(I, F, O, gk, q, ws, cnt)
-            w = multipliers(I, F, O, frc, q, qd, qdd, ws)
-            sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
-            return OK
-    if fresh:
-        cnt[C_FACT] += 1
-    _generated_acc(gk, _ptr(q), _ptr(qd), qdd, ws, fresh)
+    if P is None:
+        if fresh:
+            cnt[C_FACT] += 1
+        _call4(types.void, gk[5] if fresh else gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
+    else:
+        I, F, O = P
+        if fresh:
+            refactor(P, gk, q, ws, cnt)
+        w = multipliers(I, F, O, frc, q, qd, qdd, ws)
+        sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
     return OK
 
 
 @njit(cache=True)
-def acc_state(I, F, O, gk, frc, y, qdd, ws, cnt):
+def acc_state(P, gk, frc, y, qdd, ws, cnt):
     """qdd (n,) at the state y = [q, qd] (2n,), factoring there (a stage of the loop); a
     status code. The generated kernels get pointers into y: slicing it costs two atomic
     reference counts, a tenth of a stage on a small model."""
     n = qdd.shape[0]
-    if frc is not None:
-        if gk is None:
-            return accelerations(I, F, O, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
-    cnt[C_RHS] += 1
-    cnt[C_FACT] += 1
-    _generated_acc(gk, _ptr(y), _ptr_at(y, n), qdd, ws, True)
-    return OK
-
-
-@njit(cache=True, inline="always")
-def _generated_acc(gk, pq, pqd, qdd, ws, fresh):
-    """qdd by the generated kernels from pointers to q and qd (fused with the factorization
-    when ``fresh``); nothing when ``gk`` is None (compiled away)."""
-    if gk is not None:
-        _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, _ptr(qdd), _ptr(ws))
+    if P is None:
+        cnt[C_RHS] += 1
+        cnt[C_FACT] += 1
+        _call4(types.void, gk[5], _ptr(y), _ptr_at(y, n), _ptr(qdd), _ptr(ws))
+        return OK
+    else:
+        return accelerations(P, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
 
 
 @njit(cache=True)
-def _phi_max(I, F, O, gk, q, w):
+def _phi_max(P, gk, q, w):
     """w (m,) = Phi(q); returns max |w|."""
-    if gk is None:
-        phi(I, F, O, q, w)
-    else:
+    if P is None:
         _call2(types.void, gk[0], _ptr(q), _ptr(w))
+    else:
+        I, F, O = P
+        phi(I, F, O, q, w)
     e = 0.0
     for r in range(w.shape[0]):
         e = max(e, abs(w[r]))
@@ -365,11 +362,13 @@ def _phi_max(I, F, O, gk, q, w):
 
 
 @njit(cache=True)
-def _jx(I, O, gk, ws, x, w):
+def _jx(P, gk, ws, x, w):
     """w (m,) = J x with the stored J; returns max |w|."""
-    if gk is None:
+    if P is None:
+        return _call3(types.float64, gk[4], _ptr(ws), _ptr(x), _ptr(w))
+    else:
+        I, F, O = P
         return jx(I, O, _seg(ws, O, W_J_), x, w)
-    return _call3(types.float64, gk[4], _ptr(ws), _ptr(x), _ptr(w))
 
 
 @njit(cache=True)
@@ -388,29 +387,29 @@ def multipliers(I, F, O, frc, q, qd, f_over_m, ws):
 
 
 @njit(cache=True)
-def _newton_step(I, O, gk, ws, w, x):
-    """x -= Y L^-T L^-1 w (an M-orthogonal correction with the stored factorization)."""
-    if gk is None:
+def _newton_step(P, gk, ws, w, x):
+    """x -= Y (L L^T)^-1 w (an M-orthogonal correction with the stored factorization)."""
+    if P is None:
+        _call3(types.void, gk[3], _ptr(ws), _ptr(w), _ptr(x))
+    else:
+        I, F, O = P
         solve(I, O, _seg(ws, O, W_L_), w)
         sub_y(I, O, _seg(ws, O, W_Y_), w, x)
-    else:
-        _call3(types.void, gk[3], _ptr(ws), _ptr(w), _ptr(x))
 
 
 @njit(cache=True)
-def settle(I, F, O, gk, frc, q, qd, qdd, tol, ws, cnt, trust):
+def settle(P, gk, frc, q, qd, qdd, tol, ws, w, cnt, trust):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
     in ``ws`` (made near q: at the last stage, sample or step end; refreshed at the current
     q when the contraction is slow), factor once at the projected q, project qd on
     Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``trust``: the
     stored factorization starts Newton while max |Phi| <= trust tol (inf: it was made at
-    this q; 0: factor first)."""
-    w = _seg(ws, O, W_W)
+    this q; 0: factor first). ``w`` (m,): the work vector of ``ws`` (segment W_W)."""
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
-    e = _phi_max(I, F, O, gk, q, w)
+    e = _phi_max(P, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)
     if e >= tol and e > trust * tol:
-        refactor(I, F, O, gk, q, ws, cnt)
+        refactor(P, gk, q, ws, cnt)
     prev = math.inf
     fresh = False  # the factorization is at the current q (true Newton this iteration)
     it = 0
@@ -418,22 +417,22 @@ def settle(I, F, O, gk, frc, q, qd, qdd, tol, ws, cnt, trust):
         if it >= NEWTON_MAX:
             return ERR_NEWTON
         if e > NEWTON_RATE * prev and not fresh:
-            refactor(I, F, O, gk, q, ws, cnt)
+            refactor(P, gk, q, ws, cnt)
             fresh = True
         else:
             fresh = False
-        _newton_step(I, O, gk, ws, w, q)
+        _newton_step(P, gk, ws, w, q)
         cnt[C_NEWTON] += 1
         prev = e
-        e = _phi_max(I, F, O, gk, q, w)
+        e = _phi_max(P, gk, q, w)
         it += 1
-    refactor(I, F, O, gk, q, ws, cnt)
-    ev = _jx(I, O, gk, ws, qd, w)
+    refactor(P, gk, q, ws, cnt)
+    ev = _jx(P, gk, ws, qd, w)
     cnt[C_PHID] = max(cnt[C_PHID], ev)
     if ev > tol:
-        _newton_step(I, O, gk, ws, w, qd)
+        _newton_step(P, gk, ws, w, qd)
     cnt[C_PROJ] += 1
-    return accelerations(I, F, O, gk, frc, q, qd, qdd, ws, cnt, False)
+    return accelerations(P, gk, frc, q, qd, qdd, ws, cnt, False)
 
 
 @njit(cache=True)
@@ -449,7 +448,7 @@ def sample_outputs(I, F, O, frc, Q, QD, LAM, drift, ws, cnt):
     w = _seg(ws, O, W_W)
     for k in range(T):
         q, qd = Q[k], QD[k]
-        drift[k, 0] = _phi_max(I, F, O, None, q, w)
+        drift[k, 0] = _phi_max((I, F, O), NO_GK, q, w)
         jacobian(I, F, O, q, _seg(ws, O, W_J_))
         drift[k, 1] = jx(I, O, _seg(ws, O, W_J_), qd, w)
         if factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_)) > 0:

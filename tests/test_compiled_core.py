@@ -71,7 +71,7 @@ def test_plan_reproduces_dense_algebra(name):
     ws = ks.workspace(plan.kernel_args)
     J = cs.con.jacobian(np.asarray(st.q, float))[plan.perm]  # plan rows: RCM order
     cnt = np.zeros(kernels.N_COUNTERS)
-    ks.refactor(I, F, O, None, np.asarray(st.q, float), ws, cnt)
+    ks.refactor((I, F, O), ks.NO_GK, np.asarray(st.q, float), ws, cnt)
     nJ, nY = len(plan.jac_ptr) - 1, len(plan.y_ptr) - 1
     Jv = ws[:nJ]
     Jp = np.zeros_like(J)
@@ -109,12 +109,11 @@ def test_semidefinite_factor_solves_a_redundant_system():
     out = []
     for c in (con, Con):  # generic and generated kernels, without and with the copy
         plan = sparsity.schur_plan(c, M)
-        I, F, O = plan.kernel_args
-        for gk in (None, codegen.load(plan, frc)):
+        gk = codegen.load(plan, frc)
+        for P, g, f in ((plan.kernel_args, ks.NO_GK, frc), (None, gk, None)):
             ws = ks.workspace(plan.kernel_args)
             qdd = np.zeros(model.n)
-            ks.accelerations(I, F, O, gk, frc, q, qd, qdd, ws, np.zeros(kernels.N_COUNTERS),
-                             True)
+            ks.accelerations(P, g, f, q, qd, qdd, ws, np.zeros(kernels.N_COUNTERS), True)
             out.append(qdd)
     assert len(out) == 4
     for other in out[1:]:
@@ -188,14 +187,14 @@ def test_generated_kernels_equal_the_generic_ones(name):
     qp = q + 1e-4 * rng.standard_normal(model.n)
     qd = np.asarray(st.qd, float) + rng.standard_normal(model.n)
     res = []
-    for kern in (None, gk):
+    for P, g, f in (((I, F, O), ks.NO_GK, frc), (None, gk, None)):  # generic, generated
         ws, cnt = ks.workspace(plan.kernel_args), np.zeros(kernels.N_COUNTERS)
         w, qdd, x, v = np.zeros(plan.m), np.zeros(model.n), q.copy(), np.zeros(plan.m)
-        e = ks._phi_max(I, F, O, kern, qp, w)
+        e = ks._phi_max(P, g, qp, w)
         phi = w.copy()
-        ks.accelerations(I, F, O, kern, frc, q, qd, qdd, ws, cnt, True)
-        ks._newton_step(I, O, kern, ws, w, x)
-        big = ks._jx(I, O, kern, ws, qd, v)
+        ks.accelerations(P, g, f, q, qd, qdd, ws, cnt, True)
+        ks._newton_step(P, g, ws, w, x)
+        big = ks._jx(P, g, ws, qd, v)
         res.append((e, phi, qdd, x, big, v))
     for a, b in zip(*res, strict=True):
         scale = max(1.0, float(np.max(np.abs(a))))
@@ -243,13 +242,12 @@ def test_generated_forces_equal_the_generic_ones(name):
     assert gk is not None
     if name == "five_bar":
         assert list(plan.reg) == [2, 3, 4, 5, 7]
-    I, F, O = plan.kernel_args
     out = np.zeros(n)
-    ks.accelerations(I, F, O, gk, frc, q, qd, out, ks.workspace(plan.kernel_args), cnt, True)
+    ks.accelerations(None, gk, None, q, qd, out, ks.workspace(plan.kernel_args), cnt, True)
     if regular:
         ref = np.zeros(n)
-        ks.accelerations(I, F, O, None, frc, q, qd, ref, ks.workspace(plan.kernel_args), cnt,
-                         True)
+        ks.accelerations(plan.kernel_args, ks.NO_GK, frc, q, qd, ref,
+                         ks.workspace(plan.kernel_args), cnt, True)
     else:
         from natcoord.kernels_general import acc_general, workspace
         ref = np.zeros(n)
