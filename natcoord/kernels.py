@@ -132,9 +132,6 @@ def tableau(name: str) -> tuple:
     return TABLEAUX_OF[name]()
 
 
-SAMPLE_TRUST = 1e3  # a sample starts Newton from the last factorization (at the previous
-# sample or the step's end) when its residual is within this factor of the tolerance, else
-# it factors first (a refactor costs as much as about two simplified iterations)
 FIXED_STEP = ("rk4", "dopri5")  # methods the compiled loop runs with a fixed step
 ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 
@@ -399,9 +396,10 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                     qds[:] = yu[n:]
                 else:
                     _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = (
-                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt,
-                                          SAMPLE_TRUST)
+                st_code = (  # true Newton from the sample: the M-orthogonal projection
+                    # (a factorization from elsewhere lands it elsewhere on the manifold,
+                    # which near a singular position shows in the reactions)
+                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt, 0.0)
                     if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
                     return st_code
