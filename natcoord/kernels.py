@@ -268,7 +268,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = (kernels_sparse.settle(P, gk, frc, y[:n], y[n:], qdd, ptol, ws, w, cnt, 0.0)
+    st_code = (kernels_sparse.settle(P, gk, frc, y[:n], y[n:], qdd, ptol, ws, w, cnt, False)
                if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
     if st_code != OK:
         return st_code
@@ -362,7 +362,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             for r in range(D.shape[0]):
                 _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
         st_code = (  # the last stage factored at yn: Newton from it
-            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, math.inf)
+            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, True)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
@@ -399,7 +399,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 st_code = (  # true Newton from the sample: the M-orthogonal projection
                     # (a factorization from elsewhere lands it elsewhere on the manifold,
                     # which near a singular position shows in the reactions)
-                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt, 0.0)
+                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt, False)
                     if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
                     return st_code
@@ -497,7 +497,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
-    w = ws[args[2][kernels_sparse.W_W]:args[2][kernels_sparse.W_W + 1]]
+    w = kernels_sparse.work_vector(args, ws)
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
     generated = kern is not None and plan is not None  # they serve the sparse path

@@ -130,6 +130,11 @@ def workspace(plan: tuple) -> np.ndarray:
     return np.zeros(int(O[_M - 1] - O[_WO]))
 
 
+def work_vector(plan: tuple, ws: np.ndarray) -> np.ndarray:
+    """The (m,) work vector of ``ws`` (a view: segment W_W of :func:`workspace`)."""
+    return ws[plan[2][W_W]:plan[2][W_W + 1]]
+
+
 @njit(cache=True, inline="always")
 def _two_prod(a, b):
     """a * b = p + e exactly (the error of the product by one fused multiply-add)."""
@@ -318,18 +323,26 @@ def accelerations(P, gk, frc, q, qd, qdd, ws, cnt, fresh):
     """qdd (n,) of Eq. (6) at (q, qd); ``fresh``: factor at q first (else ``ws`` holds
     the factorization at this q already). ``frc``: the packed forces, None with generated
     kernels (they carry them)."""
-    cnt[C_RHS] += 1
     if P is None:
-        if fresh:
-            cnt[C_FACT] += 1
-        _call4(types.void, gk[5] if fresh else gk[2], _ptr(q), _ptr(qd), _ptr(qdd), _ptr(ws))
+        _generated_acc(gk, _ptr(q), _ptr(qd), qdd, ws, cnt, fresh)
     else:
         I, F, O = P
+        cnt[C_RHS] += 1
         if fresh:
             refactor(P, gk, q, ws, cnt)
         w = multipliers(I, F, O, frc, q, qd, qdd, ws)
         sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
     return OK
+
+
+@njit(cache=True, inline="always")
+def _generated_acc(gk, pq, pqd, qdd, ws, cnt, fresh):
+    """qdd by the generated kernels from pointers to q and qd (factoring there first when
+    ``fresh``)."""
+    cnt[C_RHS] += 1
+    if fresh:
+        cnt[C_FACT] += 1
+    _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, _ptr(qdd), _ptr(ws))
 
 
 @njit(cache=True)
@@ -339,9 +352,7 @@ def acc_state(P, gk, frc, y, qdd, ws, cnt):
     reference counts, a tenth of a stage on a small model."""
     n = qdd.shape[0]
     if P is None:
-        cnt[C_RHS] += 1
-        cnt[C_FACT] += 1
-        _call4(types.void, gk[5], _ptr(y), _ptr_at(y, n), _ptr(qdd), _ptr(ws))
+        _generated_acc(gk, _ptr(y), _ptr_at(y, n), qdd, ws, cnt, True)
         return OK
     else:
         return accelerations(P, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
@@ -398,17 +409,16 @@ def _newton_step(P, gk, ws, w, x):
 
 
 @njit(cache=True)
-def settle(P, gk, frc, q, qd, qdd, tol, ws, w, cnt, trust):
+def settle(P, gk, frc, q, qd, qdd, tol, ws, w, cnt, factored):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
-    in ``ws`` (made near q: at the last stage, sample or step end; refreshed at the current
-    q when the contraction is slow), factor once at the projected q, project qd on
-    Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``trust``: the
-    stored factorization starts Newton while max |Phi| <= trust tol (inf: it was made at
-    this q; 0: factor first). ``w`` (m,): the work vector of ``ws`` (segment W_W)."""
+    in ``ws`` (``factored``: one made at q, by the last stage; else factor at q first;
+    refreshed when the contraction is slow), factor once at the projected q, project qd on
+    Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``w`` (m,): the
+    work vector of ``ws`` (:func:`work_vector`)."""
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
     e = _phi_max(P, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)
-    if e >= tol and e > trust * tol:
+    if not factored and e >= tol:
         refactor(P, gk, q, ws, cnt)
     prev = math.inf
     fresh = False  # the factorization is at the current q (true Newton this iteration)
