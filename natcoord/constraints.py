@@ -75,10 +75,7 @@ class ConstraintBuilder:
         vv = np.concatenate([a[lin], a[lin]])
         if a[n] != 0.0:
             ii, jj, vv = np.append(ii, n), np.append(jj, n), np.append(vv, 2.0 * a[n])
-        self._emit(ii, jj, vv)
-        self.labels.append(label)
-        self.scale.append(length_dim)
-        return self.m - 1
+        return self.row(ii, jj, vv, label, length_dim)
 
     def bilinear(self, A: np.ndarray, K: np.ndarray, B: np.ndarray, const: float, label: str,
                  length_dim: int = 2) -> int:
@@ -92,6 +89,11 @@ class ConstraintBuilder:
         rows_i = np.concatenate([ii, jj, [n]])
         rows_j = np.concatenate([jj, ii, [n]])
         vals = np.concatenate([vv, vv, [2.0 * const]])
+        return self.row(rows_i, rows_j, vals, label, length_dim)
+
+    def row(self, rows_i, rows_j, vals, label: str, length_dim: int) -> int:
+        """Add ``1/2 qh^T H qh = 0`` from H's triplets (i, j, v) over qh (n + 1), both
+        halves of the symmetric H; returns the row index."""
         self._emit(rows_i, rows_j, vals)
         self.labels.append(label)
         self.scale.append(length_dim)

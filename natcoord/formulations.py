@@ -236,6 +236,18 @@ class Index1Loop(FormulationLoop):
         self.mode = mode
 
     @functools.cached_property
+    def elimination(self):
+        """A singular M's massless coordinates eliminated through the constant linear rows
+        (:class:`natcoord.elimination.Elimination`), where that leaves M regular; None for a
+        regular M, drivers, ``linsolve`` other than auto, or no such elimination. The
+        compiled loop then runs on the coordinates kept, and projections are M-orthogonal
+        there (the kinetic metric) in both loops."""
+        from .elimination import eliminate
+        if self.regular or self.cs.rheonomic or self.opt["linsolve"] != "auto":
+            return None
+        return eliminate(self.cs.con, self.M, compiled_forces(self.model))
+
+    @functools.cached_property
     def Minv(self) -> np.ndarray:
         """M^-1 (n, n), dense, for the Python Schur path (block by block)."""
         from .sparsity import block_inverse
@@ -268,23 +280,36 @@ class Index1Loop(FormulationLoop):
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
         sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`) and its
         generated kernels (:func:`natcoord.codegen.load`, None when the model has none).
-        A singular M takes the generated regularised route where it can
-        (:func:`natcoord.sparsity.dense_plan`, alpha from M and Phi_q at ``q0``), else the
-        general QR path."""
+        A singular M first has its massless coordinates eliminated through the constant
+        linear rows (:func:`natcoord.elimination.eliminate`): the loop then runs the regular
+        Schur path on the rest. Where that leaves M singular, it takes the generated
+        regularised route where it can (:func:`natcoord.sparsity.dense_plan`, alpha from M
+        and Phi_q at ``q0``), else the general QR path."""
         from . import codegen
         from .sparsity import dense_plan, schur_plan
         auto = self.opt["linsolve"] != "qr"
         sparse = self.regular and auto
-        self._plan = schur_plan(self.cs.con, self.M) if sparse else None
+        self._plan = schur_plan(self.cs.con, self.M) if sparse else None  # the outputs'
         self._plan_args = None if self._plan is None else self._plan.kernel_args
         self._kern = None
+        self._elim = self.elimination
+        con, frc, M = self._loop_model()
+        if self._elim is not None:
+            self._plan_args = schur_plan(con, M).kernel_args
         if auto and self.opt["generated"]:
-            plan = self._plan if sparse else dense_plan(self.cs.con, self.M, self._alpha(q0))
-            self._kern = codegen.load(plan, self._frc, self.M)
+            plan = (self._plan if sparse else schur_plan(con, M) if self._elim is not None
+                    else dense_plan(con, M, self._alpha(q0)))
+            self._kern = codegen.load(plan, frc, M)
             if self._kern is not None:  # a dense plan drives the loop only: the outputs
                 self._plan_args = plan.kernel_args  # stay on the general path
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
+
+    def _loop_model(self) -> tuple:
+        """(constraints, packed forces, M) the compiled loop integrates: the model's, or
+        over the coordinates an elimination keeps."""
+        e = self._elim
+        return (self.cs.con, self._frc, self.M) if e is None else (e.con, e.frc, e.M)
 
     def _alpha(self, q0) -> float:
         """alpha of M + alpha J_S^T J_S: max diag M over max diag J^T J (at q0, or J's
@@ -301,7 +326,7 @@ class Index1Loop(FormulationLoop):
         :data:`natcoord.kernels.PATHS`)."""
         if self._kern is not None:
             return "generated"
-        return "general" if self._plan is None else "sparse"
+        return "general" if self._plan_args is None else "sparse"
 
     def compiled_ready(self) -> bool:
         """After ``init``: whether the compiled loop serves the mode ``init`` chose; both
@@ -310,16 +335,20 @@ class Index1Loop(FormulationLoop):
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``
-        (the sparse Schur path for a regular M, else the QR null-space form with M), after
-        :meth:`prepare_compiled` (made here when it was not)."""
+        (the sparse Schur path for a regular M or one left regular by an elimination, else
+        the QR null-space form with M), after :meth:`prepare_compiled` (made here when it
+        was not)."""
         from . import kernels
         if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
-        return kernels.run(method, self.cs.con, self._frc, times, y[:self.n], y[self.n:],
-                           plan=self._plan_args, kern=self._kern, M=self.M,
+        q, qd, e = y[:self.n], y[self.n:], self._elim
+        con, frc, M = self._loop_model()
+        return kernels.run(method, con, frc, times, q if e is None else q[e.keep],
+                           qd if e is None else qd[e.keep],
+                           plan=self._plan_args, kern=self._kern, M=M,
                            rank_tol=self.opt["rank_tol"],
                            rtol=rtol, atol=atol, ptol=self.opt["project_tol"], cnt=self.cnt,
-                           h=h)
+                           h=h, dep=None if e is None else e.dep_map)
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]
@@ -351,23 +380,30 @@ class Index1Loop(FormulationLoop):
     def _qr(self, J):
         """Pivoted QR of Phi_q^T: Phi_q^T[:, P] = Q R; rank r reveals redundant rows."""
         if J.shape[0] == 0:
-            return np.zeros((self.n, 0)), np.eye(self.n), np.zeros((0, 0)), np.zeros(0, int)
+            n = J.shape[1]
+            return np.zeros((n, 0)), np.eye(n), np.zeros((0, 0)), np.zeros(0, int)
         Q, R, P = scipy.linalg.qr(J.T, pivoting=True)
         d = np.abs(np.diag(R))
         r = int(np.sum(d > self.opt["rank_tol"] * max(d[0], 1e-300))) if len(d) else 0
         return Q[:, :r], Q[:, r:], R[:r, :], P
 
-    def _corrector(self, J):
-        """dx = corr(rhs) with J dx = rhs (consistent rows), M-orthogonal when M is regular."""
+    def _corrector(self, J, L=None):
+        """dx = corr(rhs) with J dx = rhs (consistent rows), M-orthogonal when M is regular.
+        ``L``: M's Cholesky factor for an M-orthogonal, rank-revealing correction (the
+        minimum of dx^T M dx: L^T dx the minimum-norm solution of J L^-T z = rhs)."""
         self.cnt.factorizations += 1
-        if self.mode == "schur":
+        if self.mode == "schur" and L is None:
             MiJt = self.Minv @ J.T
             W = J @ MiJt
             return lambda rhs: MiJt @ np.linalg.solve(W, rhs)
-        Q1, _, R1, P = self._qr(J)
+        Lt = None if L is None else scipy.linalg.solve_triangular(L, np.eye(len(L)),
+                                                                    lower=True).T
+        Q1, _, R1, P = self._qr(J if Lt is None else J @ Lt)
         r = R1.shape[0]
-        L = R1[:, :r].T
-        return lambda rhs: Q1 @ np.linalg.solve(L, rhs[P[:r]])
+        R = R1[:, :r].T
+        if Lt is None:
+            return lambda rhs: Q1 @ np.linalg.solve(R, rhs[P[:r]])
+        return lambda rhs: Lt @ (Q1 @ np.linalg.solve(R, rhs[P[:r]]))
 
     def post_step(self, t, y):
         if self.opt["stabilization"] != "projection":
@@ -375,24 +411,35 @@ class Index1Loop(FormulationLoop):
         return np.concatenate(self.project(t, y[:self.n], y[self.n:]))
 
     def project(self, t, q, qd):
-        """Newton projection of q on Phi(q, t) = 0, then qd on Phi_q qd = -Phi_t."""
+        """Newton projection of q on Phi(q, t) = 0, then qd on Phi_q qd = -Phi_t:
+        M-orthogonal for a regular M, and for a singular one in the coordinates its
+        :attr:`elimination` keeps (minimum-norm where it has none)."""
         self._drift(t, q, qd)
-        cs = self.cs
+        e = self.elimination
+        if e is None:
+            return self._newton(self.cs.phi, self.cs.jacobian, self.cs.phi_t, t, q, qd)
+        qr, qdr = self._newton(lambda x, t: e.con.phi(x), lambda x, t: e.con.jacobian(x),
+                               lambda x, t: 0.0, t, q[e.keep], qd[e.keep], e.L)
+        return e.T @ qr + e.b, e.T @ qdr
+
+    def _newton(self, phi, jacobian, phi_t, t, q, qd, L=None):
+        """Simplified Newton on phi(q, t) = 0 (one factorization), then qd on
+        jacobian qd = -phi_t; ``L``: see :meth:`_corrector`."""
         tol = reachable(self.opt["project_tol"], q, 2)  # what Phi's round-off allows
         q = q.copy()
         corr = None
         for _ in range(10):
-            p = cs.phi(q, t)
+            p = phi(q, t)
             if np.max(np.abs(p), initial=0.0) < tol:
                 break
             if corr is None:  # simplified Newton: one factorization per projection
-                corr = self._corrector(cs.jacobian(q, t))
+                corr = self._corrector(jacobian(q, t), L)
             q -= corr(p)
             self.cnt.newton += 1
-        J = cs.jacobian(q, t)
-        res = J @ qd + cs.phi_t(q, t)
+        J = jacobian(q, t)
+        res = J @ qd + phi_t(q, t)
         if np.max(np.abs(res), initial=0.0) > tol:
-            qd = qd - self._corrector(J)(res)
+            qd = qd - self._corrector(J, L)(res)
         self.cnt.projections += 1
         return q, qd
 

@@ -216,7 +216,55 @@ def _stages(P, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
 
 
 @njit(cache=True)
-def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
+def _dep_norm(dep, x, y, yn, atol, rtol, affine):
+    """The error norm's sum over the coordinates an elimination removed
+    (:mod:`natcoord.elimination`), for their positions and velocities alike:
+    sum ((T_d x [+ b_d]) / sc)^2 with sc = atol + rtol max(|T_d y + b_d|, |T_d yn + b_d|),
+    T_d their rows of T and b_d of b (b on positions only; on x when ``affine``). ``dep``
+    = (ptr, col, val, b, keep, drop): T_d by rows (columns over the kept coordinates), b_d,
+    the coordinates kept and eliminated (:attr:`natcoord.elimination.Elimination.dep_map`);
+    x, y, yn (2 n_r,)."""
+    ptr, col, val, b = dep[0], dep[1], dep[2], dep[3]
+    n = y.shape[0] // 2
+    s = 0.0
+    for off in (0, n):
+        for d in range(ptr.shape[0] - 1):
+            xv = 0.0
+            yv = 0.0
+            ynv = 0.0
+            for e in range(ptr[d], ptr[d + 1]):
+                c = col[e] + off
+                xv += val[e] * x[c]
+                yv += val[e] * y[c]
+                ynv += val[e] * yn[c]
+            if off == 0:
+                yv += b[d]
+                ynv += b[d]
+                if affine:
+                    xv += b[d]
+            s += (xv / (atol + rtol * max(abs(yv), abs(ynv)))) ** 2
+    return s
+
+
+@njit(cache=True)
+def expand(dep, X, XD, XDD, Q, QD, QDD):
+    """The samples X, XD, XDD (T, n_r) over the kept coordinates into Q, QD, QDD (T, n):
+    the kept ones copied, the eliminated ones T_d x (+ b_d for positions); ``dep`` as in
+    :func:`_dep_norm`."""
+    ptr, col, val, b, keep, drop = dep
+    for src, dst, affine in ((X, Q, True), (XD, QD, False), (XDD, QDD, False)):
+        for k in range(src.shape[0]):
+            for a in range(keep.shape[0]):
+                dst[k, keep[a]] = src[k, a]
+            for d in range(drop.shape[0]):
+                s = b[d] if affine else 0.0
+                for e in range(ptr[d], ptr[d + 1]):
+                    s += val[e] * src[k, col[e]]
+                dst[k, drop[d]] = s
+
+
+@njit(cache=True)
+def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
     on the constraints first: adaptive (embedded pair, steps cross the samples, dense
     output) or fixed steps (landing on every sample).
@@ -232,8 +280,10 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
-    no error control) and projection tolerance; ``out`` = (Q, QD, QDD (T, n), cnt
-    (N_COUNTERS,)) filled in place. Returns a status code (0 = ok).
+    no error control) and projection tolerance; ``dep``: the coordinates an elimination
+    removed (:func:`_dep_norm`), which the error norm counts as the state's; ``out`` =
+    (Q, QD, QDD (T, n_r), cnt (N_COUNTERS,)) filled in place. Returns a status code
+    (0 = ok).
     """
     A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
@@ -241,6 +291,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
     fixed = h_fixed > 0.0
     n = q0.shape[0]
     N = 2 * n
+    Nn = N + 2 * (dep[0].shape[0] - 1)  # the components the error norm averages over
     s_st = B.shape[0]
     n_ext = Aext.shape[0]
     K = np.zeros((s_st + n_ext, N))
@@ -287,8 +338,8 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
             sc = atol + rtol * abs(y[a])
             d0 += (y[a] / sc) ** 2
             d1 += (f0[a] / sc) ** 2
-        d0 = math.sqrt(d0 / N)
-        d1 = math.sqrt(d1 / N)
+        d0 = math.sqrt((d0 + _dep_norm(dep, y, y, y, atol, rtol, True)) / Nn)
+        d1 = math.sqrt((d1 + _dep_norm(dep, f0, y, y, atol, rtol, False)) / Nn)
         h = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
         h = min(h, tend - t)
     expo = -1.0 / (order + 1.0)
@@ -323,17 +374,22 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
                 e5 += (x5[a] / sc) ** 2
                 e3 += (x3[a] / sc) ** 2
+            if Nn > N:
+                e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)
+                e3 += _dep_norm(dep, x3, y, yn, atol, rtol, False)
             if e5 == 0.0 and e3 == 0.0:
                 err = 0.0
             else:
-                err = hh * e5 / math.sqrt((e5 + 0.01 * e3) * N)
+                err = hh * e5 / math.sqrt((e5 + 0.01 * e3) * Nn)
         else:
             e5 = 0.0
             _combine(zero, 1.0, E52, 0, s_st, K, x5)
             for a in range(N):
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
                 e5 += (hh * x5[a] / sc) ** 2
-            err = math.sqrt(e5 / N)
+            if Nn > N:
+                e5 += hh * hh * _dep_norm(dep, x5, y, yn, atol, rtol, False)
+            err = math.sqrt(e5 / Nn)
         if not (err == err):
             return ERR_NONFINITE
         if err > 1.0:
@@ -361,8 +417,8 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, times, q0, qd0, out):
                 Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
             for r in range(D.shape[0]):
                 _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
-        st_code = (  # the last stage factored at yn: Newton from it
-            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, True)
+        st_code = (  # a last stage at yn (fsal) factored there: Newton from it
+            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, fsal)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
@@ -467,27 +523,37 @@ def ensure_compiled(*paths: str) -> float:
         if path == "sparse":
             sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
                 max_phi=0.0, max_phi_dot=0.0), args)
+        if path != "general":  # a singular M's elimination expands the samples after
+            dep = (np.array([0, 1]), np.zeros(1, np.int64), np.ones(1), np.zeros(1),
+                   np.arange(2), np.array([2]))  # a third coordinate equal to the first
+            expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
         _READY.add(path)
     return time.perf_counter() - t0
 
 
 def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
         rank_tol: float = 1e-9, rtol, atol, ptol, cnt, h=None, h0: float = 0.0,
-        max_steps: int = 10_000_000):
-    """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n). Raises RuntimeError.
+        max_steps: int = 10_000_000, dep=None):
+    """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n) (n of the model when
+    ``dep`` is given). Raises RuntimeError.
 
     ``frc`` from :func:`pack_forces`. ``plan`` (the ``kernel_args`` of
     :func:`natcoord.sparsity.schur_plan`, for a regular M) selects the sparse Schur path;
     without it the general path runs on ``M`` (n, n) and ``rank_tol`` (relative, on
     |R_kk| / |R_00|). ``kern``: the plan's generated kernels (:func:`natcoord.codegen.load`),
     None for the generic ones. ``h``: a fixed step (s) for rk4 or dopri5, else adaptive
-    steps at ``rtol``/``atol``."""
+    steps at ``rtol``/``atol``. ``dep``: an elimination's coordinates
+    (:attr:`natcoord.elimination.Elimination.dep_map`: the loop runs on the kept ones, its
+    error norm and samples cover all), None for none."""
     A, B, C, E5, E3, order, Aext, Cext, D, fsal = tableau(name)
     tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
         raise ValueError(f"{name} (compiled): " + ("give a fixed step h" if h is None else
                                                    "adaptive only"))
     Tn, n = len(times), len(q0)
+    if dep is None:  # no coordinate eliminated
+        dep = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
+               np.arange(n, dtype=np.int64), np.zeros(0, np.int64))
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
     gen = None if plan is not None else (
@@ -503,7 +569,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     generated = kern is not None and plan is not None  # they serve the sparse path
     status = run_index1(None if generated else args,
                         kern if generated else kernels_sparse.NO_GK, ws, w, gen, wg,
-                        None if generated else frc, tab, ctl,
+                        None if generated else frc, tab, ctl, dep,
                         np.ascontiguousarray(times, float), np.array(q0, float),
                         np.array(qd0, float), (Q, QD, QDD, c))
     if cnt is not None:
@@ -515,7 +581,12 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
         cnt.max_phi_dot_step = max(cnt.max_phi_dot_step, float(c[C_PHID]))
     if status != OK:
         raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)}")
-    return Q, QD, QDD
+    if len(dep[5]) == 0:
+        return Q, QD, QDD
+    nq = n + len(dep[5])
+    out = np.zeros((Tn, nq)), np.zeros((Tn, nq)), np.zeros((Tn, nq))
+    expand(dep, Q, QD, QDD, *out)
+    return out
 
 
 def sample_outputs(plan, frc, Q, QD, LAM, cnt, args=None) -> np.ndarray:

@@ -1,0 +1,113 @@
+"""The elimination of a singular M's massless coordinates (natcoord.elimination): the model
+over the coordinates it keeps is the same model, and both loops project in its metric."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.linalg import null_space
+
+from natcoord import casefile, casemodel, kernels, sparsity
+from natcoord import kernels_general as kg
+from natcoord import kernels_sparse as ks
+from natcoord.drivers import ConstraintSystem
+from natcoord.elimination import eliminate, linear_rows
+from natcoord.formulations import Counters, Index1Loop, compiled_forces
+
+from .conftest import CASES
+
+# case: (coordinates kept, rows left) of (n, m)
+ELIMINATED = {"five_bar": (4, 4), "parallelogram_3d": (9, 9),
+              "parallelogram_3d_flexible": (9, 3), "pendulum": (2, 1), "a01_pendulum": (2, 1),
+              "a03_andrews": (28, 27), "a05_flyball_governor": (48, 44)}
+
+
+def _model(name):
+    case = casefile.load_case(CASES / f"{name}.toml")
+    engine = case.engines.get("natcoord")
+    coords = (getattr(engine, "settings", None) or {}).get("coordinates", "joints")
+    cm = casemodel.build(case, coords)
+    return cm.model, casemodel.initial_state(cm)
+
+
+@pytest.mark.parametrize("name", ELIMINATED)
+def test_the_kept_coordinates_carry_the_same_model(name):
+    """At a random q_r: the solved rows vanish at q = T q_r + b, every other row equals
+    its reduced form, M_r = T^T M T is regular, and the reduced forces are T^T Q; at the
+    initial state with a random admissible velocity, T qdd_r equals the QR null-space
+    accelerations of the whole model."""
+    model, st = _model(name)
+    con, M, frc = ConstraintSystem(model).con, np.asarray(model.M, float), compiled_forces(model)
+    e = eliminate(con, M, frc)
+    assert e is not None and (e.con.n, e.con.m) == ELIMINATED[name]
+    assert not np.any(M[np.ix_(e.keep, e.keep)].diagonal() == 0.0)  # all massless went
+    assert np.all(M[e.dep][:, e.dep] == 0.0)
+    rng = np.random.default_rng(11)
+    qr, vr = rng.standard_normal(len(e.keep)), rng.standard_normal(len(e.keep))
+    q, v = e.T @ qr + e.b, e.T @ vr
+    phi = con.phi(q)
+    assert np.max(np.abs(phi[e.rows])) < 1e-14 * max(1.0, np.max(np.abs(q)))
+    rest = np.setdiff1d(np.arange(con.m), e.rows)
+    assert e.con.labels == tuple(con.labels[r] for r in rest)
+    assert np.max(np.abs(e.con.phi(qr) - phi[rest])) < 1e-13 * max(1.0, np.max(np.abs(phi)))
+    assert np.allclose(e.M, e.T.T @ M @ e.T, rtol=0, atol=1e-14 * np.max(np.abs(M)))
+    assert np.min(np.linalg.eigvalsh(e.M)) > 0.0
+    Q, Qr = np.zeros(len(q)), np.zeros(len(qr))
+    kg.forces(frc, q, v, Q)
+    kg.forces(e.frc, qr, vr, Qr)
+    assert np.max(np.abs(Qr - e.T.T @ Q)) < 1e-12 * max(1.0, np.max(np.abs(Qr)))
+    q0 = np.asarray(st.q, float)
+    N = null_space(con.jacobian(q0))
+    qd0 = np.asarray(st.qd, float) + N @ rng.standard_normal(N.shape[1])
+    ref = Index1Loop(model, {"linsolve": "qr"}, Counters()).accelerations(0.0, q0, qd0)
+    plan = sparsity.schur_plan(e.con, e.M)
+    qdd = np.zeros(len(e.keep))
+    ks.accelerations(plan.kernel_args, ks.NO_GK, e.frc, q0[e.keep], qd0[e.keep], qdd,
+                     ks.workspace(plan.kernel_args), np.zeros(kernels.N_COUNTERS), True)
+    assert np.max(np.abs(e.T @ qdd - ref)) < 1e-10 * max(1.0, np.max(np.abs(ref)))
+
+
+def test_a_massless_coordinate_no_linear_row_fixes_leaves_no_elimination():
+    """four_bar_3d: 18 massless coordinates (its slender bodies' unit vectors, held by
+    quadratic rows) and 16 linear rows:
+    M stays singular on the rest, so there is no elimination (the regularised or QR path
+    runs) and the Python loop projects by minimum norm."""
+    model, _ = _model("four_bar_3d")
+    con, M = ConstraintSystem(model).con, np.asarray(model.M, float)
+    assert len(linear_rows(con)[0]) == 16 and np.sum(~np.any(M != 0.0, axis=0)) == 18
+    assert eliminate(con, M, compiled_forces(model)) is None
+    assert Index1Loop(model, {}, Counters()).elimination is None
+
+
+@pytest.mark.parametrize("name", ["five_bar", "parallelogram_3d"])
+def test_projection_is_m_orthogonal_in_the_kept_coordinates(name):
+    """The Python loop's projection of a perturbed state: the linear rows hold exactly,
+    the other rows to the projection tolerance, the correction of the kept coordinates is
+    M_r-orthogonal to the constraint manifold (M_r dq_r in the range of J_r^T) and the
+    velocity satisfies Phi_q qd = 0. It is what the compiled loop does: its run from the
+    same state lands on the same point."""
+    model, st = _model(name)
+    form = Index1Loop(model, {}, Counters())
+    e = form.elimination
+    rng = np.random.default_rng(4)
+    q0, qd0 = np.asarray(st.q, float), np.asarray(st.qd, float)
+    qp = q0 + 1e-6 * (e.T @ rng.standard_normal(len(e.keep)))  # (redundant rows: a larger
+    # step leaves the redundancy and Newton with it)
+    vp = qd0 + 1e-3 * rng.standard_normal(len(q0))
+    q, qd = form.project(0.0, qp, vp)
+    cs = ConstraintSystem(model)
+    assert np.max(np.abs(cs.phi(q, 0.0))) < 1e-13
+    assert np.max(np.abs(cs.jacobian(q, 0.0) @ qd)) < 1e-12
+    dq = (q - qp)[e.keep]
+    assert np.max(np.abs(dq)) > 1e-7  # it moved
+    Jr = e.con.jacobian(qp[e.keep])  # simplified Newton: the Jacobian at the start
+    lam, *_ = np.linalg.lstsq(Jr.T, e.M @ dq, rcond=None)
+    assert np.max(np.abs(Jr.T @ lam - e.M @ dq)) < 1e-8 * np.max(np.abs(e.M @ dq))
+    run = Index1Loop(model, {}, Counters())
+    assert run.compiled_candidate("dop853", None)
+    run.init(0.0, qp, vp)
+    Q, QD, _ = run.run_compiled(np.array([0.0, 1e-9]), np.concatenate([qp, vp]),
+                                 "dop853", 1e-10, 1e-12)
+    assert run.compiled_path == "generated"
+    assert np.max(np.abs(Q[0] - q)) < 1e-12
+    assert np.max(np.abs(QD[0] - qd)) < 1e-10
