@@ -96,7 +96,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     done = np.zeros(T, bool)
     if plan is not None:  # sparse, linear in the model's size; unique lambda where no row
         done[:] = ~kernels.sample_outputs(plan, form._frc, Q, QD, LAM, cnt,  # is dependent
-                                          form._plan_args)
+                                          form._out_args)
     for k in np.flatnonzero(~done):
         LAM[k] = multipliers(model, cs, times[k], Q[k], QD[k], QDD[k])
         p, J, pt, _ = cs.all(Q[k], QD[k], times[k])

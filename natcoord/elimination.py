@@ -1,12 +1,13 @@
-"""Exact elimination of a singular M's massless coordinates through constant linear rows.
+"""Exact elimination of coordinates through the constant linear rows.
 
-In natural coordinates a body's points beyond its basis (a rod's middle and far points, a
-plate's fourth corner) are tied to the basis by constant linear rows
+In natural coordinates many rows are constant and linear,
 
-    A q + c = 0        (l, n),
+    A q + c = 0        (l, n):
 
-and carry no mass of their own: M is singular on them. Solving those rows for the massless
-coordinates gives every admissible q as
+a body's points beyond its basis (a rod's middle and far points, a plate's fourth corner),
+which carry no mass of their own (M is singular on them), and the points two bodies share
+at a joint. Solving those rows for one coordinate each (a massless one where the row has
+one) gives every admissible q as
 
     q = T q_r + b,     T (n, n_r), b (n,),   q_r = q[keep]
 
@@ -14,21 +15,22 @@ coordinates gives every admissible q as
 H_r = Th^T H Th with Th = [[T, b], [0, 1]] (n + 1, n_r + 1), the mass matrix is
 M_r = T^T M T and the applied forces are T^T Q. Where the eliminated coordinates span ker M,
 M_r is regular and the model runs on the regular-M Schur path: the same dynamics (the linear
-rows hold exactly at every stage, since q - b lies in T's range) on fewer coordinates, with
-no regularisation. Units: those of the model (SI).
+rows hold exactly at every stage, since q - b lies in T's range) on fewer coordinates and
+rows, with no regularisation; an M-orthogonal projection in q_r is the model's own (for a
+regular M) or the kinetic metric's where the model's M has none. The elimination is sparse:
+linear in the size of a chain. Units: those of the model (SI).
 """
 
 from __future__ import annotations
 
 import functools
+from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 
 from .constraints import ROUNDOFF, ConstraintBuilder, QuadraticConstraints
-
-MAX_DENSE = 2_000_000  # linear rows x coordinates solved densely; a larger model keeps
-# the regularised or the QR path
 
 
 @dataclass(frozen=True)
@@ -37,12 +39,12 @@ class Elimination:
 
     Attributes
     ----------
-    T : (n, n_r) float       dq / dq_r
+    T : (n, n_r) sparse      dq / dq_r (``scipy.sparse.csr_array``)
     b : (n,) float           q at q_r = 0 (m)
     keep : (n_r,) int        the coordinates kept (q_r = q[keep])
-    dep : (n - n_r,) int     the coordinates eliminated (massless)
+    dep : (n - n_r,) int     the coordinates eliminated
     rows : (l,) int          the rows solved for them (hold identically in q_r)
-    con : QuadraticConstraints   the other rows over q_r (m - l rows)
+    con : QuadraticConstraints   the other rows over q_r
     M : (n_r, n_r) float     T^T M T, regular
     frc : tuple | None       the forces over q_r (:func:`natcoord.kernels_general.pack_forces`;
                              None when the model's are not packed)
@@ -52,14 +54,14 @@ class Elimination:
                              all of q)
     """
 
-    T: np.ndarray
+    T: sp.csr_array
     b: np.ndarray
     keep: np.ndarray
     dep: np.ndarray
     rows: np.ndarray
     con: QuadraticConstraints
     M: np.ndarray
-    frc: tuple
+    frc: tuple | None
     dep_map: tuple
 
     @functools.cached_property
@@ -68,17 +70,70 @@ class Elimination:
         return np.linalg.cholesky(self.M)
 
 
+def linear_rows(con) -> tuple[np.ndarray, sp.csr_array]:
+    """The constant linear rows of ``con``: their indices (l,) and [A | c] (l, n + 1)
+    with Phi = A q + c."""
+    n = con.n
+    quad = np.zeros(con.m, bool)
+    np.logical_or.at(quad, con.k, (con.i < n) & (con.j < n))
+    rows = np.flatnonzero(~quad)
+    pos = np.full(con.m, -1)
+    pos[rows] = np.arange(len(rows))
+    # H[i, n] = H[n, i] = a_i (one of the two) and H[n, n] = 2 c
+    sel = (pos[con.k] >= 0) & (con.j == n)
+    half = np.where(con.i[sel] == n, 0.5, 1.0)
+    Ac = sp.coo_array((con.v[sel] * half, (pos[con.k[sel]], con.i[sel])),
+                      shape=(len(rows), n + 1)).tocsr()
+    Ac.sum_duplicates()
+    return rows, Ac
+
+
+def _pivots(Ac: sp.csr_array, massless: np.ndarray):
+    """Sparse Gauss-Jordan on [A | c], a pivot per row where it has one: a massless column
+    where the row has one, else its largest (the lowest such column on a tie). Returns the
+    pivot rows, their columns, and every row as {column: value} (a pivot row holds its
+    pivot, 1, and kept columns only)."""
+    n = Ac.shape[1] - 1
+    R = [dict(zip(Ac.indices[Ac.indptr[r]:Ac.indptr[r + 1]].tolist(),
+                  Ac.data[Ac.indptr[r]:Ac.indptr[r + 1]].tolist(), strict=True))
+         for r in range(Ac.shape[0])]
+    where = defaultdict(set)  # column -> the rows that hold it
+    for r, row in enumerate(R):
+        for c in row:
+            where[c].add(r)
+    prow, pcol = [], []
+    for r, row in enumerate(R):
+        big = max((abs(v) for c, v in row.items() if c < n), default=0.0)
+        cand = [c for c, v in row.items() if c < n and abs(v) > 1e-10 * big]
+        if not cand:
+            continue
+        pool = [c for c in cand if massless[c]] or cand
+        p = max(pool, key=lambda c: (abs(row[c]), -c))
+        inv = 1.0 / row[p]
+        for c in row:
+            row[c] *= inv
+        row[p] = 1.0
+        for s in where[p] - {r}:
+            f = R[s].pop(p)
+            for c, v in row.items():
+                if c != p:
+                    R[s][c] = R[s].get(c, 0.0) - f * v
+                    where[c].add(s)
+        where[p] = {r}
+        prow.append(r)
+        pcol.append(p)
+    return np.array(prow, int), np.array(pcol, int), R
+
+
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """arange(s, s + c) for every (s, c), concatenated."""
     return np.repeat(starts - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
 
 
-def _substitute(con, Th: np.ndarray):
+def _substitute(con, Th: sp.csr_array) -> sp.csr_array:
     """Every row's Th^T H_k Th as one sparse (m, N * N) matrix (N = n_r + 1; column
     a * N + b holds entry (a, b) of row k), from the triplets and Th's non-zeros."""
-    import scipy.sparse as sp
-    T = sp.csr_matrix(Th)
-    ptr, ind, dat = T.indptr, T.indices, T.data
+    ptr, ind, dat = Th.indptr, Th.indices, Th.data
     ci = ptr[con.i + 1] - ptr[con.i]
     ea = _ranges(ptr[con.i], ci)  # every (triplet, Th[i, a])
     t1 = np.repeat(np.arange(len(con.v)), ci)
@@ -87,8 +142,8 @@ def _substitute(con, Th: np.ndarray):
     t2 = np.repeat(np.arange(len(t1)), cj)
     t, ea = t1[t2], ea[t2]
     N = Th.shape[1]
-    H = sp.coo_matrix((con.v[t] * dat[ea] * dat[eb], (con.k[t], ind[ea] * N + ind[eb])),
-                      shape=(con.m, N * N)).tocsr()
+    H = sp.coo_array((con.v[t] * dat[ea] * dat[eb], (con.k[t], ind[ea] * N + ind[eb])),
+                     shape=(con.m, N * N)).tocsr()
     H.sum_duplicates()
     return H
 
@@ -100,84 +155,48 @@ def _clean(X: np.ndarray) -> np.ndarray:
     return X
 
 
-def linear_rows(con) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The constant linear rows of ``con``: their indices (l,), A (l, n) and c (l,) with
-    Phi = A q + c."""
-    n = con.n
-    quad = np.zeros(con.m, bool)
-    np.logical_or.at(quad, con.k, (con.i < n) & (con.j < n))
-    rows = np.flatnonzero(~quad)
-    pos = np.full(con.m, -1)
-    pos[rows] = np.arange(len(rows))
-    A, c = np.zeros((len(rows), n)), np.zeros(len(rows))
-    sel = pos[con.k] >= 0
-    for k, i, j, v in zip(pos[con.k[sel]], con.i[sel], con.j[sel], con.v[sel], strict=True):
-        if i < n and j == n:  # H[i, n] = H[n, i] = a_i: one of the two
-            A[k, i] += v
-        elif i == n and j == n:  # H[n, n] = 2 c
-            c[k] += 0.5 * v
-    return rows, A, c
-
-
-def _pivots(A: np.ndarray, c: np.ndarray, massless: np.ndarray):
-    """Gauss-Jordan on [A | c] with pivots among the massless columns (largest first):
-    the pivot rows, their columns, and the reduced [A | c] (each pivot row holds its
-    pivot, 1, and kept columns only)."""
-    R = np.column_stack([A, c])
-    n = A.shape[1]
-    rows, cols = [], []
-    for r in range(len(R)):
-        big = np.max(np.abs(R[r, :n]), initial=0.0)
-        cand = massless & (np.abs(R[r, :n]) > 1e-10 * big)
-        cand[cols] = False
-        if big == 0.0 or not cand.any():
-            continue
-        p = int(np.flatnonzero(cand)[np.argmax(np.abs(R[r, :n][cand]))])
-        R[r] /= R[r, p]
-        other = np.abs(R[:, p]) > 0.0
-        other[r] = False
-        R[other] -= np.outer(R[other, p], R[r])
-        R[other, p] = 0.0
-        rows.append(r)
-        cols.append(p)
-    return np.array(rows, int), np.array(cols, int), R
-
-
-def eliminate(con, M: np.ndarray, frc: tuple) -> Elimination | None:
-    """The elimination of M's massless coordinates by ``con``'s constant linear rows, or
-    None where it does not leave a regular M_r (a massless coordinate no linear row fixes,
-    or no massless coordinate at all) or the model is too large (:data:`MAX_DENSE`).
-    ``frc``: the packed forces over q, or None."""
+def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
+    """The elimination of coordinates by ``con``'s constant linear rows (see the module),
+    or None where there is none or it leaves M_r singular (a massless coordinate that no
+    linear row fixes). ``frc``: the packed forces over q, or None."""
     from .formulations import _is_spd
     from .kernels_general import pack_forces
     M = np.asarray(M, float)
     n = len(M)
-    massless = ~np.any(M != 0.0, axis=0)
-    if not massless.any():
-        return None
-    lin, A, c = linear_rows(con)
-    if len(lin) * n > MAX_DENSE:
-        return None
-    prow, dep, R = _pivots(A, c, massless)
-    if len(dep) < massless.sum():
+    lin, Ac = linear_rows(con)
+    prow, dep, R = _pivots(Ac, ~np.any(M != 0.0, axis=0))
+    if len(dep) == 0:
         return None
     keep = np.setdiff1d(np.arange(n), dep)
-    T = np.zeros((n, len(keep)))
-    T[keep, np.arange(len(keep))] = 1.0
-    T[dep] = -R[prow][:, keep]
+    at = np.full(n, -1)
+    at[keep] = np.arange(len(keep))
+    ti, tj, tv = [keep], [np.arange(len(keep))], [np.ones(len(keep))]
     b = np.zeros(n)
-    b[dep] = -R[prow, n]
-    T, b = _clean(T), _clean(b)
-    Mr = _clean(0.5 * (T.T @ M @ T + (T.T @ M @ T).T))
+    for r, p in zip(prow, dep, strict=True):
+        cols = [c for c in R[r] if c < n and c != p]
+        ti.append(np.full(len(cols), p))
+        tj.append(at[cols])
+        tv.append([-R[r][c] for c in cols])
+        b[p] = -R[r].get(n, 0.0)
+    tv = _clean(np.concatenate(tv))
+    T = sp.csr_array((tv, (np.concatenate(ti), np.concatenate(tj))), shape=(n, len(keep)))
+    T.eliminate_zeros()
+    T.sort_indices()
+    b = _clean(b)
+    MT = (T.T @ M).T  # M T (n, n_r), M symmetric
+    Mr = _clean(T.T @ MT)
+    Mr = 0.5 * (Mr + Mr.T)
     if not _is_spd(Mr):
         return None
-    Th = np.zeros((n + 1, len(keep) + 1))
-    Th[:n, :-1], Th[:n, -1], Th[n, -1] = T, b, 1.0
+    Th = sp.csr_array(sp.block_array([[T, sp.csr_array(b[:, None])],
+                                      [None, sp.csr_array(np.ones((1, 1)))]]))
+    Th.eliminate_zeros()
+    Th.sort_indices()
     H = _substitute(con, Th)
     N = Th.shape[1]
     big = np.zeros(con.m)  # each row's largest coefficient, for what counts as zero
     np.maximum.at(big, con.k, np.abs(con.v))
-    floor = 1e-12 * big * np.max(np.abs(Th)) ** 2
+    floor = 1e-12 * big * max(1.0, np.max(np.abs(Th.data))) ** 2
     gone = np.zeros(con.m, bool)
     gone[lin[prow]] = True
     builder = ConstraintBuilder(len(keep))
@@ -187,16 +206,21 @@ def eliminate(con, M: np.ndarray, frc: tuple) -> Elimination | None:
             continue  # a linear row the eliminated ones imply: 0 = 0 in q_r
         builder.row(cols // N, cols % N, vals, con.labels[r], int(con.length_dim[r]))
     Td = T[dep]
-    ptr = np.concatenate([[0], np.cumsum(np.count_nonzero(Td, axis=1))]).astype(np.int64)
-    nz_row, nz_col = np.nonzero(Td)
-    dep_map = (ptr, nz_col.astype(np.int64), Td[nz_row, nz_col].astype(float), b[dep].copy(),
-               keep.astype(np.int64), dep.astype(np.int64))
+    dep_map = (Td.indptr.astype(np.int64), Td.indices.astype(np.int64),
+               Td.data.astype(float), b[dep].copy(), keep.astype(np.int64),
+               dep.astype(np.int64))
+    out = Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, None, dep_map)
     if frc is None:
-        return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, None, dep_map)
+        return out
     Q0, Tq, G, toff, tau, S, spr = frc
+
+    def over_r(X):  # maps (K, d, n + 1) -> (K, d, n_r + 1)
+        return (Th.T @ X.reshape(-1, n + 1).T).T.reshape(X.shape[:-1] + (N,))
+
     Q0r = T.T @ Q0
-    if Tq.shape[0]:  # a linear force T q: T^T Tq (T q_r + b)
-        Q0r = Q0r + T.T @ Tq @ b
-    frc_r = pack_forces(Q0r, T.T @ Tq @ T if Tq.shape[0] else None, G @ Th, toff, tau,
-                        S @ Th, spr)
-    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, frc_r, dep_map)
+    Tr = None
+    if Tq.shape[0]:  # a linear force Tq q: T^T Tq (T q_r + b)
+        Q0r = Q0r + T.T @ (Tq @ b)
+        Tr = T.T @ (T.T @ Tq.T).T
+    frc_r = pack_forces(Q0r, Tr, over_r(G), toff, tau, over_r(S), spr)
+    return Elimination(T, b, keep, dep, lin[prow], out.con, Mr, frc_r, dep_map)

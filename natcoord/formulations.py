@@ -237,13 +237,13 @@ class Index1Loop(FormulationLoop):
 
     @functools.cached_property
     def elimination(self):
-        """A singular M's massless coordinates eliminated through the constant linear rows
-        (:class:`natcoord.elimination.Elimination`), where that leaves M regular; None for a
-        regular M, drivers, ``linsolve`` other than auto, or no such elimination. The
-        compiled loop then runs on the coordinates kept, and projections are M-orthogonal
-        there (the kinetic metric) in both loops."""
+        """The coordinates the constant linear rows fix, eliminated
+        (:class:`natcoord.elimination.Elimination`) where that leaves M regular; None with
+        drivers, ``linsolve`` other than auto, or no such elimination. The compiled loop
+        runs on the coordinates kept; a singular M's projections are M-orthogonal there (the
+        kinetic metric) in both loops."""
         from .elimination import eliminate
-        if self.regular or self.cs.rheonomic or self.opt["linsolve"] != "auto":
+        if self.cs.rheonomic or self.opt["linsolve"] != "auto":
             return None
         return eliminate(self.cs.con, self.M, compiled_forces(self.model))
 
@@ -278,30 +278,31 @@ class Index1Loop(FormulationLoop):
 
     def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
-        sparsity plan of the Schur path (:func:`natcoord.sparsity.schur_plan`) and its
-        generated kernels (:func:`natcoord.codegen.load`, None when the model has none).
-        A singular M first has its massless coordinates eliminated through the constant
-        linear rows (:func:`natcoord.elimination.eliminate`): the loop then runs the regular
-        Schur path on the rest. Where that leaves M singular, it takes the generated
+        coordinates the constant linear rows fix eliminated (:attr:`elimination`), the
+        sparsity plan of the Schur path on the rest (:func:`natcoord.sparsity.schur_plan`)
+        and its generated kernels (:func:`natcoord.codegen.load`, None when the model has
+        none). A singular M that no elimination makes regular takes the generated
         regularised route where it can (:func:`natcoord.sparsity.dense_plan`, alpha from M
-        and Phi_q at ``q0``), else the general QR path."""
+        and Phi_q at ``q0``), else the general QR path. The model's own plan (a regular M)
+        serves the outputs."""
         from . import codegen
         from .sparsity import dense_plan, schur_plan
         auto = self.opt["linsolve"] != "qr"
         sparse = self.regular and auto
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None  # the outputs'
-        self._plan_args = None if self._plan is None else self._plan.kernel_args
-        self._kern = None
         self._elim = self.elimination
         con, frc, M = self._loop_model()
-        if self._elim is not None:
-            self._plan_args = schur_plan(con, M).kernel_args
+        loop = (self._plan if self._elim is None else schur_plan(con, M)) if (
+            sparse or self._elim is not None) else None
+        self._plan_args = None if loop is None else loop.kernel_args
+        self._kern = None
         if auto and self.opt["generated"]:
-            plan = (self._plan if sparse else schur_plan(con, M) if self._elim is not None
-                    else dense_plan(con, M, self._alpha(q0)))
+            plan = loop if loop is not None else dense_plan(con, M, self._alpha(q0))
             self._kern = codegen.load(plan, frc, M)
             if self._kern is not None:  # a dense plan drives the loop only: the outputs
                 self._plan_args = plan.kernel_args  # stay on the general path
+        self._out_args = (None if self._plan is None else self._plan_args
+                          if loop is self._plan else self._plan.kernel_args)
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
 
@@ -415,7 +416,7 @@ class Index1Loop(FormulationLoop):
         M-orthogonal for a regular M, and for a singular one in the coordinates its
         :attr:`elimination` keeps (minimum-norm where it has none)."""
         self._drift(t, q, qd)
-        e = self.elimination
+        e = None if self.regular else self.elimination  # (a regular M's is the same)
         if e is None:
             return self._newton(self.cs.phi, self.cs.jacobian, self.cs.phi_t, t, q, qd)
         qr, qdr = self._newton(lambda x, t: e.con.phi(x), lambda x, t: e.con.jacobian(x),
