@@ -32,6 +32,10 @@ import scipy.sparse as sp
 
 from .constraints import ROUNDOFF, ConstraintBuilder, QuadraticConstraints
 
+MAX_BLOCK = 32  # coordinates M_r may couple in one block once a massive coordinate is
+# eliminated: a chain's shared points couple all its bodies (M_r^-1 dense, the Schur path
+# no longer linear in the chain's length), so there only massless ones go
+
 
 @dataclass(frozen=True)
 class Elimination:
@@ -88,9 +92,10 @@ def linear_rows(con) -> tuple[np.ndarray, sp.csr_array]:
     return rows, Ac
 
 
-def _pivots(Ac: sp.csr_array, massless: np.ndarray):
+def _pivots(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
     """Sparse Gauss-Jordan on [A | c], a pivot per row where it has one: a massless column
-    where the row has one, else its largest (the lowest such column on a tie). Returns the
+    where the row has one, else (``massive``) its largest (the lowest such column on a
+    tie). Returns the
     pivot rows, their columns, and every row as {column: value} (a pivot row holds its
     pivot, 1, and kept columns only)."""
     n = Ac.shape[1] - 1
@@ -105,9 +110,9 @@ def _pivots(Ac: sp.csr_array, massless: np.ndarray):
     for r, row in enumerate(R):
         big = max((abs(v) for c, v in row.items() if c < n), default=0.0)
         cand = [c for c, v in row.items() if c < n and abs(v) > 1e-10 * big]
-        if not cand:
+        pool = [c for c in cand if massless[c]] or (cand if massive else [])
+        if not pool:
             continue
-        pool = [c for c in cand if massless[c]] or cand
         p = max(pool, key=lambda c: (abs(row[c]), -c))
         inv = 1.0 / row[p]
         for c in row:
@@ -123,6 +128,29 @@ def _pivots(Ac: sp.csr_array, massless: np.ndarray):
         prow.append(r)
         pcol.append(p)
     return np.array(prow, int), np.array(pcol, int), R
+
+
+def _solve(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
+    """(pivot rows, eliminated coordinates, T (n, n_r) sparse, b (n,)) of q = T q_r + b
+    (see :func:`_pivots`)."""
+    n = Ac.shape[1] - 1
+    prow, dep, R = _pivots(Ac, massless, massive)
+    keep = np.setdiff1d(np.arange(n), dep)
+    at = np.full(n, -1)
+    at[keep] = np.arange(len(keep))
+    ti, tj, tv = [keep], [np.arange(len(keep))], [np.ones(len(keep))]
+    b = np.zeros(n)
+    for r, p in zip(prow, dep, strict=True):
+        cols = [c for c in R[r] if c < n and c != p]
+        ti.append(np.full(len(cols), p))
+        tj.append(at[cols])
+        tv.append([-R[r][c] for c in cols])
+        b[p] = -R[r].get(n, 0.0)
+    tv = _clean(np.concatenate(tv))
+    T = sp.csr_array((tv, (np.concatenate(ti), np.concatenate(tj))), shape=(n, len(keep)))
+    T.eliminate_zeros()
+    T.sort_indices()
+    return prow, dep, T, _clean(b)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -158,34 +186,25 @@ def _clean(X: np.ndarray) -> np.ndarray:
 def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     """The elimination of coordinates by ``con``'s constant linear rows (see the module),
     or None where there is none or it leaves M_r singular (a massless coordinate that no
-    linear row fixes). ``frc``: the packed forces over q, or None."""
+    linear row fixes). Massive coordinates go too while M_r couples at most
+    :data:`MAX_BLOCK` of them in one block. ``frc``: the packed forces over q, or None."""
     from .formulations import _is_spd
     from .kernels_general import pack_forces
+    from .sparsity import blocks
     M = np.asarray(M, float)
     n = len(M)
     lin, Ac = linear_rows(con)
-    prow, dep, R = _pivots(Ac, ~np.any(M != 0.0, axis=0))
-    if len(dep) == 0:
-        return None
+    massless = ~np.any(M != 0.0, axis=0)
+    for massive in (True, False):
+        prow, dep, T, b = _solve(Ac, massless, massive)
+        if len(dep) == 0:
+            return None
+        MT = (T.T @ M).T  # M T (n, n_r), M symmetric
+        Mr = _clean(T.T @ MT)
+        Mr = 0.5 * (Mr + Mr.T)
+        if massless[dep].all() or max(map(len, blocks(Mr))) <= MAX_BLOCK:
+            break  # else a chain's bodies now share one block: massless ones only
     keep = np.setdiff1d(np.arange(n), dep)
-    at = np.full(n, -1)
-    at[keep] = np.arange(len(keep))
-    ti, tj, tv = [keep], [np.arange(len(keep))], [np.ones(len(keep))]
-    b = np.zeros(n)
-    for r, p in zip(prow, dep, strict=True):
-        cols = [c for c in R[r] if c < n and c != p]
-        ti.append(np.full(len(cols), p))
-        tj.append(at[cols])
-        tv.append([-R[r][c] for c in cols])
-        b[p] = -R[r].get(n, 0.0)
-    tv = _clean(np.concatenate(tv))
-    T = sp.csr_array((tv, (np.concatenate(ti), np.concatenate(tj))), shape=(n, len(keep)))
-    T.eliminate_zeros()
-    T.sort_indices()
-    b = _clean(b)
-    MT = (T.T @ M).T  # M T (n, n_r), M symmetric
-    Mr = _clean(T.T @ MT)
-    Mr = 0.5 * (Mr + Mr.T)
     if not _is_spd(Mr):
         return None
     Th = sp.csr_array(sp.block_array([[T, sp.csr_array(b[:, None])],

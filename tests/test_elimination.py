@@ -116,3 +116,23 @@ def test_projection_is_m_orthogonal_in_the_kept_coordinates(name):
     assert run.compiled_path == "generated"
     assert np.max(np.abs(Q[0] - q)) < 1e-12
     assert np.max(np.abs(QD[0] - qd)) < 1e-10
+
+
+def test_a_chain_keeps_its_shared_points(tmp_path):
+    """An N-four-bar (N = 32, joints): eliminating the points its links share would couple
+    every link in one block of M_r (M_r^-1 dense, the Schur path no longer linear in N), so
+    no massive coordinate goes and, its M being regular, there is no elimination; its first
+    two links alone would be eliminated (A02 N = 2)."""
+    from natcoord import elimination as el
+    from natcoord.generate import n_four_bar
+    from natcoord.sparsity import blocks
+
+    path = tmp_path / "a02_four_bar_n32.toml"
+    path.write_text(n_four_bar(32))
+    model = casemodel.build(casefile.load_case(path), "joints").model
+    con, M = ConstraintSystem(model).con, np.asarray(model.M, float)
+    _, Ac = linear_rows(con)
+    _, _, T, _ = el._solve(Ac, np.zeros(model.n, bool), True)
+    assert max(map(len, blocks(T.T @ (T.T @ M).T))) > el.MAX_BLOCK
+    assert eliminate(con, M, compiled_forces(model)) is None
+    assert max(map(len, blocks(M))) <= 4
