@@ -28,6 +28,7 @@ from collections import defaultdict
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse as sp
 
 from .constraints import ROUNDOFF, ConstraintBuilder, QuadraticConstraints
@@ -69,9 +70,10 @@ class Elimination:
     dep_map: tuple
 
     @functools.cached_property
-    def L(self) -> np.ndarray:
-        """M_r's Cholesky factor (n_r, n_r), lower."""
-        return np.linalg.cholesky(self.M)
+    def Lt(self) -> np.ndarray:
+        """L^-T (n_r, n_r) of M_r = L L^T: dq_r = L^-T z turns dq_r^T M_r dq_r into |z|^2."""
+        L = np.linalg.cholesky(self.M)
+        return scipy.linalg.solve_triangular(L, np.eye(len(L)), lower=True).T
 
 
 def linear_rows(con) -> tuple[np.ndarray, sp.csr_array]:
@@ -131,8 +133,8 @@ def _pivots(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
 
 
 def _solve(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
-    """(pivot rows, eliminated coordinates, T (n, n_r) sparse, b (n,)) of q = T q_r + b
-    (see :func:`_pivots`)."""
+    """(pivot rows, eliminated and kept coordinates, T (n, n_r) sparse, b (n,)) of
+    q = T q_r + b (see :func:`_pivots`)."""
     n = Ac.shape[1] - 1
     prow, dep, R = _pivots(Ac, massless, massive)
     keep = np.setdiff1d(np.arange(n), dep)
@@ -150,7 +152,7 @@ def _solve(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
     T = sp.csr_array((tv, (np.concatenate(ti), np.concatenate(tj))), shape=(n, len(keep)))
     T.eliminate_zeros()
     T.sort_indices()
-    return prow, dep, T, _clean(b)
+    return prow, dep, keep, T, _clean(b)
 
 
 def _ranges(starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -189,14 +191,12 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     linear row fixes). Massive coordinates go too while M_r couples at most
     :data:`MAX_BLOCK` of them in one block. ``frc``: the packed forces over q, or None."""
     from .formulations import _is_spd
-    from .kernels_general import pack_forces
     from .sparsity import blocks
     M = np.asarray(M, float)
-    n = len(M)
     lin, Ac = linear_rows(con)
     massless = ~np.any(M != 0.0, axis=0)
     for massive in (True, False):
-        prow, dep, T, b = _solve(Ac, massless, massive)
+        prow, dep, keep, T, b = _solve(Ac, massless, massive)
         if len(dep) == 0:
             return None
         MT = (T.T @ M).T  # M T (n, n_r), M symmetric
@@ -204,7 +204,6 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
         Mr = 0.5 * (Mr + Mr.T)
         if massless[dep].all() or max(map(len, blocks(Mr))) <= MAX_BLOCK:
             break  # else a chain's bodies now share one block: massless ones only
-    keep = np.setdiff1d(np.arange(n), dep)
     if not _is_spd(Mr):
         return None
     Th = sp.csr_array(sp.block_array([[T, sp.csr_array(b[:, None])],
@@ -228,18 +227,22 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     dep_map = (Td.indptr.astype(np.int64), Td.indices.astype(np.int64),
                Td.data.astype(float), b[dep].copy(), keep.astype(np.int64),
                dep.astype(np.int64))
-    out = Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, None, dep_map)
-    if frc is None:
-        return out
+    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr,
+                       None if frc is None else _forces(frc, T, b, Th), dep_map)
+
+
+def _forces(frc: tuple, T: sp.csr_array, b: np.ndarray, Th: sp.csr_array) -> tuple:
+    """The packed forces over q carried to q_r: T^T Q at q = T q_r + b."""
+    from .kernels_general import pack_forces
     Q0, Tq, G, toff, tau, S, spr = frc
+    n1, N = Th.shape  # n + 1, n_r + 1
 
     def over_r(X):  # maps (K, d, n + 1) -> (K, d, n_r + 1)
-        return (Th.T @ X.reshape(-1, n + 1).T).T.reshape(X.shape[:-1] + (N,))
+        return (Th.T @ X.reshape(-1, n1).T).T.reshape(X.shape[:-1] + (N,))
 
     Q0r = T.T @ Q0
     Tr = None
     if Tq.shape[0]:  # a linear force Tq q: T^T Tq (T q_r + b)
         Q0r = Q0r + T.T @ (Tq @ b)
         Tr = T.T @ (T.T @ Tq.T).T
-    frc_r = pack_forces(Q0r, Tr, over_r(G), toff, tau, over_r(S), spr)
-    return Elimination(T, b, keep, dep, lin[prow], out.con, Mr, frc_r, dep_map)
+    return pack_forces(Q0r, Tr, over_r(G), toff, tau, over_r(S), spr)

@@ -290,10 +290,8 @@ class Index1Loop(FormulationLoop):
         auto = self.opt["linsolve"] != "qr"
         sparse = self.regular and auto
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None  # the outputs'
-        self._elim = self.elimination
         con, frc, M = self._loop_model()
-        loop = (self._plan if self._elim is None else schur_plan(con, M)) if (
-            sparse or self._elim is not None) else None
+        loop = self._plan if self.elimination is None else schur_plan(con, M)
         self._plan_args = None if loop is None else loop.kernel_args
         self._kern = None
         if auto and self.opt["generated"]:
@@ -301,15 +299,14 @@ class Index1Loop(FormulationLoop):
             self._kern = codegen.load(plan, frc, M)
             if self._kern is not None:  # a dense plan drives the loop only: the outputs
                 self._plan_args = plan.kernel_args  # stay on the general path
-        self._out_args = (None if self._plan is None else self._plan_args
-                          if loop is self._plan else self._plan.kernel_args)
+        self._out_args = None if self._plan is None else self._plan.kernel_args
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
 
     def _loop_model(self) -> tuple:
         """(constraints, packed forces, M) the compiled loop integrates: the model's, or
         over the coordinates an elimination keeps."""
-        e = self._elim
+        e = self.elimination
         return (self.cs.con, self._frc, self.M) if e is None else (e.con, e.frc, e.M)
 
     def _alpha(self, q0) -> float:
@@ -342,7 +339,7 @@ class Index1Loop(FormulationLoop):
         from . import kernels
         if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
-        q, qd, e = y[:self.n], y[self.n:], self._elim
+        q, qd, e = y[:self.n], y[self.n:], self.elimination
         con, frc, M = self._loop_model()
         return kernels.run(method, con, frc, times, q if e is None else q[e.keep],
                            qd if e is None else qd[e.keep],
@@ -388,23 +385,20 @@ class Index1Loop(FormulationLoop):
         r = int(np.sum(d > self.opt["rank_tol"] * max(d[0], 1e-300))) if len(d) else 0
         return Q[:, :r], Q[:, r:], R[:r, :], P
 
-    def _corrector(self, J, L=None):
+    def _corrector(self, J, Lt=None):
         """dx = corr(rhs) with J dx = rhs (consistent rows), M-orthogonal when M is regular.
-        ``L``: M's Cholesky factor for an M-orthogonal, rank-revealing correction (the
-        minimum of dx^T M dx: L^T dx the minimum-norm solution of J L^-T z = rhs)."""
+        ``Lt``: L^-T of M = L L^T for an M-orthogonal, rank-revealing correction (the
+        minimum of dx^T M dx: dx = L^-T z with z the minimum-norm solution of J L^-T z =
+        rhs)."""
         self.cnt.factorizations += 1
-        if self.mode == "schur" and L is None:
+        if self.mode == "schur" and Lt is None:
             MiJt = self.Minv @ J.T
             W = J @ MiJt
             return lambda rhs: MiJt @ np.linalg.solve(W, rhs)
-        Lt = None if L is None else scipy.linalg.solve_triangular(L, np.eye(len(L)),
-                                                                    lower=True).T
         Q1, _, R1, P = self._qr(J if Lt is None else J @ Lt)
         r = R1.shape[0]
-        R = R1[:, :r].T
-        if Lt is None:
-            return lambda rhs: Q1 @ np.linalg.solve(R, rhs[P[:r]])
-        return lambda rhs: Lt @ (Q1 @ np.linalg.solve(R, rhs[P[:r]]))
+        Q1 = Q1 if Lt is None else Lt @ Q1
+        return lambda rhs: Q1 @ np.linalg.solve(R1[:, :r].T, rhs[P[:r]])
 
     def post_step(self, t, y):
         if self.opt["stabilization"] != "projection":
@@ -420,12 +414,12 @@ class Index1Loop(FormulationLoop):
         if e is None:
             return self._newton(self.cs.phi, self.cs.jacobian, self.cs.phi_t, t, q, qd)
         qr, qdr = self._newton(lambda x, t: e.con.phi(x), lambda x, t: e.con.jacobian(x),
-                               lambda x, t: 0.0, t, q[e.keep], qd[e.keep], e.L)
+                               lambda x, t: 0.0, t, q[e.keep], qd[e.keep], e.Lt)
         return e.T @ qr + e.b, e.T @ qdr
 
-    def _newton(self, phi, jacobian, phi_t, t, q, qd, L=None):
+    def _newton(self, phi, jacobian, phi_t, t, q, qd, Lt=None):
         """Simplified Newton on phi(q, t) = 0 (one factorization), then qd on
-        jacobian qd = -phi_t; ``L``: see :meth:`_corrector`."""
+        jacobian qd = -phi_t; ``Lt``: see :meth:`_corrector`."""
         tol = reachable(self.opt["project_tol"], q, 2)  # what Phi's round-off allows
         q = q.copy()
         corr = None
@@ -434,13 +428,13 @@ class Index1Loop(FormulationLoop):
             if np.max(np.abs(p), initial=0.0) < tol:
                 break
             if corr is None:  # simplified Newton: one factorization per projection
-                corr = self._corrector(jacobian(q, t), L)
+                corr = self._corrector(jacobian(q, t), Lt)
             q -= corr(p)
             self.cnt.newton += 1
         J = jacobian(q, t)
         res = J @ qd + phi_t(q, t)
         if np.max(np.abs(res), initial=0.0) > tol:
-            qd = qd - self._corrector(J, L)(res)
+            qd = qd - self._corrector(J, Lt)(res)
         self.cnt.projections += 1
         return q, qd
 

@@ -215,6 +215,15 @@ def _stages(P, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
     return OK
 
 
+@njit(cache=True, inline="always")
+def _row_dot(ptr, col, val, d, x, off):
+    """sum_e val[e] x[off + col[e]] over row d of a CSR map (ptr, col, val)."""
+    s = 0.0
+    for e in range(ptr[d], ptr[d + 1]):
+        s += val[e] * x[off + col[e]]
+    return s
+
+
 @njit(cache=True)
 def _dep_norm(dep, x, y, yn, atol, rtol, affine):
     """The error norm's sum over the coordinates an elimination removed
@@ -229,19 +238,10 @@ def _dep_norm(dep, x, y, yn, atol, rtol, affine):
     s = 0.0
     for off in (0, n):
         for d in range(ptr.shape[0] - 1):
-            xv = 0.0
-            yv = 0.0
-            ynv = 0.0
-            for e in range(ptr[d], ptr[d + 1]):
-                c = col[e] + off
-                xv += val[e] * x[c]
-                yv += val[e] * y[c]
-                ynv += val[e] * yn[c]
-            if off == 0:
-                yv += b[d]
-                ynv += b[d]
-                if affine:
-                    xv += b[d]
+            c = b[d] if off == 0 else 0.0
+            xv = _row_dot(ptr, col, val, d, x, off) + (c if affine else 0.0)
+            yv = _row_dot(ptr, col, val, d, y, off) + c
+            ynv = _row_dot(ptr, col, val, d, yn, off) + c
             s += (xv / (atol + rtol * max(abs(yv), abs(ynv)))) ** 2
     return s
 
@@ -257,10 +257,8 @@ def expand(dep, X, XD, XDD, Q, QD, QDD):
             for a in range(keep.shape[0]):
                 dst[k, keep[a]] = src[k, a]
             for d in range(drop.shape[0]):
-                s = b[d] if affine else 0.0
-                for e in range(ptr[d], ptr[d + 1]):
-                    s += val[e] * src[k, col[e]]
-                dst[k, drop[d]] = s
+                dst[k, drop[d]] = (_row_dot(ptr, col, val, d, src[k], 0)
+                                   + (b[d] if affine else 0.0))
 
 
 @njit(cache=True)
@@ -524,8 +522,9 @@ def ensure_compiled(*paths: str) -> float:
             sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
                 max_phi=0.0, max_phi_dot=0.0), args)
         if path != "general":  # a singular M's elimination expands the samples after
-            dep = (np.array([0, 1]), np.zeros(1, np.int64), np.ones(1), np.zeros(1),
-                   np.arange(2), np.array([2]))  # a third coordinate equal to the first
+            dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
+                   np.zeros(1), np.arange(2, dtype=np.int64),
+                   np.array([2], np.int64))  # a third coordinate equal to the first
             expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
         _READY.add(path)
     return time.perf_counter() - t0

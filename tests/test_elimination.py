@@ -132,7 +132,7 @@ def test_a_chain_keeps_its_shared_points(tmp_path):
     model = casemodel.build(casefile.load_case(path), "joints").model
     con, M = ConstraintSystem(model).con, np.asarray(model.M, float)
     _, Ac = linear_rows(con)
-    _, _, T, _ = el._solve(Ac, np.zeros(model.n, bool), True)
+    _, _, _, T, _ = el._solve(Ac, np.zeros(model.n, bool), True)
     assert max(map(len, blocks(T.T @ (T.T @ M).T))) > el.MAX_BLOCK
     assert eliminate(con, M, compiled_forces(model)) is None
     assert max(map(len, blocks(M))) <= 4
