@@ -47,9 +47,9 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
               check: bool = True) -> Solution:
     """Integrate from ``state`` at times[0] and sample at ``times`` (T,).
 
-    ``solver`` (default ``Solver()``: index1, dop853, rtol 1e-10, atol 1e-12). ``dop853``
-    (and adaptive ``dopri5``) on index1 runs as one compiled numba loop when the model
-    allows, and so do fixed-step ``rk4`` and ``dopri5``; its compile/cache-load time
+    ``solver`` (default ``Solver()``: index1, dop853, rtol 1e-10, atol 1e-12). Every
+    formulation runs as one compiled numba loop when the model allows (index1 with dop853,
+    dopri5 or rk4, maggi with dop853 or dopri5, index3); its compile/cache-load time
     (``counters["compile_time_s"]``) and the model's sparsity plan and generated kernels
     (``counters["plan_time_s"]``) are never in ``wall_time_s``; ``counters["path"]`` names
     the loop that ran (:data:`natcoord.kernels.PATHS`, or ``python``). ``check``: test Eq. (37)
@@ -68,11 +68,11 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     cs = ConstraintSystem(model)
     n, T = model.n, len(times)
     Q, QD, QDD, LAM = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, cs.m))
-    compiled = getattr(form, "compiled_candidate", lambda *a: False)(method, h)
+    compiled = form.compiled_candidate(method, h)
     q0, qd0 = np.asarray(state.q, float), np.asarray(state.qd, float)
-    if name != "index3" and not compiled:  # start from a consistent state (index3 and the
+    if name == "maggi" or (name == "index1" and not compiled):  # a consistent start (index3
         q0, qd0 = Index1Loop(model, {**options, "linsolve": "qr"}, Counters()).project(
-            t0, q0, qd0)                   # compiled loop project it themselves)
+            t0, q0, qd0)             # and the compiled index1 loop project it themselves)
 
     def record(k, t, y):
         q, qd = form.state(t, y)
@@ -92,7 +92,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
         time_loop(form, y, times, method=method, h=h, rtol=rtol, atol=atol, record=record)
     wall = time.perf_counter() - wall0
     # outputs only: min-norm multipliers and drift at the samples
-    plan = form._plan if compiled else None
+    plan = form._plan if compiled else None  # index1's Schur path: its plan
     done = np.zeros(T, bool)
     if plan is not None:  # sparse, linear in the model's size; unique lambda where no row
         done[:] = ~kernels.sample_outputs(plan, form._frc, Q, QD, LAM, cnt,  # is dependent

@@ -17,8 +17,11 @@ M_r = T^T M T and the applied forces are T^T Q. Where the eliminated coordinates
 M_r is regular and the model runs on the regular-M Schur path: the same dynamics (the linear
 rows hold exactly at every stage, since q - b lies in T's range) on fewer coordinates and
 rows, with no regularisation; an M-orthogonal projection in q_r is the model's own (for a
-regular M) or the kinetic metric's where the model's M has none. The elimination is sparse:
-linear in the size of a chain. Units: those of the model (SI).
+regular M) or the kinetic metric's where the model's M has none. Where massless coordinates
+remain that no linear row fixes (a slender body's unit vector), M_r stays singular
+(``regular`` False) and the general path runs on q_r: fewer coordinates and rows for its QR,
+minimum-norm projections in q_r. The elimination is sparse: linear in the size of a
+chain. Units: those of the model (SI).
 """
 
 from __future__ import annotations
@@ -50,7 +53,8 @@ class Elimination:
     dep : (n - n_r,) int     the coordinates eliminated
     rows : (l,) int          the rows solved for them (hold identically in q_r)
     con : QuadraticConstraints   the other rows over q_r
-    M : (n_r, n_r) float     T^T M T, regular
+    M : (n_r, n_r) float     T^T M T
+    regular : bool           whether M_r is positive definite
     frc : tuple | None       the forces over q_r (:func:`natcoord.kernels_general.pack_forces`;
                              None when the model's are not packed)
     dep_map : tuple          (ptr, col, val, b, keep, dep): T's rows at ``dep`` by rows
@@ -66,12 +70,16 @@ class Elimination:
     rows: np.ndarray
     con: QuadraticConstraints
     M: np.ndarray
+    regular: bool
     frc: tuple | None
     dep_map: tuple
 
     @functools.cached_property
-    def Lt(self) -> np.ndarray:
-        """L^-T (n_r, n_r) of M_r = L L^T: dq_r = L^-T z turns dq_r^T M_r dq_r into |z|^2."""
+    def Lt(self) -> np.ndarray | None:
+        """L^-T (n_r, n_r) of M_r = L L^T: dq_r = L^-T z turns dq_r^T M_r dq_r into |z|^2
+        (None for a singular M_r)."""
+        if not self.regular:
+            return None
         L = np.linalg.cholesky(self.M)
         return scipy.linalg.solve_triangular(L, np.eye(len(L)), lower=True).T
 
@@ -187,8 +195,7 @@ def _clean(X: np.ndarray) -> np.ndarray:
 
 def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     """The elimination of coordinates by ``con``'s constant linear rows (see the module),
-    or None where there is none or it leaves M_r singular (a massless coordinate that no
-    linear row fixes). Massive coordinates go too while M_r couples at most
+    or None where there is none. Massive coordinates go too while M_r couples at most
     :data:`MAX_BLOCK` of them in one block. ``frc``: the packed forces over q, or None."""
     from .formulations import _is_spd
     from .sparsity import blocks
@@ -204,8 +211,6 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
         Mr = 0.5 * (Mr + Mr.T)
         if massless[dep].all() or max(map(len, blocks(Mr))) <= MAX_BLOCK:
             break  # else a chain's bodies now share one block: massless ones only
-    if not _is_spd(Mr):
-        return None
     Th = sp.csr_array(sp.block_array([[T, sp.csr_array(b[:, None])],
                                       [None, sp.csr_array(np.ones((1, 1)))]]))
     Th.eliminate_zeros()
@@ -227,7 +232,7 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     dep_map = (Td.indptr.astype(np.int64), Td.indices.astype(np.int64),
                Td.data.astype(float), b[dep].copy(), keep.astype(np.int64),
                dep.astype(np.int64))
-    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr,
+    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, _is_spd(Mr),
                        None if frc is None else _forces(frc, T, b, Th), dep_map)
 
 

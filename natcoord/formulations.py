@@ -21,8 +21,10 @@ singular mass matrix".
 
 A formulation is a small object with the state layout it integrates (``init``, ``state``)
 and the stages the time loop of :mod:`natcoord.integrators` calls (``rhs`` or ``step``,
-then ``post_step``). Multipliers are computed once per output sample by
-:func:`multipliers` (minimum norm), so every formulation reports the same lambda.
+then ``post_step``); each also runs as one compiled loop that takes the same steps
+(:mod:`natcoord.kernels`, :mod:`natcoord.kernels_maggi`, :mod:`natcoord.kernels_index3`).
+Multipliers are computed once per output sample by :func:`multipliers` (minimum norm), so
+every formulation reports the same lambda.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import scipy.linalg
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
 from .kernels_general import reachable
+from .kernels_index3 import PENALTY_MAX
 from .solver import Index1, Index3, Maggi
 
 
@@ -169,6 +172,15 @@ def compiled_forces(model) -> tuple | None:
     return pack_forces(model.Q0, None, np.concatenate(G), np.array(toff), tau, S, spr)
 
 
+def _alpha(con, M: np.ndarray, q0: np.ndarray | None) -> float:
+    """alpha of M + alpha J_S^T J_S: max diag M over max diag J^T J (at q0, or J's
+    coefficients alone), rounded to a power of two (one model, one set of kernels)."""
+    J = con.jacobian(q0) if q0 is not None else np.zeros((0, len(M)))
+    jj = float(np.max(np.sum(J * J, axis=0), initial=0.0)) or 1.0
+    mm = float(np.max(np.diag(M), initial=0.0)) or 1.0
+    return float(2.0 ** round(math.log2(mm / jj)))
+
+
 def _is_spd(M: np.ndarray) -> bool:
     """M (n, n) symmetric positive definite, judged block by block over its coupled
     coordinates (cheap for a large, block-diagonal M)."""
@@ -193,11 +205,18 @@ class FormulationLoop:
     2. ODE forms give ``rhs(t, y) -> dy/dt``; stepping forms give ``step(t, y, h) -> y``.
     3. ``post_step(t, y) -> y`` after every accepted step (projection, re-partitioning).
     4. ``state(t, y) -> (q, qd)`` and ``accelerations(t, q, qd) -> qdd`` for the outputs.
+
+    A formulation with a compiled loop says so in ``compiled_candidate(method, h)``, sets
+    itself up in ``prepare_compiled(q0)`` (model only: not stepping time), names its loop in
+    ``compiled_path`` (:data:`natcoord.kernels.PATHS`) and runs the whole integration in
+    ``run_compiled(times, y, method, rtol, atol, h) -> (Q, QD, QDD)`` from ``init``'s y.
     """
 
     name = ""
     ode = True
     methods: tuple[str, ...] = ()
+    compiled_path = "python"
+    _plan = None  # a sparsity plan for the samples' multipliers (index1's Schur path)
 
     def __init__(self, model, options: dict, counters: Counters):
         self.model, self.opt, self.cnt = model, {**DEFAULT_OPTIONS, **options}, counters
@@ -207,6 +226,24 @@ class FormulationLoop:
 
     def post_step(self, t, y):
         return y
+
+    def compiled_candidate(self, method: str, h) -> bool:
+        return False
+
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
+        pass
+
+    def _compiled_model(self, methods) -> bool:
+        """Whether the compiled loop may run with ``methods`` allowed: ``compiled`` on,
+        numba present, scleronomic constraints and forces :func:`compiled_forces` knows
+        (kept in ``_frc``)."""
+        from . import kernels
+        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and methods
+                and not self.cs.rheonomic):
+            return False
+        if not hasattr(self, "_frc"):
+            self._frc = compiled_forces(self.model)
+        return self._frc is not None
 
     def _drift(self, t, q, qd):
         p, J, pt, _ = self.cs.all(q, qd, t)
@@ -230,18 +267,22 @@ class Index1Loop(FormulationLoop):
         mode = self.opt["linsolve"]
         if mode not in ("auto", "schur", "qr"):
             raise ValueError(f"linsolve {mode!r}: expected auto, schur or qr")
-        self.regular = _is_spd(self.M)
         if mode == "schur" and not self.regular:
             raise ValueError("linsolve 'schur' needs a regular mass matrix")
         self.mode = mode
 
     @functools.cached_property
+    def regular(self) -> bool:
+        """Whether M is positive definite (block by block)."""
+        return _is_spd(self.M)
+
+    @functools.cached_property
     def elimination(self):
         """The coordinates the constant linear rows fix, eliminated
-        (:class:`natcoord.elimination.Elimination`) where that leaves M regular; None with
-        drivers, ``linsolve`` other than auto, or no such elimination. The compiled loop
-        runs on the coordinates kept; a singular M's projections are M-orthogonal there (the
-        kinetic metric) in both loops."""
+        (:class:`natcoord.elimination.Elimination`); None with drivers, ``linsolve`` other
+        than auto, or no such row. The compiled loop runs on the coordinates kept; a
+        singular M's projections are M-orthogonal there (the kinetic metric) in both loops,
+        or minimum-norm there where M_r stays singular."""
         from .elimination import eliminate
         if self.cs.rheonomic or self.opt["linsolve"] != "auto":
             return None
@@ -268,13 +309,9 @@ class Index1Loop(FormulationLoop):
         :func:`compiled_forces` knows. A regular M runs the sparse Schur path (redundant rows
         included), a singular one (or ``linsolve = "qr"``) the null-space QR form."""
         from . import kernels
-        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA
-                and method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP)
-                and self.opt["stabilization"] == "projection" and not self.cs.rheonomic):
-            return False
-        if not hasattr(self, "_frc"):
-            self._frc = compiled_forces(self.model)
-        return self._frc is not None
+        return self._compiled_model(
+            method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP)
+            and self.opt["stabilization"] == "projection")
 
     def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
@@ -283,19 +320,23 @@ class Index1Loop(FormulationLoop):
         and its generated kernels (:func:`natcoord.codegen.load`, None when the model has
         none). A singular M that no elimination makes regular takes the generated
         regularised route where it can (:func:`natcoord.sparsity.dense_plan`, alpha from M
-        and Phi_q at ``q0``), else the general QR path. The model's own plan (a regular M)
-        serves the outputs."""
+        and Phi_q at ``q0``), else the general QR path (on the coordinates kept, where an
+        elimination leaves M_r singular). The model's own plan (a regular M) serves the
+        outputs."""
         from . import codegen
         from .sparsity import dense_plan, schur_plan
         auto = self.opt["linsolve"] != "qr"
         sparse = self.regular and auto
         self._plan = schur_plan(self.cs.con, self.M) if sparse else None  # the outputs'
         con, frc, M = self._loop_model()
-        loop = self._plan if self.elimination is None else schur_plan(con, M)
+        e = self.elimination
+        loop = self._plan if e is None else schur_plan(con, M) if e.regular else None
         self._plan_args = None if loop is None else loop.kernel_args
         self._kern = None
         if auto and self.opt["generated"]:
-            plan = loop if loop is not None else dense_plan(con, M, self._alpha(q0))
+            q0 = None if q0 is None else np.asarray(q0, float)[
+                slice(None) if e is None else e.keep]
+            plan = loop if loop is not None else dense_plan(con, M, _alpha(con, M, q0))
             self._kern = codegen.load(plan, frc, M)
             if self._kern is not None:  # a dense plan drives the loop only: the outputs
                 self._plan_args = plan.kernel_args  # stay on the general path
@@ -309,14 +350,6 @@ class Index1Loop(FormulationLoop):
         e = self.elimination
         return (self.cs.con, self._frc, self.M) if e is None else (e.con, e.frc, e.M)
 
-    def _alpha(self, q0) -> float:
-        """alpha of M + alpha J_S^T J_S: max diag M over max diag J^T J (at q0, or J's
-        coefficients alone), rounded to a power of two (one model, one set of kernels)."""
-        J = (self.cs.jacobian(np.asarray(q0, float), 0.0) if q0 is not None
-             else np.zeros((0, self.n)))
-        jj = float(np.max(np.sum(J * J, axis=0), initial=0.0)) or 1.0
-        mm = float(np.max(np.diag(self.M), initial=0.0)) or 1.0
-        return float(2.0 ** round(math.log2(mm / jj)))
 
     @property
     def compiled_path(self) -> str:
@@ -334,8 +367,8 @@ class Index1Loop(FormulationLoop):
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.kernels.run`: (Q, QD, QDD) (T, n) at ``times``
         (the sparse Schur path for a regular M or one left regular by an elimination, else
-        the QR null-space form with M), after :meth:`prepare_compiled` (made here when it
-        was not)."""
+        the QR null-space form with M, on the coordinates kept where there is one), after
+        :meth:`prepare_compiled` (made here when it was not)."""
         from . import kernels
         if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
@@ -440,15 +473,48 @@ class Index1Loop(FormulationLoop):
 
 
 class MaggiLoop(FormulationLoop):
-    """Eq. (23) as an ODE in y = [q^i, qd^i] (2f), R from coordinate partitioning."""
+    """Eq. (23) as an ODE in y = [q^i, qd^i] (2f), R from coordinate partitioning.
+
+    With dop853 or dopri5 (adaptive), rk4 or dopri5 (fixed step) the whole run is one numba
+    loop when the model allows (:mod:`natcoord.kernels_maggi`: the same steps, Newton and
+    re-partitions as this class and :func:`natcoord.integrators.time_loop`)."""
 
     name = "maggi"
     methods = Index1Loop.methods
+    COMPILED_METHODS = ("dop853", "dopri5")
+    compiled_path = "maggi"
 
     def init(self, t, q, qd):
         self.q = np.array(q, dtype=float)
         self._partition(t, self.q)
         return np.concatenate([q[self.indep], qd[self.indep]])
+
+    def compiled_candidate(self, method: str, h) -> bool:
+        """Whether the compiled loop (:mod:`natcoord.kernels_maggi`) may run: adaptive
+        dop853 or dopri5, fixed-step rk4 or dopri5, scleronomic constraints, forces
+        :func:`compiled_forces` knows."""
+        from . import kernels
+        return self._compiled_model(
+            method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP))
+
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
+        """Model-only set-up: the constraint triplets and M's non-zeros packed for the
+        compiled loop (:func:`natcoord.kernels_maggi.pack`)."""
+        from . import kernels_maggi
+        self._packed = kernels_maggi.pack(self.cs.con, self.M)
+
+    def run_compiled(self, times, y, method, rtol, atol, h=None):
+        """The whole run in :func:`natcoord.kernels_maggi.run` from ``init``'s y = [q^i,
+        qd^i] (2f), its q (n,) and partition: (Q, QD, QDD) (T, n) at ``times`` (T,) s, the
+        same steps as the Python loop."""
+        from . import kernels_maggi
+        if not hasattr(self, "_packed"):
+            self.prepare_compiled()
+        return kernels_maggi.run(
+            self._packed, self._frc, times, y, self.q, self.rows, self.dep, self.indep,
+            method=method, rtol=rtol, atol=atol, h=h, newton_tol=self.opt["newton_tol"],
+            rank_tol=self.opt["rank_tol"], repartition_growth=self.opt["repartition_growth"],
+            cnt=self.cnt)
 
     def _partition(self, t, q):
         J = self.cs.jacobian(q, t)
@@ -552,11 +618,14 @@ class Index3Loop(FormulationLoop):
     ``M (q - qhat) + h^2/4 (Phi_q^T (lambda* + alpha Phi) - F) = 0`` with lambda* updated
     by ``alpha Phi`` after every iteration, then qd and qdd projected onto
     ``Phi_q qd = -Phi_t`` and ``Phi_q qdd = c`` in the metric of M (Bayo & Ledesma).
+    The whole run is one numba loop when the model allows (:mod:`natcoord.kernels_index3`,
+    the same steps).
     """
 
     name = "index3"
     ode = False
     methods = ("trapezoidal",)
+    compiled_path = "index3"
 
     def init(self, t, q, qd):
         i1 = Index1Loop(self.model, {**self.opt, "linsolve": "qr"}, self.cnt)
@@ -577,6 +646,20 @@ class Index3Loop(FormulationLoop):
     def accelerations(self, t, q, qd):
         return self._last_qdd
 
+    def compiled_candidate(self, method: str, h) -> bool:
+        """Whether the compiled loop (:mod:`natcoord.kernels_index3`) may run: the
+        trapezoidal rule, scleronomic constraints, forces :func:`compiled_forces` knows."""
+        return self._compiled_model(method == "trapezoidal" and h is not None)
+
+    def run_compiled(self, times, y, method, rtol, atol, h=None):
+        """The whole run in :func:`natcoord.kernels_index3.run`: (Q, QD, QDD) (T, n) at
+        ``times``, the same steps as :meth:`step`."""
+        from . import kernels_index3
+        return kernels_index3.run(self.cs.con, self._frc, self.M, times, y, h=h,
+                                  penalty=self.opt["penalty"], mscale=self.mscale,
+                                  newton_tol=self.opt["newton_tol"],
+                                  project_tol=self.opt["project_tol"], cnt=self.cnt)
+
     def step(self, t, y, h):
         """One trapezoidal step. When Newton fails (near a singular position, where the
         multipliers grow without bound) the step is retried with the penalty x100, up to
@@ -590,7 +673,7 @@ class Index3Loop(FormulationLoop):
             res = self._newton(t1, y, h, qhat, beta)
             if res is not None:
                 break
-            if penalty >= 1e10:
+            if penalty >= PENALTY_MAX:
                 raise RuntimeError(f"index3: Newton did not converge at t = {t1:.6g} s")
             penalty *= 100.0
             self.cnt.rejected += 1

@@ -4,9 +4,9 @@
 ``dopri5``       Dormand-Prince 5(4): adaptive (rtol, atol) or fixed step (order 5); the
                  formulation's ``post_step`` (projection, re-partitioning) runs after every
                  accepted step, so k1 is re-evaluated at the corrected state (no FSAL)
-``dop853``       Dormand-Prince 8(5,3), adaptive; on index1 the whole run is one compiled
-                 kernel (:mod:`natcoord.kernels`) when the model allows, else the Python
-                 loop below runs it.
+``dop853``       Dormand-Prince 8(5,3), adaptive; on index1 and maggi the whole run is one
+                 compiled kernel (:mod:`natcoord.kernels`, :mod:`natcoord.kernels_maggi`)
+                 when the model allows, else the Python loop below runs it.
 ``trapezoidal``  the index-3 formulation's own implicit step (order 2), fixed step
 scipy names      (``DOP853``, ``RK45``, ``Radau``, ``LSODA``, ``BDF``): ``solve_ivp`` between
                  output samples, ``post_step`` at each sample only

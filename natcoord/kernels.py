@@ -54,6 +54,7 @@ from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-e
     C_PHID,
     C_PROJ,
     C_REJ,
+    C_REPART,
     C_RHS,
     C_STEPS,
     ERR_MASS,
@@ -471,7 +472,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
 
 
 # ---- compile / load once ----------------------------------------------------------------
-def _drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
+def drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
     """numba compiles callees into the cached code of their callers but checks only the
     caller's file for changes: flush the cache of every compiled function of ``module``
     (its ``namespace``) when one of the modules ``deps`` changed since it was written."""
@@ -489,22 +490,30 @@ def _drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
         pass
 
 
-_drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
-_drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse))
+drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
+drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse))
 _READY: set[str] = set()  # the paths compiled or loaded in this process
-PATHS = ("sparse", "generated", "general")
+OTHER_LOOPS = {"maggi": "natcoord.kernels_maggi", "index3": "natcoord.kernels_index3"}
+PATHS = ("sparse", "generated", "general", *OTHER_LOOPS)
 
 
 def ensure_compiled(*paths: str) -> float:
     """Compile (or load from numba's cache) the loop of the given paths (:data:`PATHS`:
-    the sparse Schur path with generic or generated kernels, the general QR null-space
-    path; none given: all) by tiny runs, adaptive and fixed-step; returns the seconds this
-    call took (0 when already done in this process). A run loads only the path it takes."""
+    index1's sparse Schur path with generic or generated kernels and its general QR
+    null-space path, the maggi and index3 loops; none given: all) by tiny runs; returns the
+    seconds this call took (0 when already done in this process). A run loads only the path
+    it takes."""
+    import importlib
+
     from . import codegen
     todo = [p for p in (paths or PATHS) if p not in _READY]
     if not todo or not HAVE_NUMBA:
         return 0.0
     t0 = time.perf_counter()
+    for path in [p for p in todo if p in OTHER_LOOPS]:
+        importlib.import_module(OTHER_LOOPS[path]).warm_up()
+        _READY.add(path)
+    todo = [p for p in todo if p not in OTHER_LOOPS]
     # a pendulum particle on a unit circle: n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2
     con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
                           v=np.array([1.0, 1.0, -1.0]), m=1)
@@ -521,11 +530,11 @@ def ensure_compiled(*paths: str) -> float:
         if path == "sparse":
             sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
                 max_phi=0.0, max_phi_dot=0.0), args)
-        if path != "general":  # a singular M's elimination expands the samples after
-            dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
-                   np.zeros(1), np.arange(2, dtype=np.int64),
-                   np.array([2], np.int64))  # a third coordinate equal to the first
-            expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
+        # an elimination expands the samples after the loop
+        dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
+               np.zeros(1), np.arange(2, dtype=np.int64),
+               np.array([2], np.int64))  # a third coordinate equal to the first
+        expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
         _READY.add(path)
     return time.perf_counter() - t0
 
@@ -571,21 +580,33 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
                         None if generated else frc, tab, ctl, dep,
                         np.ascontiguousarray(times, float), np.array(q0, float),
                         np.array(qd0, float), (Q, QD, QDD, c))
-    if cnt is not None:
-        for slot, name_ in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),
-                            (C_FACT, "factorizations"), (C_PROJ, "projections"),
-                            (C_NEWTON, "newton")):
-            setattr(cnt, name_, getattr(cnt, name_) + int(c[slot]))
-        cnt.max_phi_step = max(cnt.max_phi_step, float(c[C_PHI]))
-        cnt.max_phi_dot_step = max(cnt.max_phi_dot_step, float(c[C_PHID]))
-    if status != OK:
-        raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)}")
+    add_counters(c, cnt)
+    check(status, name)
     if len(dep[5]) == 0:
         return Q, QD, QDD
     nq = n + len(dep[5])
     out = np.zeros((Tn, nq)), np.zeros((Tn, nq)), np.zeros((Tn, nq))
     expand(dep, Q, QD, QDD, *out)
     return out
+
+
+def add_counters(c: np.ndarray, cnt) -> None:
+    """Add a compiled loop's counter array c (N_COUNTERS,) to ``cnt``
+    (:class:`natcoord.formulations.Counters`; None: nothing)."""
+    if cnt is None:
+        return
+    for slot, name in ((C_STEPS, "steps"), (C_REJ, "rejected"), (C_RHS, "rhs"),
+                       (C_FACT, "factorizations"), (C_PROJ, "projections"),
+                       (C_NEWTON, "newton"), (C_REPART, "repartitions")):
+        setattr(cnt, name, getattr(cnt, name) + int(c[slot]))
+    cnt.max_phi_step = max(cnt.max_phi_step, float(c[C_PHI]))
+    cnt.max_phi_dot_step = max(cnt.max_phi_dot_step, float(c[C_PHID]))
+
+
+def check(status: int, name: str) -> None:
+    """Raise RuntimeError naming the method ``name`` for a status other than OK."""
+    if status != OK:
+        raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)}")
 
 
 def sample_outputs(plan, frc, Q, QD, LAM, cnt, args=None) -> np.ndarray:

@@ -40,8 +40,8 @@ except ImportError:  # pragma: no cover
 
 
 # counter slots of the ``cnt`` array, status codes (shared with natcoord.kernels)
-C_STEPS, C_REJ, C_RHS, C_FACT, C_PROJ, C_NEWTON, C_PHI, C_PHID = range(8)
-N_COUNTERS = 8
+C_STEPS, C_REJ, C_RHS, C_FACT, C_PROJ, C_NEWTON, C_PHI, C_PHID, C_REPART = range(9)
+N_COUNTERS = 9
 OK, ERR_UNDERFLOW, ERR_SINGULAR, ERR_NEWTON, ERR_MAXSTEPS, ERR_NONFINITE, ERR_MASS = range(7)
 
 

@@ -49,6 +49,11 @@ def _choice(owner: str, name: str, value, choices: tuple) -> None:
         raise ValueError(f"{owner}: {name} {value!r} is not one of {', '.join(choices)}")
 
 
+def _flag(owner: str, name: str, value) -> None:
+    if not isinstance(value, bool):
+        raise ValueError(f"{owner}: {name} must be true or false, got {value!r}")
+
+
 @dataclass(frozen=True)
 class Adaptive:
     """Error-controlled steps: relative and absolute tolerance on every component of
@@ -74,18 +79,21 @@ class Fixed:
 
 @dataclass(frozen=True)
 class Formulation:
-    """Options every formulation shares: Newton and projection tolerances (on |Phi|, m) and
-    the relative rank tolerance of Phi_q."""
+    """Options every formulation shares: Newton and projection tolerances (on |Phi|, m),
+    the relative rank tolerance of Phi_q, and ``compiled``: run the whole integration as one
+    numba loop when the model allows (else, or False, the Python loop)."""
 
     name: ClassVar[str] = ""
     methods: ClassVar[tuple[str, ...]] = ODE_METHODS
     project_tol: float = 1e-13
     newton_tol: float = 1e-13
     rank_tol: float = 1e-9
+    compiled: bool = True
 
     def __post_init__(self):
         for f in ("project_tol", "newton_tol", "rank_tol"):
             _positive(type(self).__name__, f, getattr(self, f))
+        _flag(type(self).__name__, "compiled", self.compiled)
 
     def options(self) -> dict:
         """The options as a plain dict (what :mod:`natcoord.formulations` reads)."""
@@ -94,16 +102,15 @@ class Formulation:
 
 @dataclass(frozen=True)
 class Index1(Formulation):
-    """Index-1 Lagrange equations. ``baumgarte`` (alpha, beta) 1/s; ``compiled``: run as
-    one numba loop when the model allows (adaptive dop853/dopri5 with projection);
-    ``generated``: on its Schur path, with kernels written out for the model
-    (:mod:`natcoord.codegen`) when it allows, else the generic sparse kernels."""
+    """Index-1 Lagrange equations. ``baumgarte`` (alpha, beta) 1/s; compiled with
+    projection and dop853, dopri5 or rk4; ``generated``: on its Schur path, with kernels
+    written out for the model (:mod:`natcoord.codegen`) when it allows, else the generic
+    sparse kernels."""
 
     name: ClassVar[str] = "index1"
     stabilization: str = "projection"
     baumgarte: tuple[float, float] = (10.0, 10.0)
     linsolve: str = "auto"
-    compiled: bool = True
     generated: bool = True
 
     def __post_init__(self):
@@ -115,10 +122,7 @@ class Index1(Formulation):
             raise ValueError(f"Index1: baumgarte must be (alpha, beta), got {self.baumgarte!r}")
         for x in self.baumgarte:
             _positive("Index1", "baumgarte", x)
-        for flag in ("compiled", "generated"):
-            if not isinstance(getattr(self, flag), bool):
-                raise ValueError(f"Index1: {flag} must be true or false, "
-                                 f"got {getattr(self, flag)!r}")
+        _flag("Index1", "generated", self.generated)
         object.__setattr__(self, "baumgarte", tuple(float(x) for x in self.baumgarte))
 
 

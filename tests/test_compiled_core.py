@@ -18,7 +18,7 @@ from natcoord import kernels_sparse as ks
 from natcoord.drivers import ConstraintSystem
 from natcoord.dynamics import integrate
 from natcoord.formulations import Counters, Index1Loop, compiled_forces
-from natcoord.solver import Adaptive, Fixed, Index1, Solver
+from natcoord.solver import Adaptive, Fixed, Index1, Index3, Solver
 
 from .conftest import CASES
 
@@ -26,6 +26,8 @@ H = 1e-3  # RK4 step (s)
 WINDOW = 0.05  # s of each case
 STIFF = {"a05_flyball_governor": (1e-4, 0.01),  # dampers' mode ~1e4 1/s
          "parallelogram_3d_flexible": (2e-5, 0.002)}  # its springs: ~35 steps per ms
+INDEX3_STIFF = {"parallelogram_3d_flexible": (5e-6, 1e-4)}  # the trapezoidal Newton's
+# tangent leaves out the springs' stiffness: it converges only on shorter steps
 COMPILED = [p.stem for p in sorted(CASES.glob("*.toml"))
             if p.stem not in ("slider_crank_driven",)]  # drivers are rheonomic: Python only
 
@@ -257,3 +259,31 @@ def test_generated_forces_equal_the_generic_ones(name):
                     workspace(n, con.m), cnt)
     assert np.max(np.abs(ref)) > 1.0
     assert np.max(np.abs(out - ref)) < 1e-10 * np.max(np.abs(ref))
+
+
+@pytest.mark.parametrize("name", COMPILED)
+def test_compiled_index3_matches_the_python_loop(name):
+    """The same trapezoidal steps; the two loops' Newton iterates may part by its stop
+    (|dq| < 10 newton_tol max(1, |q|)), which the trapezoidal rule turns into 2/h of it in
+    qd and 4/h^2 in qdd."""
+    case, model, st = _model(name)
+    h, window = {**STIFF, **INDEX3_STIFF}.get(name, (H, WINDOW))
+    times = np.linspace(0.0, min(window, 0.01), 3)
+    runs = {c: integrate(model, st, times, Solver(Index3(compiled=c), "trapezoidal",
+                                                  Fixed(h))) for c in (True, False)}
+    a, b = runs[True], runs[False]
+    assert a.counters["path"] == "index3" and b.counters["path"] == "python"
+    assert a.counters["steps"] == b.counters["steps"]
+    assert a.counters["newton"] == b.counters["newton"]
+    stop = 10 * Index3().newton_tol * max(1.0, float(np.max(np.abs(b.q))))
+    assert np.max(np.abs(a.q - b.q)) < 10 * stop
+    assert np.max(np.abs(a.qd - b.qd)) < 10 * stop * 2 / h
+    assert np.max(np.abs(a.qdd - b.qdd)) < 10 * stop * 4 / h ** 2
+
+
+def test_compiled_index3_reports_a_step_its_newton_cannot_take():
+    case, model, st = _model("parallelogram_3d_flexible")  # 2e-5 s steps: too long for it
+    for compiled in (True, False):
+        with pytest.raises(RuntimeError, match="Newton did not converge at t = 2e-05 s"):
+            integrate(model, st, np.linspace(0.0, 1e-4, 6),
+                      Solver(Index3(compiled=compiled), "trapezoidal", Fixed(2e-5)))

@@ -72,16 +72,33 @@ def test_the_kept_coordinates_carry_the_same_model(name):
     assert np.max(np.abs(e.T @ qdd - ref)) < 1e-10 * max(1.0, np.max(np.abs(ref)))
 
 
-def test_a_massless_coordinate_no_linear_row_fixes_leaves_no_elimination():
+def test_a_massless_coordinate_no_linear_row_fixes_leaves_m_r_singular():
     """four_bar_3d: 18 massless coordinates (its slender bodies' unit vectors, held by
-    quadratic rows) and 16 linear rows:
-    M stays singular on the rest, so there is no elimination (the regularised or QR path
-    runs) and the Python loop projects by minimum norm."""
-    model, _ = _model("four_bar_3d")
+    quadratic rows) and 16 linear rows. The elimination takes 16 coordinates; M_r stays
+    singular on the unit vectors, so the general QR path runs on the 20 kept (22 rows
+    instead of 38), and both loops project by minimum norm there: the linear rows hold
+    exactly, the correction dq_r lies in the range of J_r^T."""
+    model, st = _model("four_bar_3d")
     con, M = ConstraintSystem(model).con, np.asarray(model.M, float)
     assert len(linear_rows(con)[0]) == 16 and np.sum(~np.any(M != 0.0, axis=0)) == 18
-    assert eliminate(con, M, compiled_forces(model)) is None
-    assert Index1Loop(model, {}, Counters()).elimination is None
+    e = eliminate(con, M, compiled_forces(model))
+    assert (len(e.dep), len(e.keep), e.con.m) == (16, 20, 22)
+    assert not e.regular and e.Lt is None
+    form = Index1Loop(model, {}, Counters())
+    assert form.compiled_candidate("dop853", None)
+    form.prepare_compiled(np.asarray(st.q, float))
+    assert form.compiled_path == "general"
+    rng = np.random.default_rng(2)
+    q0, qd0 = np.asarray(st.q, float), np.asarray(st.qd, float)
+    qp = q0 + 1e-7 * (e.T @ rng.standard_normal(len(e.keep)))
+    q, qd = form.project(0.0, qp, qd0)
+    assert np.max(np.abs(con.phi(q))) < 1e-12
+    assert np.max(np.abs(con.jacobian(q) @ qd)) < 1e-12
+    assert np.max(np.abs(e.T @ q[e.keep] + e.b - q)) < 1e-14  # linear rows exact
+    Jr = e.con.jacobian(qp[e.keep])
+    dq = q[e.keep] - qp[e.keep]
+    coef, *_ = np.linalg.lstsq(Jr.T, dq, rcond=None)
+    assert np.max(np.abs(Jr.T @ coef - dq)) < 1e-6 * np.max(np.abs(dq))  # min-norm
 
 
 @pytest.mark.parametrize("name", ["five_bar", "parallelogram_3d"])

@@ -182,9 +182,8 @@ def test_adaptive_steps_cross_the_samples(formulation, method):
     ref_times = np.linspace(0.0, 0.5, 501)
     _, ref = _run("four_bar", ref_times, formulation="index1", method="DOP853", rtol=1e-13,
                   atol=1e-14)
-    kw = dict(formulation=formulation, method=method, rtol=1e-9, atol=1e-11)
-    if formulation == "index1":
-        kw["compiled"] = False  # the Python loop (maggi has no compiled loop)
+    kw = dict(formulation=formulation, method=method, rtol=1e-9, atol=1e-11,
+              compiled=False)  # the Python loop (tests/test_compiled_* check the compiled)
     _, coarse = _run("four_bar", ref_times[::250], **kw)
     _, fine = _run("four_bar", ref_times, **kw)
     assert not fine.counters["compiled"]

@@ -1,0 +1,168 @@
+"""The compiled Maggi loop (natcoord.kernels_maggi) against the Python one, and its physics.
+
+Both loops take the same steps with the same stages, Newton, step control and
+re-partitioning, so they agree to round-off: fixed-step RK4 on every case the compiled core
+runs, adaptive dop853/dopri5 on a few, runs that re-partition, a mechanism without degrees
+of freedom. The compiled Gaussian elimination with full pivoting picks the pivots of
+:func:`natcoord.formulations.full_pivot_partition`. Physics: the pendulum of IFToMM A01
+against its elliptic solution, the four-bar against the compiled index-1 loop.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from natcoord import exact, kernels_maggi
+from natcoord.constraints import QuadraticConstraints
+from natcoord.drivers import ConstraintSystem
+from natcoord.dynamics import integrate
+from natcoord.formulations import full_pivot_partition
+from natcoord.solver import Adaptive, Fixed, Index1, Maggi, Solver
+
+from .test_compiled_core import COMPILED, STIFF, _model
+
+H, WINDOW = 1e-3, 0.05  # as test_compiled_core
+SAME = ("steps", "rejected", "rhs", "repartitions")  # counters both loops must share
+
+
+def _pair(model, st, times, method, step, **opt):
+    """(compiled, Python) solutions of the same Maggi run."""
+    out = []
+    for compiled in (True, False):
+        sol = integrate(model, st, times, Solver(Maggi(compiled=compiled, **opt), method, step))
+        assert sol.counters["compiled"] is compiled
+        assert sol.counters["path"] == ("maggi" if compiled else "python")
+        out.append(sol)
+    return out
+
+
+def _agree(a, b, tol_q=1e-10, tol_qdd=1e-9):
+    for key in SAME:
+        assert a.counters[key] == b.counters[key], key
+    for x, y, tol in ((a.q, b.q, tol_q), (a.qd, b.qd, tol_q), (a.qdd, b.qdd, tol_qdd)):
+        assert np.max(np.abs(x - y)) < tol * max(1.0, float(np.max(np.abs(y))))
+
+
+@pytest.mark.parametrize("name", COMPILED)
+def test_compiled_rk4_matches_the_python_loop(name):
+    case, model, st = _model(name)
+    h, window = STIFF.get(name, (H, WINDOW))
+    times = case.times[case.times <= window + 1e-12]
+    if len(times) < 2:
+        times = np.array([0.0, window])
+    a, b = _pair(model, st, times, "rk4", Fixed(h))
+    assert a.counters["steps"] >= 50
+    _agree(a, b)
+
+
+@pytest.mark.parametrize("name, method, window, rtol", [
+    ("slider_crank", "dop853", 1.0, 1e-10), ("four_bar", "dop853", 1.0, 1e-10),
+    ("five_bar", "dop853", 1.0, 1e-10), ("a03_andrews", "dop853", 0.03, 1e-10),
+    ("four_bar", "dopri5", 0.5, 1e-10), ("slider_crank", "dopri5", 0.5, 1e-10),
+    # loose: some steps too long for the Newton of the dependent positions (rejected, h / 4)
+    ("four_bar", "dop853", 1.0, 1e-3), ("slider_crank", "dop853", 1.0, 1e-2)])
+def test_compiled_adaptive_matches_the_python_loop(name, method, window, rtol):
+    """The same steps (Hairer's initial step, the same error norm and factors) and samples
+    from the same continuous extension; only round-off differs. (At much tighter
+    tolerances, e.g. rtol 1e-12 with atol 1e-14 on a start from rest, the error estimate of
+    the first steps is the stages' round-off, which differs between the loops, and so may
+    the step sequence, by a step or two in a hundred.)"""
+    _, model, st = _model(name)
+    times = np.linspace(0.0, window, 201)
+    a, b = _pair(model, st, times, method, Adaptive(rtol=rtol, atol=rtol * 1e-2))
+    assert 5 < a.counters["steps"] < len(times)  # most samples from the dense output
+    _agree(a, b)
+
+
+@pytest.mark.parametrize("name, method, step, t_end", [
+    ("four_bar", "rk4", Fixed(0.5), 1.0), ("a03_andrews", "dop853", Adaptive(1e-4, 1e-4), 0.03)])
+def test_both_loops_refuse_a_failing_run(name, method, step, t_end):
+    """A fixed step too long for the dependent positions' Newton, and Andrews' squeezer at
+    a loose tolerance (Newton fails until the step underflows): both loops raise."""
+    _, model, st = _model(name)
+    for compiled in (True, False):
+        with pytest.raises(RuntimeError, match="maggi"):
+            integrate(model, st, np.array([0.0, t_end]),
+                      Solver(Maggi(compiled=compiled), method, step))
+
+
+@pytest.mark.parametrize("name, method, step, growth", [
+    ("four_bar", "dop853", Adaptive(rtol=1e-10, atol=1e-12), 1.5),
+    ("slider_crank", "dop853", Adaptive(rtol=1e-10, atol=1e-12), 1.01),
+    ("a03_andrews", "rk4", Fixed(1e-3), 1.5),
+    ("slider_crank", "dopri5", Fixed(2e-3), 1.01)])
+def test_repartitions_match(name, method, step, growth):
+    case, model, st = _model(name)
+    times = case.times[case.times <= 1.0 + 1e-12]
+    a, b = _pair(model, st, times, method, step, repartition_growth=growth)
+    assert a.counters["repartitions"] > 0
+    _agree(a, b)
+    cs = ConstraintSystem(model)  # the rebuilt dependent coordinates close the loops
+    assert max(np.max(np.abs(cs.phi(q))) for q in a.q) < 1e-11
+
+
+def test_partition_picks_the_pivots_of_full_pivoting():
+    """rows, dep, indep and the rank of the compiled elimination equal the Python one's on
+    the cases' Jacobians (redundant rows included) and on random rank-deficient matrices."""
+    rng = np.random.default_rng(11)
+    mats = []
+    for name in ("five_bar", "a04_bricard", "parallelogram_3d", "slider_crank_3d"):
+        _, model, st = _model(name)
+        mats.append(ConstraintSystem(model).jacobian(np.asarray(st.q, float)))
+    for m, n, r in ((5, 8, 3), (8, 8, 6), (9, 4, 4), (3, 7, 0)):
+        mats.append(rng.standard_normal((m, r)) @ rng.standard_normal((r, n)))
+    for J in mats:
+        m, n = J.shape
+        A, rows, cols = np.zeros((m, n)), np.zeros(m, np.int64), np.zeros(n, np.int64)
+        r = kernels_maggi.partition(J, 1e-9, A, rows, cols)
+        ref = full_pivot_partition(J, 1e-9)
+        assert r == len(ref[0])
+        for x, y in zip((rows[:r], cols[:r], cols[r:]), ref[:3], strict=True):
+            assert np.array_equal(x, y)
+
+
+def test_no_degrees_of_freedom():
+    """A01's pendulum with its mass held on y = 0 (f = 0): both loops give the kinematics
+    at every sample, at rest."""
+    _, model, st = _model("a01_pendulum")
+    con, n = model.constraints, model.n
+    row = QuadraticConstraints(  # Phi_m = q[3] (point P's y)
+        n, con.m + 1, np.append(con.k, [con.m, con.m]), np.append(con.i, [3, n]),
+        np.append(con.j, [n, 3]), np.append(con.v, [1.0, 1.0]), (*con.labels, "P.y"),
+        np.append(con.length_dim, 1))
+    fixed = dataclasses.replace(model, constraints=row)
+    times = np.linspace(0.0, 0.1, 5)
+    for method, step in (("dop853", Adaptive()), ("rk4", Fixed(0.01))):
+        a, b = _pair(fixed, st, times, method, step)
+        _agree(a, b)
+        assert a.counters["steps"] == 0
+        assert np.max(np.abs(a.q - st.q)) < 1e-14 and np.max(np.abs(a.qdd)) < 1e-12
+
+
+def test_a01_pendulum_follows_the_elliptic_solution():
+    """The point mass on a massless link (singular M) over 20 s (about 8 periods, many
+    re-partitions as the link turns) within 1e-9 m of the Jacobi elliptic solution."""
+    case, model, st = _model("a01_pendulum")
+    times = case.times[case.times <= 20.0 + 1e-9]
+    sol = integrate(model, st, times, Solver(Maggi(), "dop853", Adaptive(1e-12, 1e-14)))
+    assert sol.counters["path"] == "maggi" and sol.counters["repartitions"] > 10
+    ex = exact.a01_pendulum(times)
+    assert np.max(np.abs(sol.q[:, 2] - ex["x"])) < 1e-9
+    assert np.max(np.abs(sol.q[:, 3] - ex["y"])) < 1e-9
+
+
+@pytest.mark.parametrize("name", ["four_bar", "slider_crank"])
+def test_agrees_with_the_compiled_index1_loop(name):
+    """Two formulations, two compiled loops, the same motion and reactions over 2 s."""
+    case, model, st = _model(name)
+    times = case.times[case.times <= 2.0 + 1e-9]
+    step = Adaptive(rtol=1e-12, atol=1e-14)
+    a = integrate(model, st, times, Solver(Maggi(), "dop853", step))
+    b = integrate(model, st, times, Solver(Index1(), "dop853", step))
+    assert a.counters["path"] == "maggi" and b.counters["compiled"]
+    for x, y, tol in ((a.q, b.q, 1e-9), (a.qd, b.qd, 1e-8), (a.qdd, b.qdd, 1e-8),
+                      (a.lam, b.lam, 1e-9)):
+        assert np.max(np.abs(x - y)) < tol * max(1.0, float(np.max(np.abs(y))))
