@@ -200,6 +200,40 @@ def _combine(y, h, C, row, s, K, out):
 
 
 @njit(cache=True)
+def dense_dop853(y, yn, h, K, s_st, D, Fd):
+    """The coefficients Fd (3 + d, N) of DOP853's continuous extension (order 7, Hairer's
+    CONTD8) on a step of h from y to yn (N,), from its stages K (s_st + 3, N): the step's
+    s_st (the last at yn) and the extension's three; D (d, s_st + 3) their weights."""
+    for a in range(y.shape[0]):
+        dy = yn[a] - y[a]
+        Fd[0, a] = dy
+        Fd[1, a] = h * K[0, a] - dy
+        Fd[2, a] = 2.0 * dy - h * (K[s_st - 1, a] + K[0, a])
+    for r in range(D.shape[0]):
+        Fd[3 + r] = 0.0
+        for p in range(D.shape[1]):
+            if D[r, p] != 0.0:
+                for a in range(y.shape[0]):
+                    Fd[3 + r, a] += D[r, p] * K[p, a]
+        for a in range(y.shape[0]):
+            Fd[3 + r, a] *= h
+
+
+@njit(cache=True)
+def dense_at(Fd, y, x, out):
+    """out (N,) = y(t + x h), x in [0, 1], from :func:`dense_dop853`'s Fd: y + the sum of
+    Fd[i] times alternating factors x, 1 - x (Horner, as the Python loop)."""
+    nF = Fd.shape[0]
+    out[:] = 0.0
+    for i in range(nF):
+        fac = x if i % 2 == 0 else 1.0 - x
+        for a in range(y.shape[0]):
+            out[a] = (out[a] + Fd[nF - 1 - i, a]) * fac
+    for a in range(y.shape[0]):
+        out[a] += y[a]
+
+
+@njit(cache=True)
 def _stages(P, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
     """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]) (ys,
     qdd: scratch); a status code. Written without slices (see acc_state)."""
@@ -299,8 +333,6 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     Aall[s_st:, :] = Aext[:, :s_st + n_ext]
     B2, E52, E32 = B.reshape((1, s_st)), E5.reshape((1, s_st)), E3.reshape((1, s_st))
     Fd = np.zeros((D.shape[0] + 3, N))  # dop853 continuous extension (order 7)
-    wd = np.zeros(D.shape[0] + 3)       # its weights at one sample
-    wd2 = wd.reshape((1, wd.shape[0]))
     zero = np.zeros(N)
     x5 = np.zeros(N)   # the error estimates' combinations of the stages
     x3 = np.zeros(N)
@@ -409,13 +441,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
                               s_st + n_ext, K, ys, qdd)
             if st_code != OK:
                 return st_code
-            for a in range(N):
-                dy = yn[a] - y[a]
-                Fd[0, a] = dy
-                Fd[1, a] = hh * K[0, a] - dy
-                Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
-            for r in range(D.shape[0]):
-                _combine(zero, hh, D, r, s_st + n_ext, K, Fd[3 + r])
+            dense_dop853(y, yn, hh, K, s_st, D, Fd)
         st_code = (  # a last stage at yn (fsal) factored there: Newton from it
             kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, fsal)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
@@ -440,13 +466,8 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
                 QDD[k_out] = f1[n:]
             else:
                 x = (tk - t) / hh
-                if dop853:  # y + sum_i Fd[i] prod_{k = nF-1-i}^{nF-1} f_k, with f_k = x
-                    nF = Fd.shape[0]  # for even k and 1 - x for odd k
-                    c = 1.0
-                    for i2 in range(nF):
-                        c *= x if (nF - 1 - i2) % 2 == 0 else 1.0 - x
-                        wd[i2] = c
-                    _combine(y, 1.0, wd2, 0, nF, Fd, yu)
+                if dop853:
+                    dense_at(Fd, y, x, yu)
                     qs[:] = yu[:n]
                     qds[:] = yu[n:]
                 else:

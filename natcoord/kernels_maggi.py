@@ -37,7 +37,15 @@ from types import SimpleNamespace
 import numpy as np
 
 from . import kernels_general
-from .kernels import add_counters, check, drop_stale_cache, njit, tableau
+from .kernels import (
+    add_counters,
+    check,
+    dense_at,
+    dense_dop853,
+    drop_stale_cache,
+    njit,
+    tableau,
+)
 from .kernels_general import (
     C_FACT,
     C_NEWTON,
@@ -529,24 +537,11 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
                              ys, ws, cnt)
                 if st != OK:
                     return st
-                for a in range(N):
-                    dy = yn[a] - y[a]
-                    Fd[0, a] = dy
-                    Fd[1, a] = hh * K[0, a] - dy
-                    Fd[2, a] = 2.0 * dy - hh * (K[s_st - 1, a] + K[0, a])
-                for i in range(D.shape[0]):
-                    _weights(D[i], K, s_st + n_ext, Fd[3 + i], hh)
+                dense_dop853(y, yn, hh, K, s_st, D, Fd)
             inner = True
             x = (times[k] - t) / hh
-            if dop853:  # Horner over F[::-1] with factors x, 1 - x alternating
-                yu[:] = 0.0
-                nF = Fd.shape[0]
-                for i in range(nF):
-                    fac = x if i % 2 == 0 else 1.0 - x
-                    for a in range(N):
-                        yu[a] = (yu[a] + Fd[nF - 1 - i, a]) * fac
-                for a in range(N):
-                    yu[a] += y[a]
+            if dop853:
+                dense_at(Fd, y, x, yu)
             else:  # y + h sum_j (K^T P)[:, j] x^(j+1)
                 for a in range(N):
                     s = 0.0

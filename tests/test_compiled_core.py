@@ -40,13 +40,17 @@ def _model(name):
     return case, cm.model, casemodel.initial_state(cm)
 
 
+def rk4_window(case, name) -> tuple[float, np.ndarray]:
+    """(h, times): the RK4 step and the case's samples in the window the loops compare."""
+    h, window = STIFF.get(name, (H, WINDOW))
+    times = case.times[case.times <= window + 1e-12]
+    return h, times if len(times) >= 2 else np.array([0.0, window])
+
+
 @pytest.mark.parametrize("name", COMPILED)
 def test_compiled_rk4_matches_the_python_loop(name):
     case, model, st = _model(name)
-    h, window = STIFF.get(name, (H, WINDOW))
-    times = case.times[case.times <= window + 1e-12]
-    if len(times) < 2:
-        times = np.array([0.0, window])
+    h, times = rk4_window(case, name)
     runs = {}
     for compiled in (True, False):
         sol = integrate(model, st, times, Solver(Index1(compiled=compiled), "rk4", Fixed(h)))

@@ -22,9 +22,8 @@ from natcoord.dynamics import integrate
 from natcoord.formulations import full_pivot_partition
 from natcoord.solver import Adaptive, Fixed, Index1, Maggi, Solver
 
-from .test_compiled_core import COMPILED, STIFF, _model
+from .test_compiled_core import COMPILED, _model, rk4_window
 
-H, WINDOW = 1e-3, 0.05  # as test_compiled_core
 SAME = ("steps", "rejected", "rhs", "repartitions")  # counters both loops must share
 
 
@@ -49,10 +48,7 @@ def _agree(a, b, tol_q=1e-10, tol_qdd=1e-9):
 @pytest.mark.parametrize("name", COMPILED)
 def test_compiled_rk4_matches_the_python_loop(name):
     case, model, st = _model(name)
-    h, window = STIFF.get(name, (H, WINDOW))
-    times = case.times[case.times <= window + 1e-12]
-    if len(times) < 2:
-        times = np.array([0.0, window])
+    h, times = rk4_window(case, name)
     a, b = _pair(model, st, times, "rk4", Fixed(h))
     assert a.counters["steps"] >= 50
     _agree(a, b)
