@@ -33,11 +33,14 @@ from .kernels_general import (
     C_REJ,
     C_RHS,
     C_STEPS,
+    ERR_MASS,
     ERR_NEWTON,
     N_COUNTERS,
     OK,
     _gamma,
     _jac,
+    _lu,
+    _lu_solve,
     _phi,
     drift,
     forces,
@@ -48,9 +51,12 @@ PENALTY_MAX = 1e10  # the retries' last penalty (relative to max|M_ii|)
 
 
 @njit(cache=True)
-def _augmented(M, J, beta, out):
-    """out (n, n) = M + beta J^T J (BLAS)."""
-    out[:, :] = M + beta * np.dot(J.T, J)
+def _augmented(M, J, beta, JtJ, out):
+    """out (n, n) = M + beta J^T J (J^T J into JtJ by BLAS)."""
+    np.dot(J.T, J, JtJ)
+    for a in range(M.shape[0]):
+        for b in range(M.shape[0]):
+            out[a, b] = M[a, b] + beta * JtJ[a, b]
 
 
 @njit(cache=True)
@@ -58,9 +64,9 @@ def _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cn
     """Newton on the step's equations from q = q0 + h qd0 + h^2/2 qdd0: q (n,) and lam
     (m,) (lambda* on entry, updated) in place; False when it does not converge in 30
     iterations or leaves the finite numbers. ``w`` = (p (m,), J (m, n), F, g (n,),
-    Tg (n, n)) scratch."""
+    Tg, JtJ (n, n), piv (n,) int) scratch."""
     kk, ii, jj, vv, m = con
-    p, J, F, g, Tg = w
+    p, J, F, g, Tg, JtJ, piv = w
     n = q.shape[0]
     alpha = 4.0 * beta / (h * h)
     c4 = 0.25 * h * h
@@ -84,11 +90,14 @@ def _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cn
             for b in range(n):
                 s += M[a, b] * (q[b] - qhat[b])
             g[a] = -s
-        _augmented(M, J, beta, Tg)
+        _augmented(M, J, beta, JtJ, Tg)
         for t in range(kk.shape[0]):  # h^2/4 sum_k mu_k d2Phi_k/dq2
             if ii[t] < n and jj[t] < n:
                 Tg[ii[t], jj[t]] += c4 * p[kk[t]] * vv[t]
-        dq = np.linalg.solve(Tg, g)
+        if not _lu(Tg, piv):
+            return False
+        _lu_solve(Tg, piv, g)
+        dq = g
         cnt[C_FACT] += 1
         cnt[C_NEWTON] += 1
         big = 1.0
@@ -108,11 +117,11 @@ def _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cn
 
 
 @njit(cache=True)
-def _mproject(M, Pinv, J, beta, x, b, tol, w):
+def _mproject(M, P, piv, J, beta, x, b, tol, w):
     """x (n,) in place: argmin (x' - x)^T M (x' - x) subject to J x' = b (m,), by
-    augmented-Lagrangian sweeps (M + beta J^T J) x' = M x + J^T (beta b - sigma) on
-    ``Pinv`` = (M + beta J^T J)^-1; ``w`` = (Mx, rhs (n,), sigma (m,)) scratch."""
-    Mx, rhs, sigma = w
+    augmented-Lagrangian sweeps (M + beta J^T J) x' = M x + J^T (beta b - sigma) on P, piv:
+    the LU factors of M + beta J^T J; ``w`` = (Mx (n,), sigma (m,)) scratch."""
+    Mx, sigma = w
     n, m = x.shape[0], b.shape[0]
     for a in range(n):
         s = 0.0
@@ -125,12 +134,8 @@ def _mproject(M, Pinv, J, beta, x, b, tol, w):
             s = Mx[a]
             for r in range(m):
                 s += J[r, a] * (beta * b[r] - sigma[r])
-            rhs[a] = s
-        for a in range(n):
-            s = 0.0
-            for c in range(n):
-                s += Pinv[a, c] * rhs[c]
             x[a] = s
+        _lu_solve(P, piv, x)
         res = 0.0
         for r in range(m):
             s = -b[r]
@@ -157,9 +162,10 @@ def run_index3(con, M, frc, ctl, times, y0, out):
     qdd0 = y0[2 * n:3 * n].copy()
     lam0 = y0[3 * n:].copy()
     q, lam, qhat, c = np.empty(n), np.empty(m), np.empty(n), np.empty(m)
-    wn = (np.empty(m), np.empty((m, n)), np.empty(n), np.empty(n), np.empty((n, n)))
-    wp = (np.empty(n), np.empty(n), np.empty(m))
-    J, P, zero = wn[1], wn[4], np.zeros(m)
+    wn = (np.empty(m), np.empty((m, n)), np.empty(n), np.empty(n), np.empty((n, n)),
+          np.empty((n, n)), np.empty(n, np.int64))
+    wp = (np.empty(n), np.empty(m))
+    J, P, piv, zero = wn[1], wn[4], wn[6], np.zeros(m)
     Q[0], QD[0], QDD[0] = q0, qd0, qdd0
     for k in range(1, times.shape[0]):
         nsub = max(1, math.ceil((times[k] - times[k - 1]) / h_max - 1e-9))
@@ -184,12 +190,14 @@ def run_index3(con, M, frc, ctl, times, y0, out):
                 qd0[a] = qd0[a] + 0.5 * h * (qdd0[a] + acc)
                 qdd0[a] = acc
             drift(kk, ii, jj, vv, q, qd0, wn[0], J, cnt)
-            _augmented(M, J, beta, P)
-            Pinv = np.linalg.inv(P)
+            _augmented(M, J, beta, wn[5], P)
+            if not _lu(P, piv):
+                tfail[0] = times[k - 1] + (step + 1) * h
+                return ERR_MASS
             cnt[C_FACT] += 1
-            _mproject(M, Pinv, J, beta, qd0, zero, ptol, wp)
+            _mproject(M, P, piv, J, beta, qd0, zero, ptol, wp)
             _gamma(kk, ii, jj, vv, qd0, c)
-            _mproject(M, Pinv, J, beta, qdd0, c, ptol, wp)
+            _mproject(M, P, piv, J, beta, qdd0, c, ptol, wp)
             cnt[C_PROJ] += 1
             cnt[C_STEPS] += 1
             q0[:] = q

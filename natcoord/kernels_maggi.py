@@ -62,6 +62,8 @@ from .kernels_general import (
     OK,
     _gamma,
     _jac,
+    _lu,
+    _lu_solve,
     _phi,
     forces,
     pack_forces,
@@ -72,54 +74,6 @@ NEWTON_ITER = 20
 
 
 # ---- small dense algebra -----------------------------------------------------------------
-@njit(cache=True)
-def _lu(A, piv):
-    """In-place LU with partial pivoting of A (k, k) (rows swapped whole, as LAPACK's
-    getrf); False at a zero pivot."""
-    k = A.shape[0]
-    for c in range(k):
-        p = c
-        big = abs(A[c, c])
-        for r in range(c + 1, k):
-            if abs(A[r, c]) > big:
-                big = abs(A[r, c])
-                p = r
-        piv[c] = p
-        if big == 0.0:
-            return False
-        if p != c:
-            for j in range(k):
-                A[c, j], A[p, j] = A[p, j], A[c, j]
-        d = A[c, c]
-        for r in range(c + 1, k):
-            lr = A[r, c] / d
-            A[r, c] = lr
-            if lr != 0.0:
-                for j in range(c + 1, k):
-                    A[r, j] -= lr * A[c, j]
-    return True
-
-
-@njit(cache=True)
-def _lu_solve(A, piv, b):
-    """b <- A^-1 b (k,) in place from :func:`_lu`."""
-    k = A.shape[0]
-    for c in range(k):
-        p = piv[c]
-        if p != c:
-            b[c], b[p] = b[p], b[c]
-    for r in range(k):
-        s = b[r]
-        for j in range(r):
-            s -= A[r, j] * b[j]
-        b[r] = s
-    for r in range(k - 1, -1, -1):
-        s = b[r]
-        for j in range(r + 1, k):
-            s -= A[r, j] * b[j]
-        b[r] = s / A[r, r]
-
-
 @njit(cache=True)
 def partition(J, tol, A, rows, cols):
     """Gaussian elimination with full pivoting of J = Phi_q (m, n), as
