@@ -197,8 +197,7 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     """The elimination of coordinates by ``con``'s constant linear rows (see the module),
     or None where there is none. Massive coordinates go too while M_r couples at most
     :data:`MAX_BLOCK` of them in one block. ``frc``: the packed forces over q, or None."""
-    from .formulations import _is_spd
-    from .sparsity import blocks
+    from .sparsity import blocks, is_spd
     M = np.asarray(M, float)
     lin, Ac = linear_rows(con)
     massless = ~np.any(M != 0.0, axis=0)
@@ -232,7 +231,7 @@ def eliminate(con, M: np.ndarray, frc: tuple | None) -> Elimination | None:
     dep_map = (Td.indptr.astype(np.int64), Td.indices.astype(np.int64),
                Td.data.astype(float), b[dep].copy(), keep.astype(np.int64),
                dep.astype(np.int64))
-    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, _is_spd(Mr),
+    return Elimination(T, b, keep, dep, lin[prow], builder.build(), Mr, is_spd(Mr),
                        None if frc is None else _forces(frc, T, b, Th), dep_map)
 
 

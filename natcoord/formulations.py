@@ -41,6 +41,7 @@ from .errors import ExistenceError, StepFailure
 from .kernels_general import reachable
 from .kernels_index3 import PENALTY_MAX
 from .solver import Index1, Index3, Maggi
+from .sparsity import is_spd
 
 
 @dataclass
@@ -181,22 +182,6 @@ def _alpha(con, M: np.ndarray, q0: np.ndarray | None) -> float:
     return float(2.0 ** round(math.log2(mm / jj)))
 
 
-def _is_spd(M: np.ndarray) -> bool:
-    """M (n, n) symmetric positive definite, judged block by block over its coupled
-    coordinates (cheap for a large, block-diagonal M)."""
-    from .sparsity import blocks
-    for idx in blocks(M):
-        B = M[np.ix_(idx, idx)]
-        try:
-            np.linalg.cholesky(B)
-        except np.linalg.LinAlgError:
-            return False
-        w = np.linalg.eigvalsh(B)
-        if not w[0] > 1e-10 * w[-1]:
-            return False
-    return True
-
-
 # ---- formulations ---------------------------------------------------------------------
 class FormulationLoop:
     """Base: how a formulation meets the time loop.
@@ -274,7 +259,7 @@ class Index1Loop(FormulationLoop):
     @functools.cached_property
     def regular(self) -> bool:
         """Whether M is positive definite (block by block)."""
-        return _is_spd(self.M)
+        return is_spd(self.M)
 
     @functools.cached_property
     def elimination(self):
