@@ -39,7 +39,7 @@ import scipy.linalg
 from .drivers import ConstraintSystem
 from .errors import ExistenceError, StepFailure
 from .kernels_general import reachable
-from .kernels_index3 import PENALTY_MAX
+from .kernels_index3 import FD_STEP, PENALTY_MAX, force_tangent
 from .solver import Index1, Index3, Maggi
 from .sparsity import is_spd
 
@@ -600,7 +600,8 @@ class Index3Loop(FormulationLoop):
     """Index-3 augmented Lagrangian, trapezoidal rule, mass-orthogonal projections.
 
     y = [q, qd, qdd, lambda*] (3n + m). Per step: Newton on
-    ``M (q - qhat) + h^2/4 (Phi_q^T (lambda* + alpha Phi) - F) = 0`` with lambda* updated
+    ``M (q - qhat) + h^2/4 (Phi_q^T (lambda* + alpha Phi) - F) = 0`` (its tangent with the
+    forces' stiffness and damping, :meth:`_force_tangent`) with lambda* updated
     by ``alpha Phi`` after every iteration, then qd and qdd projected onto
     ``Phi_q qd = -Phi_t`` and ``Phi_q qdd = c`` in the metric of M (Bayo & Ledesma).
     The whole run is one numba loop when the model allows (:mod:`natcoord.kernels_index3`,
@@ -618,7 +619,23 @@ class Index3Loop(FormulationLoop):
         lam = multipliers(self.model, self.cs, t, q, qd, qdd)
         self.mscale = float(np.max(np.abs(np.diag(self.M))))
         self._last_qdd = qdd
+        self._Kt = force_tangent(compiled_forces(self.model), self.n)
         return np.concatenate([q, qd, qdd, lam])
+
+    def _force_tangent(self, t, q, qd, h, F):
+        """K (n, n) = dF/dq + 2/h dF/dqd along the trapezoidal rule's qd(q) (the applied
+        forces' stiffness and damping in the Newton tangent): the constant part and the
+        columns by forward differences (relative step ``FD_STEP``, counted as evaluations)
+        of :func:`natcoord.kernels_index3.force_tangent`."""
+        K0, cols = self._Kt
+        K = K0.copy()
+        for a in cols:
+            e = FD_STEP * max(1.0, abs(q[a]))
+            dq = np.zeros(self.n)
+            dq[a] = e
+            K[:, a] = (self.model.forces(t, q + dq, qd + 2.0 / h * dq) - F) / e
+        self.cnt.rhs += len(cols)
+        return K
 
     def _split(self, y):
         n = self.n
@@ -693,7 +710,8 @@ class Index3Loop(FormulationLoop):
             g = self.M @ (q - qhat) + 0.25 * h * h * (J.T @ mu - F)
             H = np.zeros(n * n)  # sum_k mu_k d2Phi_k/dq2 from the triplets
             np.add.at(H, con.i[sel] * n + con.j[sel], mu[con.k[sel]] * con.v[sel])
-            Tg = self.M + beta * (J.T @ J) + 0.25 * h * h * H.reshape(n, n)
+            Tg = self.M + beta * (J.T @ J) + 0.25 * h * h * (
+                H.reshape(n, n) - self._force_tangent(t1, q, qd, h, F))
             dq = np.linalg.solve(Tg, -g)
             self.cnt.factorizations += 1
             self.cnt.newton += 1

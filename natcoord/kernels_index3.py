@@ -7,7 +7,8 @@ Newton on
     M (q - qhat) + h^2/4 (Phi_q^T (lambda* + alpha Phi) - F) = 0,
     qhat = q_n + h qd_n + h^2/4 qdd_n,   beta = alpha h^2/4 = penalty max|M_ii|,
 
-with the tangent ``M + beta Phi_q^T Phi_q + h^2/4 sum_k mu_k d2Phi_k/dq2`` and lambda*
+with the tangent ``M + beta Phi_q^T Phi_q + h^2/4 (sum_k mu_k d2Phi_k/dq2 - K)``, K the
+forces' dF/dq + 2/h dF/dqd (:func:`force_tangent`), and lambda*
 updated by ``alpha Phi`` after every iteration (a failed Newton retries the step with the
 penalty x100, up to 1e10); then qd and qdd projected M-orthogonally onto
 ``Phi_q qd = 0`` and ``Phi_q qdd = c`` by augmented-Lagrangian sweeps on one factor of
@@ -48,6 +49,22 @@ from .kernels_general import (
 )
 
 PENALTY_MAX = 1e10  # the retries' last penalty (relative to max|M_ii|)
+FD_STEP = 1e-7  # relative step of the forces' difference quotients in the Newton tangent
+
+
+def force_tangent(frc: tuple | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The applied forces' part of the Newton tangent, K = dF/dq + 2/h dF/dqd, for packed
+    forces (:func:`pack_forces`; None: forces natcoord cannot read): (K0 (n, n), cols (c,)
+    int) with K0 the constant T of Q0 + T q and cols the coordinates whose columns come
+    from forward differences instead (those a spring-damper's ends move: its stiffness
+    and damping; every coordinate for unread forces). A torque's stiffness, of the order
+    of the torque, is left out."""
+    if frc is None:
+        return np.zeros((n, n)), np.arange(n, dtype=np.int64)
+    _, T, _, _, _, S, _ = frc
+    K0 = np.array(T, float) if T.shape[0] else np.zeros((n, n))
+    moved = np.any(S[:, :, :n] != 0.0, axis=(0, 1)) if S.shape[0] else np.zeros(n, bool)
+    return K0, np.flatnonzero(moved).astype(np.int64)
 
 
 @njit(cache=True)
@@ -60,13 +77,15 @@ def _augmented(M, J, beta, JtJ, out):
 
 
 @njit(cache=True)
-def _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cnt):
+def _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cnt):
     """Newton on the step's equations from q = q0 + h qd0 + h^2/2 qdd0: q (n,) and lam
     (m,) (lambda* on entry, updated) in place; False when it does not converge in 30
-    iterations or leaves the finite numbers. ``w`` = (p (m,), J (m, n), F, g (n,),
-    Tg, JtJ (n, n), piv (n,) int) scratch."""
+    iterations or leaves the finite numbers. ``Kt`` = (K0 (n, n), cols (c,)): the forces'
+    tangent (:func:`force_tangent`). ``w`` = (p (m,), J (m, n), F, g (n,), Tg, JtJ (n, n),
+    piv (n,) int, Fp (n,), K (n, n)) scratch."""
     kk, ii, jj, vv, m = con
-    p, J, F, g, Tg, JtJ, piv = w
+    p, J, F, g, Tg, JtJ, piv, Fp, K = w
+    K0, cols = Kt
     n = q.shape[0]
     alpha = 4.0 * beta / (h * h)
     c4 = 0.25 * h * h
@@ -94,6 +113,20 @@ def _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cn
         for t in range(kk.shape[0]):  # h^2/4 sum_k mu_k d2Phi_k/dq2
             if ii[t] < n and jj[t] < n:
                 Tg[ii[t], jj[t]] += c4 * p[kk[t]] * vv[t]
+        K[:, :] = K0  # - h^2/4 (dF/dq + 2/h dF/dqd)
+        for a in cols:
+            e = FD_STEP * max(1.0, abs(q[a]))
+            qa, qda = q[a], qd[a]
+            q[a] = qa + e
+            qd[a] = qda + 2.0 / h * e
+            forces(frc, q, qd, Fp)
+            q[a], qd[a] = qa, qda
+            for b in range(n):
+                K[b, a] = (Fp[b] - F[b]) / e
+        cnt[C_RHS] += cols.shape[0]
+        for a in range(n):
+            for b in range(n):
+                Tg[a, b] -= c4 * K[a, b]
         if not _lu(Tg, piv):
             return False
         _lu_solve(Tg, piv, g)
@@ -148,11 +181,12 @@ def _mproject(M, P, piv, J, beta, x, b, tol, w):
 
 
 @njit(cache=True)
-def run_index3(con, M, frc, ctl, times, y0, out):
+def run_index3(con, M, frc, Kt, ctl, times, y0, out):
     """Trapezoidal steps of at most h over ``times`` (T,) from y0 = [q, qd, qdd, lambda*]
-    (3n + m) at times[0]; ``con`` = (k, i, j, v, m); ``ctl`` = (h, penalty, mscale,
-    newton_tol, project_tol); ``out`` = (Q, QD, QDD (T, n), cnt (N_COUNTERS,), tfail (1,))
-    filled in place (tfail: the time a step failed). Returns a status code (0 = ok)."""
+    (3n + m) at times[0]; ``con`` = (k, i, j, v, m); ``Kt``: see :func:`_newton`; ``ctl`` =
+    (h, penalty, mscale, newton_tol, project_tol); ``out`` = (Q, QD, QDD (T, n),
+    cnt (N_COUNTERS,), tfail (1,)) filled in place (tfail: the time a step failed). Returns
+    a status code (0 = ok)."""
     kk, ii, jj, vv, m = con
     h_max, penalty0, mscale, newton_tol, ptol = ctl
     Q, QD, QDD, cnt, tfail = out
@@ -163,7 +197,7 @@ def run_index3(con, M, frc, ctl, times, y0, out):
     lam0 = y0[3 * n:].copy()
     q, lam, qhat, c = np.empty(n), np.empty(m), np.empty(n), np.empty(m)
     wn = (np.empty(m), np.empty((m, n)), np.empty(n), np.empty(n), np.empty((n, n)),
-          np.empty((n, n)), np.empty(n, np.int64))
+          np.empty((n, n)), np.empty(n, np.int64), np.empty(n), np.empty((n, n)))
     wp = (np.empty(n), np.empty(m))
     J, P, piv, zero = wn[1], wn[4], wn[6], np.zeros(m)
     Q[0], QD[0], QDD[0] = q0, qd0, qdd0
@@ -177,7 +211,7 @@ def run_index3(con, M, frc, ctl, times, y0, out):
                 for a in range(n):
                     qhat[a] = q0[a] + h * qd0[a] + 0.25 * h * h * qdd0[a]
                 lam[:] = lam0
-                if _newton(con, M, frc, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam,
+                if _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam,
                            wn, cnt):
                     break
                 if penalty >= PENALTY_MAX:
@@ -220,7 +254,7 @@ def run(con, frc, M, times, y, *, h: float, penalty: float, mscale: float,
             np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
             int(con.m))
     ctl = (float(h), float(penalty), float(mscale), float(newton_tol), float(project_tol))
-    status = run_index3(args, np.ascontiguousarray(M, float), frc, ctl,
+    status = run_index3(args, np.ascontiguousarray(M, float), frc, force_tangent(frc, n), ctl,
                         np.ascontiguousarray(times, float), np.asarray(y, float),
                         (Q, QD, QDD, c, tfail))
     add_counters(c, cnt)
