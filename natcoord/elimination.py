@@ -105,9 +105,8 @@ def linear_rows(con) -> tuple[np.ndarray, sp.csr_array]:
 def _pivots(Ac: sp.csr_array, massless: np.ndarray, massive: bool):
     """Sparse Gauss-Jordan on [A | c], a pivot per row where it has one: a massless column
     where the row has one, else (``massive``) its largest (the lowest such column on a
-    tie). Returns the
-    pivot rows, their columns, and every row as {column: value} (a pivot row holds its
-    pivot, 1, and kept columns only)."""
+    tie). Returns the pivot rows, their columns, and every row as {column: value} (a pivot
+    row holds its pivot, 1, and kept columns only)."""
     n = Ac.shape[1] - 1
     R = [dict(zip(Ac.indices[Ac.indptr[r]:Ac.indptr[r + 1]].tolist(),
                   Ac.data[Ac.indptr[r]:Ac.indptr[r + 1]].tolist(), strict=True))

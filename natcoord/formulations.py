@@ -218,17 +218,17 @@ class FormulationLoop:
     def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
         pass
 
+    @functools.cached_property
+    def _frc(self) -> tuple | None:
+        """The model's forces packed for the compiled loops (:func:`compiled_forces`)."""
+        return compiled_forces(self.model)
+
     def _compiled_model(self, methods) -> bool:
         """Whether the compiled loop may run with ``methods`` allowed: ``compiled`` on,
-        numba present, scleronomic constraints and forces :func:`compiled_forces` knows
-        (kept in ``_frc``)."""
+        numba present, scleronomic constraints and forces :func:`compiled_forces` knows."""
         from . import kernels
-        if not (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and methods
-                and not self.cs.rheonomic):
-            return False
-        if not hasattr(self, "_frc"):
-            self._frc = compiled_forces(self.model)
-        return self._frc is not None
+        return (bool(self.opt["compiled"]) and kernels.HAVE_NUMBA and bool(methods)
+                and not self.cs.rheonomic and self._frc is not None)
 
     def _drift(self, t, q, qd):
         p, J, pt, _ = self.cs.all(q, qd, t)
@@ -271,7 +271,7 @@ class Index1Loop(FormulationLoop):
         from .elimination import eliminate
         if self.cs.rheonomic or self.opt["linsolve"] != "auto":
             return None
-        return eliminate(self.cs.con, self.M, compiled_forces(self.model))
+        return eliminate(self.cs.con, self.M, self._frc)
 
     @functools.cached_property
     def Minv(self) -> np.ndarray:
@@ -334,7 +334,6 @@ class Index1Loop(FormulationLoop):
         over the coordinates an elimination keeps."""
         e = self.elimination
         return (self.cs.con, self._frc, self.M) if e is None else (e.con, e.frc, e.M)
-
 
     @property
     def compiled_path(self) -> str:
@@ -619,14 +618,16 @@ class Index3Loop(FormulationLoop):
         lam = multipliers(self.model, self.cs, t, q, qd, qdd)
         self.mscale = float(np.max(np.abs(np.diag(self.M))))
         self._last_qdd = qdd
-        self._Kt = force_tangent(compiled_forces(self.model), self.n)
+        self._Kt = force_tangent(self._frc, self.n)
         return np.concatenate([q, qd, qdd, lam])
 
     def _force_tangent(self, t, q, qd, h, F):
         """K (n, n) = dF/dq + 2/h dF/dqd along the trapezoidal rule's qd(q) (the applied
         forces' stiffness and damping in the Newton tangent): the constant part and the
         columns by forward differences (relative step ``FD_STEP``, counted as evaluations)
-        of :func:`natcoord.kernels_index3.force_tangent`."""
+        of :func:`natcoord.kernels_index3.force_tangent`; 0 for constant forces."""
+        if self._Kt is None:
+            return 0.0
         K0, cols = self._Kt
         K = K0.copy()
         for a in cols:

@@ -76,6 +76,7 @@ from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-e
     drift,
     forces,
     jv,
+    pack_constraints,
     pack_forces,
     project_general,
     workspace,
@@ -518,6 +519,14 @@ OTHER_LOOPS = {"maggi": "natcoord.kernels_maggi", "index3": "natcoord.kernels_in
 PATHS = ("sparse", "generated", "general", *OTHER_LOOPS)
 
 
+def warm_up_model() -> tuple:
+    """(constraints, packed forces) of the warm-up runs: a particle on a unit circle under
+    gravity, n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2."""
+    con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
+                          v=np.array([1.0, 1.0, -1.0]), m=1)
+    return con, pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
+
+
 def ensure_compiled(*paths: str) -> float:
     """Compile (or load from numba's cache) the loop of the given paths (:data:`PATHS`:
     index1's sparse Schur path with generic or generated kernels and its general QR
@@ -535,10 +544,7 @@ def ensure_compiled(*paths: str) -> float:
         importlib.import_module(OTHER_LOOPS[path]).warm_up()
         _READY.add(path)
     todo = [p for p in todo if p not in OTHER_LOOPS]
-    # a pendulum particle on a unit circle: n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2
-    con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
-                          v=np.array([1.0, 1.0, -1.0]), m=1)
-    frc = pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
+    con, frc = warm_up_model()
     times = np.linspace(0.0, 0.02, 3)
     for path in todo:
         plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
@@ -586,9 +592,8 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c = np.zeros(N_COUNTERS)
     gen = None if plan is not None else (
-        np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
-        np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
-        as_f64(np.zeros((0, 0)) if M is None else M, 2), float(rank_tol))
+        *pack_constraints(con)[:4], as_f64(np.zeros((0, 0)) if M is None else M, 2),
+        float(rank_tol))
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)

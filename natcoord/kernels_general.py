@@ -487,6 +487,14 @@ def as_f64(x, ndim: int) -> np.ndarray:
     return np.ascontiguousarray(np.zeros((0,) * ndim) if x is None else x, float)
 
 
+def pack_constraints(con) -> tuple:
+    """The triplets of ``con`` (:class:`~natcoord.constraints.QuadraticConstraints`) as the
+    compiled loops take them: (k, i, j (int64), v (float), m)."""
+    return (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
+            np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
+            int(con.m))
+
+
 def pack_forces(Q0, T=None, G=None, toff=None, tau=None, S=None, spr=None) -> tuple:
     """The ``frc`` tuple of :func:`natcoord.kernels_general.forces` with the dtypes and
     layouts the compiled loop expects: Q0 (n,) N; T (n, n) or None; torques G (nG, d, n+1),

@@ -21,12 +21,11 @@ qh = [q, 1] (:class:`~natcoord.constraints.QuadraticConstraints`), forces the tu
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 
 from . import kernels_general
-from .kernels import add_counters, check, drop_stale_cache, njit
+from .kernels import add_counters, check, drop_stale_cache, njit, warm_up_model
 from .kernels_general import (
     C_FACT,
     C_NEWTON,
@@ -45,25 +44,27 @@ from .kernels_general import (
     _phi,
     drift,
     forces,
-    pack_forces,
+    pack_constraints,
 )
 
 PENALTY_MAX = 1e10  # the retries' last penalty (relative to max|M_ii|)
 FD_STEP = 1e-7  # relative step of the forces' difference quotients in the Newton tangent
 
 
-def force_tangent(frc: tuple | None, n: int) -> tuple[np.ndarray, np.ndarray]:
+def force_tangent(frc: tuple | None, n: int) -> tuple[np.ndarray, np.ndarray] | None:
     """The applied forces' part of the Newton tangent, K = dF/dq + 2/h dF/dqd, for packed
     forces (:func:`pack_forces`; None: forces natcoord cannot read): (K0 (n, n), cols (c,)
     int) with K0 the constant T of Q0 + T q and cols the coordinates whose columns come
     from forward differences instead (those a spring-damper's ends move: its stiffness
-    and damping; every coordinate for unread forces). A torque's stiffness, of the order
-    of the torque, is left out."""
+    and damping; every coordinate for unread forces); None for forces without either
+    (constant ones). A torque's stiffness, of the order of the torque, is left out."""
     if frc is None:
         return np.zeros((n, n)), np.arange(n, dtype=np.int64)
     _, T, _, _, _, S, _ = frc
-    K0 = np.array(T, float) if T.shape[0] else np.zeros((n, n))
     moved = np.any(S[:, :, :n] != 0.0, axis=(0, 1)) if S.shape[0] else np.zeros(n, bool)
+    if not (T.shape[0] and T.any()) and not moved.any():
+        return None
+    K0 = np.array(T, float) if T.shape[0] else np.zeros((n, n))
     return K0, np.flatnonzero(moved).astype(np.int64)
 
 
@@ -77,12 +78,29 @@ def _augmented(M, J, beta, JtJ, out):
 
 
 @njit(cache=True)
+def _force_tangent(frc, K0, cols, h, q, qd, F, Fp, K, cnt):
+    """K (n, n) = K0 with the columns ``cols`` by forward differences of the forces F at
+    (q, qd) along q and qd = 2/h q (:func:`force_tangent`); Fp (n,) scratch."""
+    K[:, :] = K0
+    for a in cols:
+        e = FD_STEP * max(1.0, abs(q[a]))
+        qa, qda = q[a], qd[a]
+        q[a] = qa + e
+        qd[a] = qda + 2.0 / h * e
+        forces(frc, q, qd, Fp)
+        q[a], qd[a] = qa, qda
+        for b in range(q.shape[0]):
+            K[b, a] = (Fp[b] - F[b]) / e
+    cnt[C_RHS] += cols.shape[0]
+
+
+@njit(cache=True)
 def _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cnt):
     """Newton on the step's equations from q = q0 + h qd0 + h^2/2 qdd0: q (n,) and lam
     (m,) (lambda* on entry, updated) in place; False when it does not converge in 30
     iterations or leaves the finite numbers. ``Kt`` = (K0 (n, n), cols (c,)): the forces'
-    tangent (:func:`force_tangent`). ``w`` = (p (m,), J (m, n), F, g (n,), Tg, JtJ (n, n),
-    piv (n,) int, Fp (n,), K (n, n)) scratch."""
+    tangent (:func:`force_tangent`; K0 (0, 0): none). ``w`` = (p (m,), J (m, n), F,
+    g (n,), Tg, JtJ (n, n), piv (n,) int, Fp (n,), K (n, n)) scratch."""
     kk, ii, jj, vv, m = con
     p, J, F, g, Tg, JtJ, piv, Fp, K = w
     K0, cols = Kt
@@ -113,20 +131,11 @@ def _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w
         for t in range(kk.shape[0]):  # h^2/4 sum_k mu_k d2Phi_k/dq2
             if ii[t] < n and jj[t] < n:
                 Tg[ii[t], jj[t]] += c4 * p[kk[t]] * vv[t]
-        K[:, :] = K0  # - h^2/4 (dF/dq + 2/h dF/dqd)
-        for a in cols:
-            e = FD_STEP * max(1.0, abs(q[a]))
-            qa, qda = q[a], qd[a]
-            q[a] = qa + e
-            qd[a] = qda + 2.0 / h * e
-            forces(frc, q, qd, Fp)
-            q[a], qd[a] = qa, qda
-            for b in range(n):
-                K[b, a] = (Fp[b] - F[b]) / e
-        cnt[C_RHS] += cols.shape[0]
-        for a in range(n):
-            for b in range(n):
-                Tg[a, b] -= c4 * K[a, b]
+        if K0.shape[0] > 0:
+            _force_tangent(frc, K0, cols, h, q, qd, F, Fp, K, cnt)
+            for a in range(n):  # - h^2/4 (dF/dq + 2/h dF/dqd)
+                for b in range(n):
+                    Tg[a, b] -= c4 * K[a, b]
         if not _lu(Tg, piv):
             return False
         _lu_solve(Tg, piv, g)
@@ -250,11 +259,10 @@ def run(con, frc, M, times, y, *, h: float, penalty: float, mscale: float,
     n, T = M.shape[0], len(times)
     Q, QD, QDD = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n))
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
-    args = (np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
-            np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
-            int(con.m))
     ctl = (float(h), float(penalty), float(mscale), float(newton_tol), float(project_tol))
-    status = run_index3(args, np.ascontiguousarray(M, float), frc, force_tangent(frc, n), ctl,
+    Kt = force_tangent(frc, n)
+    status = run_index3(pack_constraints(con), np.ascontiguousarray(M, float), frc,
+                        (np.zeros((0, 0)), np.zeros(0, np.int64)) if Kt is None else Kt, ctl,
                         np.ascontiguousarray(times, float), np.asarray(y, float),
                         (Q, QD, QDD, c, tfail))
     add_counters(c, cnt)
@@ -268,9 +276,7 @@ def run(con, frc, M, times, y, *, h: float, penalty: float, mscale: float,
 def warm_up() -> None:
     """Compile (or load from numba's cache) the loop by a tiny run: a particle on a unit
     circle under gravity."""
-    con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
-                          v=np.array([1.0, 1.0, -1.0]), m=1)
-    frc = pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
+    con, frc = warm_up_model()
     y = np.array([1.0, 0.0, 0.0, 0.0, -0.0, 0.0, 0.0])
     run(con, frc, np.eye(2), np.linspace(0.0, 0.02, 3), y, h=0.005, penalty=1e4,
         mscale=1.0, newton_tol=1e-13, project_tol=1e-13)

@@ -32,11 +32,11 @@ partial pivoting on the small blocks (r, r) and (f, f). Units: SI (m, s, kg, N).
 from __future__ import annotations
 
 import math
-from types import SimpleNamespace
 
 import numpy as np
 
 from . import kernels_general
+from .integrators import MAX_FACTOR, MIN_FACTOR, SAFETY
 from .kernels import (
     add_counters,
     check,
@@ -45,6 +45,7 @@ from .kernels import (
     drop_stale_cache,
     njit,
     tableau,
+    warm_up_model,
 )
 from .kernels_general import (
     C_FACT,
@@ -66,10 +67,9 @@ from .kernels_general import (
     _lu_solve,
     _phi,
     forces,
-    pack_forces,
+    pack_constraints,
 )
 
-SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 5.0  # as natcoord.integrators
 NEWTON_ITER = 20
 
 
@@ -530,9 +530,7 @@ def pack(con, M) -> tuple:
     """(con, Msp): the constraint triplets as (k, i, j, v, m) and M (n, n) kg as its
     non-zeros (i, j, v), the arrays :func:`run_maggi` takes (model only)."""
     Mi, Mj = np.nonzero(M)
-    return ((np.ascontiguousarray(con.k, np.int64), np.ascontiguousarray(con.i, np.int64),
-             np.ascontiguousarray(con.j, np.int64), np.ascontiguousarray(con.v, float),
-             int(con.m)),
+    return (pack_constraints(con),
             (Mi.astype(np.int64), Mj.astype(np.int64), np.ascontiguousarray(M[Mi, Mj], float)))
 
 
@@ -572,9 +570,8 @@ def run(packed, frc, times, y, q, rows, dep, indep, *, method: str, rtol: float 
 def warm_up() -> None:
     """Compile (or load from numba's cache) the loop by tiny runs, adaptive and fixed-step:
     a particle on a unit circle under gravity (x dependent, y independent)."""
-    con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
-                          v=np.array([1.0, 1.0, -1.0]), m=1)
-    packed, frc = pack(con, np.eye(2)), pack_forces(np.array([0.0, -9.81]))
+    con, frc = warm_up_model()
+    packed = pack(con, np.eye(2))
     q, part = np.array([0.8, -0.6]), ([0], [0], [1])
     for method, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005), ("dopri5", 0.005)):
         run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, *part,
