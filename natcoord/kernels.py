@@ -47,6 +47,7 @@ except ImportError:  # pragma: no cover - numba is a dependency, but stay import
         return lambda f: f
 
 from . import kernels_general, kernels_sparse, sparsity
+from .integrators import singular_hint
 from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-exported
     C_FACT,
     C_NEWTON,
@@ -316,12 +317,12 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
     no error control) and projection tolerance; ``dep``: the coordinates an elimination
     removed (:func:`_dep_norm`), which the error norm counts as the state's; ``out`` =
-    (Q, QD, QDD (T, n_r), cnt (N_COUNTERS,)) filled in place. Returns a status code
-    (0 = ok).
+    (Q, QD, QDD (T, n_r), cnt (N_COUNTERS,), tfail (1,)) filled in place (tfail: the time
+    the loop had reached when it stopped). Returns a status code (0 = ok).
     """
     A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
-    Q, QD, QDD, cnt = out
+    Q, QD, QDD, cnt, tfail = out
     fixed = h_fixed > 0.0
     n = q0.shape[0]
     N = 2 * n
@@ -377,6 +378,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     expo = -1.0 / (order + 1.0)
     nsteps = 0
     while k_out < T_out:
+        tfail[0] = t
         if nsteps >= max_steps:
             return ERR_MAXSTEPS
         if fixed:  # equal steps of at most h_fixed up to the next sample
@@ -590,7 +592,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
         dep = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
                np.arange(n, dtype=np.int64), np.zeros(0, np.int64))
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
-    c = np.zeros(N_COUNTERS)
+    c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
     gen = None if plan is not None else (
         *pack_constraints(con)[:4], as_f64(np.zeros((0, 0)) if M is None else M, 2),
         float(rank_tol))
@@ -605,9 +607,14 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
                         kern if generated else kernels_sparse.NO_GK, ws, w, gen, wg,
                         None if generated else frc, tab, ctl, dep,
                         np.ascontiguousarray(times, float), np.array(q0, float),
-                        np.array(qd0, float), (Q, QD, QDD, c))
+                        np.array(qd0, float), (Q, QD, QDD, c, tfail))
     add_counters(c, cnt)
-    check(status, name)
+    if status != OK:
+        k = int(np.searchsorted(times, tfail[0], side="right")) - 1  # last sample reached
+        J = np.zeros((int(con.m), n))
+        kernels_general.jacobian(con, Q[max(k, 0)], J)
+        raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)} at "
+                           f"t = {tfail[0]:.6g} s" + singular_hint(J, rank_tol))
     if len(dep[5]) == 0:
         return Q, QD, QDD
     nq = n + len(dep[5])

@@ -482,6 +482,12 @@ def evaluate(con, frc, M, q, qd, *, rank_tol: float = 1e-9, ptol: float = 0.0):
 
 
 # ---- applied forces ---------------------------------------------------------------------
+def jacobian(con, q: np.ndarray, J: np.ndarray) -> None:
+    """J (m, n) = Phi_q at q (n,), in place, from the constraint triplets ``con``."""
+    k, i, j, v = pack_constraints(con)[:4]
+    _jac(k, i, j, v, np.asarray(q, float), J)
+
+
 def as_f64(x, ndim: int) -> np.ndarray:
     """x as a C-contiguous float64 array; None as an empty array of ``ndim`` dims."""
     return np.ascontiguousarray(np.zeros((0,) * ndim) if x is None else x, float)

@@ -282,3 +282,4 @@ class Result:
     @property
     def us_per_step(self) -> float:
         return 1e6 * self.wall_time_s / self.n_steps if self.n_steps else float("nan")
+

@@ -20,6 +20,7 @@ import pandas as pd
 from .. import __version__
 from ..engines.base import initial_body_states
 from ..engines.natcoord_engine import run as natcoord_run
+from ..estimates import estimated_error
 from ..independent import check as independent_check
 from ..mechanism import Case
 from ..result import evaluate_channels, methods_table
@@ -60,7 +61,8 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
     check = natcoord_run(case, init, model_settings | check_settings)
     table = evaluate_channels(case, best.motion)
     check_table = evaluate_channels(case, check.motion)
-    estimate = {c.name: float(np.nanmax(np.abs(table[c.name] - check_table[c.name])))
+    steps = int(best.counters.get("steps") or best.n_steps or 1)
+    estimate = {c.name: estimated_error(table[c.name], check_table[c.name], steps)
                 for c in case.channels}
     provenance = {
         "case": case.name,
@@ -70,7 +72,9 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
         "settings": best.settings,
         "estimated_error": estimate,
         "estimated_error_method": f"max |reference - run with {_describe(check_settings)}| "
-                                  "per channel (an upper bound of the reference's own error)",
+                                  "per channel (an upper bound of the reference's own "
+                                  "error), at least the round-off of its steps "
+                                  "(8 eps max|x| sqrt(steps))",
         "counters": best.counters,
         "undetermined": best.counters.get("undetermined", []),
         "undetermined_method": "channels that lambda + s N c changes (N = ker Phi_q^T at "
