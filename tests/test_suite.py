@@ -109,7 +109,7 @@ def test_baseline_growth_is_a_regression(baseline_run, tmp_path):
         block = text.index("[engines.natcoord.tolerance]")
         end = text.index("\n\n", block)
         worst = {}
-        for ch, c in _gate(out).channels[f"{name}/natcoord"].items():
+        for c in _gate(out).channels[f"{name}/natcoord"].values():
             if c["pass"] is not None:
                 worst[c["kind"]] = max(worst.get(c["kind"], 0.0), c["max_abs"])
         text = (text[:block] + "[engines.natcoord.tolerance]\n"

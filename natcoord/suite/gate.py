@@ -101,8 +101,10 @@ def load_summary(results: Path) -> dict:
                          "leaves none on purpose)")
     try:
         summary = read_json(path)
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise ValueError(f"{path}: unreadable ({e.strerror or e})") from None
     records = summary.get("records") if isinstance(summary, dict) else None
     if not isinstance(records, list):
         raise ValueError(f"{path}: records: missing or not a list")
