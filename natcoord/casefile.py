@@ -68,6 +68,7 @@ MAX_SAMPLES = 1_000_000
 MAX_DURATION_S = 1e5
 MAX_NAME = 64
 MAX_TEXT = 10_000
+RESERVED_CHANNELS = ("t", "time")  # result and reference CSVs' time column
 NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
 
 
@@ -677,6 +678,9 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
     for name, c in table.items():
         r.identifier(name, "channels")
         p = f"channels.{name}"
+        if name in RESERVED_CHANNELS:
+            r.fail(p, f"{name!r} is reserved for the time column of result files; "
+                   "name the channel otherwise")
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)

@@ -267,13 +267,16 @@ def gate_cmd(results: ResultsDir = None,
              update_baseline: Annotated[bool, typer.Option(
                  help="Store this run's errors in the baseline, cell by cell (after it "
                       "passes).")] = False,
-             history: HistoryDb = None):
-    """Compare results with tolerances and the stored baseline, and their benchmark (when
-    the folder has one) with the history of the same cases on this machine.
+             history: HistoryDb = None, cases_dir: CasesDir = None,
+             references: RefDir = None):
+    """Judge a results folder from its result files (checked against the hashes the run
+    stored) with the case files' tolerances, the stored references and baseline, and its
+    benchmark (when the folder has one) with the history of the same cases on this machine.
 
-    Exit 0 when all hold, 1 on an accuracy regression, 2 on bad input, 3 when nothing ran,
-    or a required engine or case has no record or failed, 4 on a significant slowdown
-    (accuracy regressions take precedence).
+    Exit 0 when all hold, 1 on an accuracy regression (or a result file missing, altered or
+    unreadable), 2 on bad input, 3 when nothing ran, or a required engine or case has no
+    record or failed, 4 on a significant slowdown (accuracy regressions take precedence),
+    5 when the baseline cannot be written.
     """
     from .suite import diff, gate
 
@@ -285,10 +288,9 @@ def gate_cmd(results: ResultsDir = None,
     except ValueError as e:
         _fail(str(e))
     required = set(_engines(require)) if require else None
-    try:
-        verdict = gate.judge(summary, required=required, baseline=base)
-    except (KeyError, TypeError, ValueError, AttributeError) as e:
-        _fail(f"{results / 'summary.json'}: malformed ({type(e).__name__}: {e})")
+    verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
+                         references=resolve(references, "references"), required=required,
+                         baseline=base)
     try:
         bench_result = diff.read_bench(results)
         slower = [s for s in diff.against_history(
@@ -302,14 +304,21 @@ def gate_cmd(results: ResultsDir = None,
     for line in verdict.lines:
         err.print(("[red]REGRESSION[/] " if verdict.code == 1 else "") + escape(line),
                   highlight=False)
+    for line in verdict.notes:
+        err.print(f"note: {escape(line)}", highlight=False)
     n = len(summary["records"])
     if verdict.code == 0:
-        gated = sum(r["verdict"] == "pass" for r in summary["records"])
-        out.print(f"[green]gate passed[/]: {gated} of {n} case x engine runs gated and within "
-                  "tolerance" + ("" if base else " (no baseline stored)"))
+        out.print(f"[green]gate passed[/]: {len(verdict.passed)} of {n} case x engine runs "
+                  "judged from their result files and within tolerance"
+                  + ("" if base else " (no baseline stored)"))
         if update_baseline:
-            gate.update_baseline(summary, baseline)
-            out.print(f"baseline updated for the {n} cells of this run: {escape(str(baseline))}")
+            try:
+                cells = gate.update_baseline(verdict, baseline, summary.get("generated"))
+            except OSError as e:
+                _fail(f"{baseline}: cannot write the baseline ({e.strerror or e})",
+                      gate.CANNOT_WRITE)
+            out.print(f"baseline updated for the {len(cells)} cells judged in this gate: "
+                      f"{escape(str(baseline))}")
     else:
         err.print(f"[bold red]gate failed[/] (exit {verdict.code})")
     raise typer.Exit(verdict.code)
@@ -509,7 +518,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                 say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "
                                         "their history"))
             bench.store(bench_result, staging, history.parent / "bench")
-        verdict = gate.judge(summary, baseline=base)
+        verdict = gate.judge(summary, staging, references=references, baseline=base,
+                             cases=gate.CaseBook(resolve(cases_dir, "cases"),
+                                                 {j.case.name: j.case for j in selected}))
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower]
@@ -532,18 +543,21 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
 @app.command("compare")
 def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results folder.")],
                 new: Annotated[Path, typer.Argument(help="The later results folder.")],
-                as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False):
-    """What changed in accuracy and speed between two results folders.
+                as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+                cases_dir: CasesDir = None, references: RefDir = None):
+    """What changed in accuracy and speed between two results folders (both judged from
+    their result files), and in engine versions, case files and settings.
 
     Exit 0 nothing significant, 1 an accuracy regression, 2 bad input, 4 a significant
     slowdown (median past 1.25x and Mann-Whitney U at p < 0.002 on the raw samples).
     """
     import json as _json
 
-    from .suite import diff
+    from .suite import diff, gate
 
     try:
-        c = diff.compare_runs(base, new)
+        c = diff.compare_runs(base, new, cases=gate.CaseBook(resolve(cases_dir, "cases")),
+                              references=resolve(references, "references"))
     except ValueError as e:
         _fail(str(e))
     if as_json:
@@ -563,6 +577,8 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     out.print(table)
     for line in c.accuracy:
         err.print(escape(line), highlight=False)
+    for line in c.changes:
+        err.print(f"changed: {escape(line)}", highlight=False)
     for s in c.slower:
         err.print(escape(s.line()), highlight=False)
     for s in c.speed:

@@ -272,9 +272,10 @@ def test_an_all_nan_or_missing_channel_fails_its_cell_not_the_run(tmp_path):
 
 
 def test_names_with_markup_are_printed_not_interpreted(tmp_path):
-    d = _summary(tmp_path, [_record(**{"[/]x": 1.0, "[bold]y": 1e-9})])
+    d = _summary(tmp_path, [_record(case="[/]x"), _record(case="[bold]y")])
     p = _cli("gate", "--results", d)
-    assert p.returncode == 1 and "[/]x max error" in p.stderr
+    assert p.returncode == 2 and "'[/]x' is not a case name" in p.stderr, p.stderr
+    assert "'[bold]y' is not a case name" in p.stderr
     _no_traceback(p)
 
 
@@ -282,7 +283,9 @@ def test_updating_the_baseline_after_a_subset_run_keeps_every_other_cell(tmp_pat
     base = tmp_path / "baseline.json"
     shutil.copy(REFERENCES / "baseline.json", base)
     before = gate.load_baseline(base)
-    gate.update_baseline({"generated": "now", "records": [_record(x=1e-9)]}, base)
+    judged = gate.Verdict(gate.OK, channels={"pendulum/natcoord": {"x": {"max_abs": 1e-9}}},
+                          outcome={"pendulum/natcoord": "pass"})
+    gate.update_baseline(judged, base, "now")
     after = gate.load_baseline(base)
     assert set(after) == set(before) | {"pendulum/natcoord"}
     assert after["pendulum/natcoord"] == {"x": 1e-9}

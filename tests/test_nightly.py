@@ -246,7 +246,7 @@ def test_propose_measures_and_writes_tolerances_that_then_pass(tmp_path):
     run = _cli("run", "new_bar", "--engines", "natcoord,exudyn", "--out", tmp_path / "r", *args)
     assert run.returncode == 0 and "2 within tolerance" in run.stdout, run.stdout
     g = _cli("gate", "--results", tmp_path / "r", "--baseline", tmp_path / "b.json",
-             "--update-baseline")
+             "--update-baseline", *args)
     assert g.returncode == 0 and "baseline updated" in g.stdout
     assert set(json.loads((tmp_path / "b.json").read_text())["errors"]) == {
         "new_bar/natcoord", "new_bar/exudyn"}

@@ -23,8 +23,10 @@ from natcoord.suite.runner import compare_record, run_suite
 from .conftest import CASES, REFERENCES
 
 
-def _gate(out: Path) -> gate.Verdict:
-    return gate.judge(gate.load_summary(out))
+def _gate(out: Path, summary: dict | None = None, cases: Path = CASES, **kw) -> gate.Verdict:
+    """The gate's verdict on a results folder, judged from its files."""
+    return gate.judge(summary or gate.load_summary(out), out, cases=gate.CaseBook(cases),
+                      references=REFERENCES, **kw)
 
 
 @pytest.fixture(scope="module")
@@ -65,11 +67,11 @@ def test_gate_fires_on_a_flipped_sign(baseline_run, tmp_path):
     flipped = tmp_path / "results" / "four_bar" / "natcoord.csv"
     write_csv(flipped, df)
     record = next(r for r in summary["records"] if r["case"] == "four_bar")
-    rec = compare_record(case, record, tmp_path, REFERENCES)
-    v = gate.judge({"records": [rec]})
+    rec = compare_record(case, record, tmp_path, REFERENCES)  # as a run would record it
+    v = _gate(tmp_path, {"records": [rec]})
     assert v.code == gate.REGRESSION
     assert any("D_y" in line for line in v.lines)
-    assert rec["channels"]["D_x"]["pass"] is True  # only the flipped channel fails
+    assert v.channels["four_bar/natcoord"]["D_x"]["pass"] is True  # only D_y fails
 
 
 def test_gate_exit_codes_for_bad_input_and_nothing_run(tmp_path, baseline_run):
@@ -81,7 +83,7 @@ def test_gate_exit_codes_for_bad_input_and_nothing_run(tmp_path, baseline_run):
     out, summary = baseline_run
     dead = {"records": [{**r, "status": "failed", "channels": {}, "verdict": "n/a"}
                         for r in summary["records"]]}
-    assert gate.judge(dead).code == gate.NOT_RUN
+    assert _gate(out, dead).code == gate.NOT_RUN
 
 
 def test_gate_cli_exit_codes(tmp_path, baseline_run):
@@ -93,16 +95,27 @@ def test_gate_cli_exit_codes(tmp_path, baseline_run):
     assert r.returncode == 2 and "no summary" in r.stderr and "Traceback" not in r.stderr
 
 
-def test_baseline_growth_is_a_regression(baseline_run):
-    _, summary = baseline_run
-    base = gate.baseline_of(summary)
+def test_baseline_growth_is_a_regression(baseline_run, tmp_path):
+    out, _ = baseline_run
+    base = _gate(out).errors
     shrunk = {k: {n: e / 1e6 for n, e in v.items()} for k, v in base.items()}
     # errors far below a tenth of the tolerance never count as growth (platform noise)
-    assert gate.judge(summary, baseline=shrunk).code == gate.OK
-    tight = [{**r, "channels": {n: {**c, "tolerance": c["max_abs"] * 2}
-                                for n, c in r["channels"].items()}}
-             for r in summary["records"]]
-    v = gate.judge({"records": tight}, baseline=shrunk)
+    assert _gate(out, baseline=shrunk).code == gate.OK
+    # the case file's tolerances tightened to twice the errors: growth now counts
+    tight = tmp_path / "cases"
+    tight.mkdir()
+    for name in ("slider_crank", "four_bar"):
+        text = (CASES / f"{name}.toml").read_text()
+        block = text.index("[engines.natcoord.tolerance]")
+        end = text.index("\n\n", block)
+        worst = {}
+        for c in _gate(out).channels[f"{name}/natcoord"].values():
+            if c["pass"] is not None:
+                worst[c["kind"]] = max(worst.get(c["kind"], 0.0), c["max_abs"])
+        text = (text[:block] + "[engines.natcoord.tolerance]\n"
+                + "".join(f"{k} = {2 * e:.3e}\n" for k, e in worst.items()) + text[end:])
+        (tight / f"{name}.toml").write_text(text)
+    v = _gate(out, cases=tight, baseline=shrunk)
     assert v.code == gate.REGRESSION and any("over the baseline" in line for line in v.lines)
 
 

@@ -1,10 +1,14 @@
 """What changed between two runs, and speed judged against the history.
 
 :func:`compare_runs` reads two results folders (``summary.json``, and ``bench.json`` when
-there is one) and judges the new one against the old: accuracy with the gate's rules (a
-gated channel over tolerance, or an error grown past 10x the old one and a tenth of the
-tolerance), speed with :mod:`natcoord.suite.speed` on the raw samples. :func:`against_history`
-judges a benchmark against the history database instead (same case file, same machine).
+there is one) and judges the new one against the old: accuracy with the gate's rules, both
+folders judged from their result files (a gated channel over tolerance, or an error grown
+past 10x the old one and a tenth of the tolerance; a result file missing or altered in the
+new folder is a regression, in the old one bad input), speed with
+:mod:`natcoord.suite.speed` on the raw samples. Changes of engine version, case file and
+engine settings between the runs are listed (``changes``); they fail nothing.
+:func:`against_history` judges a benchmark against the history database instead (same case
+file, same machine).
 
 Exit codes (``natcoord compare``): 0 nothing significant, 1 an accuracy regression (it
 takes precedence), 2 bad input, 4 a significant slowdown.
@@ -33,6 +37,7 @@ class Comparison:
     accuracy: list[str] = field(default_factory=list)
     speed: list[speed.SpeedChange] = field(default_factory=list)
     rows: list[dict] = field(default_factory=list)
+    changes: list[str] = field(default_factory=list)
 
     @property
     def slower(self) -> list[speed.SpeedChange]:
@@ -40,6 +45,7 @@ class Comparison:
 
     def as_json(self) -> dict:
         return {"code": self.code, "accuracy": self.accuracy, "rows": self.rows,
+                "changes": self.changes,
                 "slower": [s.__dict__ for s in self.slower],
                 "behaviour_changes": [s.__dict__ for s in self.speed if s.counters]}
 
@@ -57,36 +63,63 @@ def read_bench(folder: Path) -> dict | None:
     return data
 
 
-def _worst(record: dict) -> float | None:
-    vals = [c["max_abs"] / c["tolerance"] for c in record.get("channels", {}).values()
-            if c.get("determined", True) and c.get("tolerance") and c.get("max_abs")
+def _worst(channels: dict | None) -> float | None:
+    vals = [c["max_abs"] / c["tolerance"] for c in (channels or {}).values()
+            if c.get("pass") is not None and c.get("tolerance") and c.get("max_abs")
             is not None]
     return max(vals) if vals else None
 
 
-def compare_runs(base: Path, new: Path) -> Comparison:
-    """Judge results folder ``new`` against ``base``; raises ValueError on bad input."""
+def changes(old: dict, new: dict) -> list[str]:
+    """What differs between two runs of a cell beyond their results: the engine's version,
+    the case file (its sha256) and the settings the engine ran with."""
+    out = []
+    if old.get("engine_version") != new.get("engine_version"):
+        out.append(f"engine version {old.get('engine_version') or '?'} -> "
+                   f"{new.get('engine_version') or '?'}")
+    if old.get("case_hash") != new.get("case_hash"):
+        out.append(f"case file changed (sha256 {str(old.get('case_hash'))[:12]} -> "
+                   f"{str(new.get('case_hash'))[:12]})")
+    a, b = old.get("settings") or {}, new.get("settings") or {}
+    if isinstance(a, dict) and isinstance(b, dict):
+        out += [f"setting {k}: {a.get(k, 'unset')!r} -> {b.get(k, 'unset')!r}"
+                for k in sorted(set(a) | set(b), key=str) if a.get(k) != b.get(k)]
+    return out
+
+
+def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
+                 references: Path) -> Comparison:
+    """Judge results folder ``new`` against ``base``, both from their result files with the
+    case files of ``cases`` and the references in ``references``; raises ValueError on
+    bad input."""
     b, n = gate.load_summary(base), gate.load_summary(new)
     out = Comparison()
-    verdict = gate.judge(n, baseline=gate.baseline_of(b))
+    before = gate.judge(b, base, cases=cases, references=references)
+    verdict = gate.judge(n, new, cases=cases, references=references, baseline=before.errors)
     if verdict.code in (gate.REGRESSION, gate.NOT_RUN):
         out.code = gate.REGRESSION
     elif verdict.code == gate.BAD_INPUT:
         out.code = gate.BAD_INPUT
-    out.accuracy = verdict.lines
+    out.accuracy = verdict.lines + [f"{base} (base): {line}" for line in before.faults]
+    if before.faults and out.code == 0:
+        out.code = gate.BAD_INPUT
     old = {(r["case"], r["engine"]): r for r in b["records"]}
-    changes = {}
+    changed = {}
     bb, nb = read_bench(base), read_bench(new)
     if bb and nb:
         out.speed = speed.compare_bench(bb, nb)
-        changes = {(s.case, s.engine): s for s in out.speed}
+        changed = {(s.case, s.engine): s for s in out.speed}
     for r in n["records"]:
         key = (r["case"], r["engine"])
-        s = changes.get(key)
+        s = changed.get(key)
+        if key in old:
+            out.changes += [f"{r['case']}/{r['engine']}: {c}" for c in changes(old[key], r)]
         out.rows.append({"case": r["case"], "engine": r["engine"], "status": r["status"],
-                         "verdict": r["verdict"],
-                         "worst_of_tolerance_base": _worst(old.get(key, {})),
-                         "worst_of_tolerance_new": _worst(r),
+                         "verdict": verdict.outcome.get("/".join(key), r["status"]),
+                         "worst_of_tolerance_base": _worst(before.channels.get(
+                             "/".join(key))),
+                         "worst_of_tolerance_new": _worst(verdict.channels.get(
+                             "/".join(key))),
                          "speed_ratio": None if s is None else s.ratio,
                          "speed_p": None if s is None else s.p,
                          "slower": bool(s and s.slower)})

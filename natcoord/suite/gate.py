@@ -1,27 +1,91 @@
-"""The regression gate: judge a results directory, print what regressed, return an exit code.
+"""The regression gate: judge a results folder from its evidence, print what regressed,
+return an exit code.
 
-Exit codes: 0 all hold; 1 an accuracy regression (a gated channel over its tolerance, or an
-error grown past the stored baseline); 2 bad input (no or malformed summary, a case without
-a reference or without tolerances for an engine that ran); 3 nothing ran, or a required
-engine failed or was skipped.
+Every cell that ran is judged again from its result files (:mod:`natcoord.suite.evidence`):
+each file checked against the sha256 the run stored, the errors recomputed against the
+stored reference with the tolerances of the case file as it is now. The summary only says
+which cells there are; the numbers it holds are never trusted.
+
+Exit codes: 0 all hold; 1 an accuracy regression (a gated channel over its tolerance or
+non-finite, an error grown past the stored baseline, a result file missing, altered since
+the run or unreadable); 2 bad input (no or malformed summary or baseline, a case file or
+reference missing or damaged, a case without tolerances for an engine that ran); 3 nothing
+ran, or a required engine failed or was skipped.
 """
 
 from __future__ import annotations
 
 import json
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .io import read_json, write_json
+from ..casefile import NAME_PATTERN, load_case
+from ..engines import ENGINES
+from ..errors import CaseError
+from ..mechanism import Case
+from . import evidence
+from .io import locked, read_json, write_json
 
 OK, REGRESSION, BAD_INPUT, NOT_RUN = 0, 1, 2, 3
+CANNOT_WRITE = 5  # the baseline could not be written (a read-only folder, a full disk)
 REQUIRED_FIELDS = ("case", "engine", "status", "verdict", "channels")
+STATUSES = ("ok", "failed", "skipped", "unsupported")
 
 
 @dataclass
 class Verdict:
+    """Exit code and what caused it; ``notes`` are worth knowing but fail nothing.
+    ``channels``: per cell judged from its files, its channels as
+    :func:`natcoord.suite.compare.channel_errors` gives them; ``outcome``: per cell that
+    ran, ``pass`` (judged from its files, within every rule), ``fail``, ``bad evidence``
+    or ``cannot judge``; ``faults``: the lines about files that could not be trusted."""
+
     code: int
     lines: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    channels: dict[str, dict] = field(default_factory=dict)
+    outcome: dict[str, str] = field(default_factory=dict)
+    faults: list[str] = field(default_factory=list)
+
+    def worse(self, code: int, line: str, fault: bool = False) -> None:
+        self.code = max(self.code, code)
+        self.lines.append(line)
+        if fault:
+            self.faults.append(line)
+
+    @property
+    def passed(self) -> list[str]:
+        """The cells judged from their files and within every rule: the only ones a
+        baseline update stores."""
+        return [k for k, o in self.outcome.items() if o == "pass"]
+
+    @property
+    def errors(self) -> dict[str, dict[str, float]]:
+        """Per cell judged from its files, each channel's max error (a baseline)."""
+        return {k: {n: c["max_abs"] for n, c in ch.items() if c["max_abs"] is not None}
+                for k, ch in self.channels.items()}
+
+
+class CaseBook:
+    """The case files a gate judges with, by case name: ``directory/<name>.toml`` (or one
+    of the cases given already loaded), each read once."""
+
+    def __init__(self, directory: Path, loaded: Mapping[str, Case] | None = None):
+        self.directory = Path(directory)
+        self.cases: dict[str, Case] = dict(loaded or {})
+
+    def get(self, name: str) -> Case:
+        if name not in self.cases:
+            path = self.directory / f"{name}.toml"
+            if not NAME_PATTERN.fullmatch(name):
+                raise CaseError(self.directory, "", f"{name[:64]!r} is not a case name")
+            if not path.is_file():
+                raise CaseError(path, "", f"no case file for case {name!r} (give the "
+                                "folder of case files with --cases-dir)")
+            self.cases[name] = load_case(path)
+        return self.cases[name]
 
 
 def _fmt(x: float | None, unit: str = "") -> str:
@@ -37,8 +101,10 @@ def load_summary(results: Path) -> dict:
                          "leaves none on purpose)")
     try:
         summary = read_json(path)
-    except json.JSONDecodeError as e:
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not valid JSON ({e})") from None
+    except OSError as e:
+        raise ValueError(f"{path}: unreadable ({e.strerror or e})") from None
     records = summary.get("records") if isinstance(summary, dict) else None
     if not isinstance(records, list):
         raise ValueError(f"{path}: records: missing or not a list")
@@ -49,6 +115,13 @@ def load_summary(results: Path) -> dict:
         for k in ("case", "engine", "status", "verdict"):
             if not isinstance(r[k], str):
                 raise ValueError(f"{path}: records[{i}].{k}: not a string")
+        if r["status"] not in STATUSES:
+            raise ValueError(f"{path}: records[{i}].status: {r['status'][:40]!r} is not one "
+                             f"of {', '.join(STATUSES)}")
+        files = r.get("files", {})
+        if not isinstance(files, dict) or not all(
+                isinstance(k, str) and isinstance(x, str) for k, x in files.items()):
+            raise ValueError(f"{path}: records[{i}].files: not a table of file hashes")
         if not isinstance(r["channels"], dict) or not all(
                 isinstance(c, dict) for c in r["channels"].values()):
             raise ValueError(f"{path}: records[{i}].channels: not a table of channels")
@@ -64,73 +137,112 @@ def load_summary(results: Path) -> dict:
     return summary
 
 
-def judge(summary: dict, *, required: set[str] | None = None, baseline: dict | None = None,
+def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
+          required: set[str] | None = None, baseline: dict | None = None,
           baseline_factor: float = 10.0, floor: float = 1e-12) -> Verdict:
-    """Apply the gate's rules to a summary; the worst outcome wins (3 > 2 > 1 > 0)."""
+    """Apply the gate's rules to the cells a summary lists, each judged from its result
+    files in ``results`` (see :func:`natcoord.suite.evidence.judge_cell`) with the case
+    files of ``cases`` and the references in ``references``; the worst outcome wins
+    (3 > 2 > 1 > 0)."""
     v = Verdict(OK)
     records = summary["records"]
     if not any(r["status"] == "ok" for r in records):
-        v.code = NOT_RUN
-        v.lines.append("nothing ran: no case x engine finished with status ok")
+        v.worse(NOT_RUN, "nothing ran: no case x engine finished with status ok")
         return v
     have = {(r["case"], r["engine"]) for r in records}
     engines = set(summary.get("engines", ())) | (required or set())
     for case in summary.get("cases", ()):  # every cell asked for must have its record
         for engine in sorted(engines):
             if (case, engine) not in have:
-                v.code = max(v.code, NOT_RUN)
-                v.lines.append(f"{case}/{engine}: no record (required, not run)")
+                v.worse(NOT_RUN, f"{case}/{engine}: no record (required, not run)")
     for r in records:
         key = f"{r['case']}/{r['engine']}"
         if r["status"] in ("failed", "skipped") and (required is None or r["engine"] in required):
-            v.code = max(v.code, NOT_RUN)
-            v.lines.append(f"{key}: required engine {r['status']}: {r.get('reason', '')}")
-            continue
-        if r["status"] == "ok" and r["verdict"] in ("no-reference", "not-gated"):
-            v.code = max(v.code, BAD_INPUT)
-            v.lines.append(f"{key}: cannot judge: {r.get('verdict_reason', r['verdict'])}")
-            continue
-        for name, c in r["channels"].items():
-            if c.get("pass") is False:
-                v.code = max(v.code, REGRESSION)
-                if c.get("max_abs") is None or c["max_abs"] == float("inf"):
-                    v.lines.append(f"{key}: {name}: {c.get('note') or 'no value'}")
-                    continue
-                ratio = c["max_abs"] / c["tolerance"] if c["tolerance"] else float("inf")
-                unit = c.get("unit", "")
-                v.lines.append(f"{key}: {name} max error {_fmt(c['max_abs'], unit)} > "
-                               f"tolerance {_fmt(c['tolerance'], unit)} ({ratio:.3g}x)")
-            base = (baseline or {}).get(key, {}).get(name)
-            err = c.get("max_abs")
-            tol = c.get("tolerance")
-            # growth below a tenth of the tolerance is platform noise, not a regression
-            if c.get("determined", True) and base is not None and err is not None and \
-                    tol is not None and err > max(baseline_factor * base, floor, 0.1 * tol):
-                v.code = max(v.code, REGRESSION)
-                v.lines.append(f"{key}: {name} error {_fmt(err, c.get('unit', ''))} grew "
-                               f"{err / max(base, floor):.3g}x over the baseline "
-                               f"{_fmt(base, c.get('unit', ''))} (limit {baseline_factor:g}x)")
+            v.worse(NOT_RUN, f"{key}: required engine {r['status']}: {r.get('reason', '')}")
+        elif r["status"] == "ok":
+            _judge_cell(v, r, key, Path(results), cases, Path(references),
+                        (baseline or {}).get(key) or {}, baseline_factor, floor)
     return v
 
 
-def baseline_of(summary: dict) -> dict:
-    """Per case/engine, per channel max error of a run: the stored baseline's content."""
-    return {f"{r['case']}/{r['engine']}": {n: c["max_abs"] for n, c in r["channels"].items()
-                                           if c.get("max_abs") is not None}
-            for r in summary["records"] if r["status"] == "ok"}
+def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
+                references: Path, base: dict, baseline_factor: float, floor: float) -> None:
+    """One cell that ran, judged from its files, against its tolerances and its baseline."""
+    v.outcome[key] = "cannot judge"
+    if r["engine"] not in ENGINES:
+        v.worse(BAD_INPUT, f"{key}: {r['engine'][:40]!r} is not an engine", fault=True)
+        return
+    try:
+        case = cases.get(r["case"])
+        judged = evidence.judge_cell(case, r["engine"], results, references,
+                                     r.get("files"))
+    except evidence.BadEvidence as e:
+        v.outcome[key] = "bad evidence"
+        v.worse(REGRESSION, f"{key}: {e}", fault=True)
+        return
+    except (evidence.BadReference, CaseError) as e:
+        v.worse(BAD_INPUT, f"{key}: cannot judge: {e}", fault=True)
+        return
+    if r.get("case_hash") and r["case_hash"] != case.digest:
+        v.notes.append(f"{key}: {case.file} changed since the run; judged with its "
+                       "tolerances as they are now")
+    channels = v.channels[key] = judged["channels"]
+    if judged["verdict"] == "not-gated":
+        v.worse(BAD_INPUT, f"{key}: cannot judge: {judged['verdict_reason']} ({case.file})")
+        return
+    held = judged["verdict"] == "pass"
+    for name, c in channels.items():
+        unit = c.get("unit", "")
+        if c["pass"] is False:
+            held = False
+            if c["max_abs"] is None or c["max_abs"] == float("inf"):
+                v.worse(REGRESSION, f"{key}: {name}: {c['note'] or 'no value'}")
+                continue
+            ratio = c["max_abs"] / c["tolerance"] if c["tolerance"] else float("inf")
+            v.worse(REGRESSION, f"{key}: {name} max error {_fmt(c['max_abs'], unit)} > "
+                    f"tolerance {_fmt(c['tolerance'], unit)} ({ratio:.3g}x)")
+        err, tol, was = c["max_abs"], c["tolerance"], base.get(name)
+        # growth below a tenth of the tolerance is platform noise, not a regression
+        if c["pass"] is not None and was is not None and err is not None and \
+                err > max(baseline_factor * was, floor, 0.1 * tol):
+            held = False
+            v.worse(REGRESSION, f"{key}: {name} error {_fmt(err, unit)} grew "
+                    f"{err / max(was, floor):.3g}x over the baseline {_fmt(was, unit)} "
+                    f"(limit {baseline_factor:g}x)")
+    v.outcome[key] = "pass" if held else "fail"
 
 
-def update_baseline(summary: dict, path: Path) -> None:
-    """Store the errors of every cell this summary ran over the stored baseline: cells the
-    run did not touch keep their entries (a subset run never shrinks the baseline)."""
-    errors = (load_baseline(path) or {}) | baseline_of(summary)
-    write_json(path, {"generated": summary.get("generated"), "errors": errors})
+def update_baseline(verdict: Verdict, path: Path, generated: str | None = None) -> list[str]:
+    """Store the errors of the cells this gate judged from their files and passed over the
+    stored baseline, under a lock (two updates at once lose no cell); every other cell
+    keeps its entry (a subset run never shrinks the baseline). Returns the cells stored."""
+    cells = {k: verdict.errors[k] for k in sorted(verdict.passed)}
+    with locked(path):
+        errors = (load_baseline(path) or {}) | cells
+        write_json(path, {"generated": generated, "errors": errors})
+    return list(cells)
 
 
 def load_baseline(path: Path) -> dict | None:
-    if not Path(path).exists():
+    """The stored baseline's errors (None when there is none); raises ValueError naming
+    the baseline file and what is wrong in it."""
+    path = Path(path)
+    if not path.exists():
         return None
     try:
-        return read_json(path)["errors"]
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: malformed baseline ({e})") from None
+        data = read_json(path)
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: malformed baseline: not readable JSON ({e})") from None
+    errors = data.get("errors") if isinstance(data, dict) else None
+    if not isinstance(errors, dict):
+        raise ValueError(f"{path}: malformed baseline: errors: missing or not a table")
+    for cell, channels in errors.items():
+        if not isinstance(channels, dict):
+            raise ValueError(f"{path}: malformed baseline: errors.{cell[:80]}: not a table "
+                             "of channel errors")
+        for name, x in channels.items():
+            if x is not None and (isinstance(x, bool) or not isinstance(x, (int, float))
+                                  or not math.isfinite(x) or x < 0):
+                raise ValueError(f"{path}: malformed baseline: errors.{cell[:80]}."
+                                 f"{name[:40]}: not an error (a number >= 0)")
+    return errors

@@ -1,11 +1,15 @@
-"""Atomic file writes: a crash or Ctrl-C leaves the old file or the new one, never half."""
+"""Atomic file writes: a crash or Ctrl-C leaves the old file or the new one, never half;
+and a lock for read-modify-write updates of a shared file."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
 import math
 import os
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pandas as pd
@@ -61,3 +65,18 @@ def write_csv(path: Path, table: pd.DataFrame) -> None:
 
 def read_json(path: Path):
     return json.loads(Path(path).read_text(encoding="utf-8"))
+
+
+@contextlib.contextmanager
+def locked(path: Path) -> Iterator[None]:
+    """Hold an exclusive lock for updating ``path`` (waiting for another holder): a lock file
+    ``.<name>.lock`` beside it, so that readers of ``path`` are never blocked and an atomic
+    replacement of ``path`` does not lose the lock."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path.parent / f".{path.name}.lock", "a") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

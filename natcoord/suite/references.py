@@ -24,6 +24,7 @@ from ..estimates import estimated_error
 from ..independent import check as independent_check
 from ..mechanism import Case
 from ..result import evaluate_channels, methods_table
+from .evidence import BadReference, reference_problem
 from .io import read_json, write_csv, write_json
 
 REFERENCE_SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
@@ -60,6 +61,12 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
     check_settings = own.get("reference_check", CHECK_SETTINGS)
     check = natcoord_run(case, init, model_settings | check_settings)
     table = evaluate_channels(case, best.motion)
+    columns = ["t", *(c.name for c in case.channels)]
+    problem = (reference_problem(case, table) or
+               ("" if list(table.columns) == columns else
+                f"columns {list(table.columns)} are not t and the case's channels"))
+    if problem:  # never store a reference that could not judge the case
+        raise BadReference(f"{Path(directory) / f'{case.name}.csv'}: not written: {problem}")
     check_table = evaluate_channels(case, check.motion)
     steps = int(best.counters.get("steps") or best.n_steps or 1)
     estimate = {c.name: estimated_error(table[c.name], check_table[c.name], steps)

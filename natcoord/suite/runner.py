@@ -23,16 +23,12 @@ import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-
 from .. import __version__
 from ..errors import NatcoordError
 from ..mechanism import Case
 from ..outputs import initial_body_states
-from .compare import channel_errors
+from . import evidence
 from .io import read_json, write_json
-from .references import load_provenance, load_reference
 from .worker import Job
 
 DEFAULT_TIMEOUT_S = 600.0
@@ -175,28 +171,25 @@ def _failed(case: Case, engine: str, reason: str) -> dict:
 
 
 def compare_record(case: Case, record: dict, out: Path, references: Path) -> dict:
-    """Add the comparison with the reference to a run record."""
+    """Add the comparison with the reference to a run record, and the evidence a gate
+    checks it by: the sha256 of each result file (``files``), the case file's sha256
+    (``case_hash``). The errors come from :func:`natcoord.suite.evidence.judge_cell`, the
+    function ``gate`` and ``compare`` judge the files with."""
     record = {**record, "description": case.description, "case_hash": case.digest,
               "tolerance_reason": case.engine(record["engine"]).reason}
-    csv = out / "results" / case.name / f"{record['engine']}.csv"
-    if record["status"] != "ok" or not csv.exists():
+    if record["status"] != "ok":
         return {**record, "channels": {}, "verdict": "n/a"}
     try:
-        table = pd.read_csv(csv)
-        t = table["t"].to_numpy(dtype=float) if "t" in table else np.zeros(0)
-        if len(t) != len(case.times) or not np.allclose(t, case.times, atol=1e-9):
-            raise ValueError(f"{len(t)} samples at other times than the case's "
-                             f"{len(case.times)}")
-        provenance = load_provenance(case.name, references) or {}
-        channels, verdict, why = channel_errors(case, record["engine"], table,
-                                                load_reference(case.name, references),
-                                                provenance.get("undetermined", ()))
-    except (OSError, ValueError, KeyError, pd.errors.ParserError) as e:
+        files = evidence.hashes(out, case.name, record["engine"])
+        judged = evidence.judge_cell(case, record["engine"], out, references, files)
+    except evidence.BadReference as e:  # the run is fine; its reference cannot judge it
+        return {**record, "files": files, "channels": {}, "verdict": "no-reference",
+                "verdict_reason": str(e)}
+    except (OSError, evidence.BadEvidence) as e:
         # one unreadable result fails its own cell, never the whole run
         return {**record, "status": "failed", "channels": {}, "verdict": "n/a",
-                "reason": f"results of this run could not be compared: "
-                          f"{type(e).__name__}: {e}"}
-    return {**record, "channels": channels, "verdict": verdict, "verdict_reason": why}
+                "reason": f"results of this run could not be compared: {e}"}
+    return {**record, "files": files, **judged}
 
 
 def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,

@@ -1,0 +1,165 @@
+"""The evidence behind a verdict: one cell's result files, checked and judged.
+
+``natcoord run`` judges each case x engine with :func:`judge_cell` and stores in its record
+the sha256 of every result file of the cell (``files``); ``gate`` and ``compare`` call the
+same function on the same files, checked against those hashes, with the case file's
+tolerances and the stored reference. The summary is an index of the cells, never a witness
+of their errors. A result file that is missing, altered since the run, unreadable or at
+other sample times fails its cell (:class:`BadEvidence`: a regression); a reference that is
+missing or damaged is bad input naming the reference file (:class:`BadReference`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..errors import NatcoordError
+from ..mechanism import Case
+from .compare import channel_errors
+
+SUFFIXES = (".csv", ".methods.csv", ".json")  # a cell's result files: <engine><suffix>
+
+
+class BadEvidence(NatcoordError):
+    """A cell's result files cannot be trusted or read: the cell fails."""
+
+
+class BadReference(NatcoordError, ValueError):
+    """A case's stored reference is missing or damaged: bad input, naming the file."""
+
+
+def cell_folder(results: Path, case: str) -> Path:
+    return Path(results) / "results" / case
+
+
+def sha256_of(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def hashes(results: Path, case: str, engine: str) -> dict[str, str]:
+    """sha256 of each result file of a cell that exists, by file name (what ``run`` stores
+    in the record's ``files``)."""
+    folder = cell_folder(results, case)
+    return {f"{engine}{s}": sha256_of((folder / f"{engine}{s}").read_bytes())
+            for s in SUFFIXES if (folder / f"{engine}{s}").is_file()}
+
+
+def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) -> bytes:
+    """The bytes of the cell's CSV, after checking every file the run hashed; raises
+    BadEvidence naming the file and what is wrong with it."""
+    folder = cell_folder(results, case)
+    csv_name = f"{engine}.csv"
+    if not isinstance(files, dict) or csv_name not in files:
+        raise BadEvidence(f"{folder / csv_name}: no content hash in the summary (written by "
+                          "an older natcoord, or the summary was edited): run it again")
+    data = b""
+    for name in (f"{engine}{s}" for s in SUFFIXES):
+        if name not in files:
+            continue
+        path = folder / name
+        try:
+            blob = path.read_bytes()
+        except FileNotFoundError:
+            raise BadEvidence(f"{path}: missing (deleted since the run)") from None
+        except OSError as e:
+            raise BadEvidence(f"{path}: unreadable ({e.strerror or e})") from None
+        if sha256_of(blob) != files[name]:
+            raise BadEvidence(f"{path}: altered since the run (its sha256 is not the one the "
+                              "run stored in summary.json)")
+        if name == csv_name:
+            data = blob
+    return data
+
+
+def read_table(data: bytes, path: Path, case: Case) -> pd.DataFrame:
+    """A result CSV's table: numbers only, at the case's sample times."""
+    try:
+        table = pd.read_csv(io.BytesIO(data))
+        table = table.apply(pd.to_numeric, errors="raise").astype(float)
+    except (ValueError, TypeError, pd.errors.ParserError, pd.errors.EmptyDataError) as e:
+        raise BadEvidence(f"{path}: unreadable ({type(e).__name__}: {e})") from None
+    t = table["t"].to_numpy() if "t" in table else np.zeros(0)
+    if len(t) != len(case.times) or not np.allclose(t, case.times, atol=1e-9):
+        raise BadEvidence(f"{path}: {len(t)} samples at other times than the case's "
+                          f"{len(case.times)}")
+    return table
+
+
+def read_reference(case: Case, directory: Path) -> tuple[pd.DataFrame, tuple[str, ...]]:
+    """The stored reference of a case and its undetermined channels, checked: every channel
+    of the case present and finite at the case's sample times, the provenance readable.
+    Raises BadReference naming the file and the problem."""
+    csv = Path(directory) / f"{case.name}.csv"
+    prov = Path(directory) / f"{case.name}.json"
+    fix = f"run `natcoord reference update {case.name}`"
+    if not csv.is_file():
+        raise BadReference(f"{csv}: no reference stored for case {case.name}; {fix}")
+    try:
+        table = pd.read_csv(csv)
+    except (OSError, UnicodeDecodeError, pd.errors.ParserError,
+            pd.errors.EmptyDataError) as e:
+        raise BadReference(f"{csv}: unreadable reference ({type(e).__name__}: {e})") from None
+    problem = reference_problem(case, table)
+    if problem:
+        raise BadReference(f"{csv}: {problem}; {fix}")
+    try:
+        provenance = json.loads(prov.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise BadReference(f"{prov}: the reference's provenance is missing; {fix}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise BadReference(f"{prov}: unreadable provenance ({e})") from None
+    undetermined = provenance.get("undetermined", []) if isinstance(provenance, dict) else None
+    names = {c.name for c in case.channels}
+    if not isinstance(undetermined, list) or not all(
+            isinstance(x, str) and x in names for x in undetermined):
+        raise BadReference(f"{prov}: undetermined: must be a list of the case's channel "
+                           f"names, got {str(undetermined)[:80]}; {fix}")
+    return table[["t", *names_in_order(case)]].astype(float), tuple(undetermined)
+
+
+def names_in_order(case: Case) -> list[str]:
+    return [c.name for c in case.channels]
+
+
+def reference_problem(case: Case, table: pd.DataFrame) -> str:
+    """What makes a reference table unfit to judge a case ("" when nothing): a channel of
+    the case missing (renamed, damaged or stale), values that are not finite numbers,
+    sample times other than the case's."""
+    need = ["t", *names_in_order(case)]
+    missing = [c for c in need if c not in table]
+    if missing:
+        return (f"reference lacks column(s) {', '.join(missing)} of case {case.name} "
+                "(renamed, damaged or stale)")
+    if not table.columns.is_unique:
+        return "reference has duplicate columns"
+    try:
+        values = table[need].apply(pd.to_numeric, errors="raise").astype(float)
+    except (ValueError, TypeError) as e:
+        return f"reference holds values that are not numbers ({e})"
+    bad = [c for c in need if not np.all(np.isfinite(values[c].to_numpy()))]
+    if bad:
+        return f"non-finite values (NaN or inf) in the reference's {', '.join(bad)}"
+    t = values["t"].to_numpy()
+    if len(t) != len(case.times) or not np.allclose(t, case.times, atol=1e-9):
+        return "reference sample times differ from the case's (stale)"
+    return ""
+
+
+def judge_cell(case: Case, engine: str, results: Path, references: Path,
+               files: dict[str, str]) -> dict:
+    """Errors and verdict of one cell, recomputed from its result files (each checked
+    against ``files``, the sha256 the run stored), the stored reference and the case file's
+    tolerances: ``{"channels", "verdict", "verdict_reason"}`` as in
+    :func:`natcoord.suite.compare.channel_errors`. Raises BadEvidence (the cell fails) or
+    BadReference (bad input)."""
+    data = _read_checked(results, case.name, engine, files)
+    table = read_table(data, cell_folder(results, case.name) / f"{engine}.csv", case)
+    reference, undetermined = read_reference(case, references)
+    channels, verdict, why = channel_errors(case, engine, table, reference, undetermined)
+    return {"channels": channels, "verdict": verdict, "verdict_reason": why}

@@ -1,0 +1,339 @@
+"""A verdict rests on evidence: gate and compare judge the result files (checked against the
+hashes the run stored) with the case file's tolerances and the stored reference, never the
+numbers a summary holds. One test per fault, each on a real results folder (one natcoord
+run of pendulum), tampered the way a tester did."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from natcoord import CaseError, load_case
+from natcoord.suite import gate, references
+from natcoord.suite.evidence import BadReference, sha256_of
+from natcoord.suite.io import read_json, write_csv, write_json
+
+from .conftest import CASES, REFERENCES
+
+CELL = "pendulum/natcoord"
+
+
+def _cli(*args, env=None, timeout=300):
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+
+
+def _clean(p):
+    assert "Traceback" not in p.stdout + p.stderr, p.stderr[-1500:]
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory) -> Path:
+    """One real results folder: pendulum in natcoord, as `natcoord run` writes it."""
+    out = tmp_path_factory.mktemp("evidence") / "run"
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--out", out)
+    assert p.returncode == 0, p.stderr
+    return out
+
+
+@pytest.fixture
+def folder(run, tmp_path) -> Path:
+    """A copy of the run to tamper with."""
+    shutil.copytree(run, tmp_path / "r")
+    return tmp_path / "r"
+
+
+def _csv(folder: Path) -> Path:
+    return folder / "results" / "pendulum" / "natcoord.csv"
+
+
+def _edit_csv(folder: Path, change, *, rehash: bool = False) -> None:
+    """Change the result CSV; with ``rehash`` also store its new sha256 in the summary (a
+    forgery that keeps the hashes consistent: the errors must still be recomputed)."""
+    table = pd.read_csv(_csv(folder))
+    change(table)
+    write_csv(_csv(folder), table)
+    if rehash:
+        _edit_summary(folder, lambda r: r["files"].__setitem__(
+            "natcoord.csv", sha256_of(_csv(folder).read_bytes())))
+
+
+def _edit_summary(folder: Path, change) -> None:
+    summary = read_json(folder / "summary.json")
+    change(summary["records"][0])
+    write_json(folder / "summary.json", summary)
+
+
+def _gate(folder: Path, tmp_path: Path, *args, env=None):
+    p = _cli("gate", "--results", folder, "--baseline", tmp_path / "none.json", *args, env=env)
+    _clean(p)
+    return p
+
+
+def _project(tmp_path: Path) -> tuple[Path, dict]:
+    """A project folder holding pendulum's case file and reference, to damage."""
+    home = tmp_path / "project"
+    (home / "cases").mkdir(parents=True)
+    (home / "references").mkdir()
+    shutil.copy(CASES / "pendulum.toml", home / "cases")
+    for f in ("pendulum.csv", "pendulum.json"):
+        shutil.copy(REFERENCES / f, home / "references")
+    return home, {"NATCOORD_HOME": str(home)}
+
+
+# ---- the run stores its evidence -----------------------------------------------------------
+def test_a_run_records_hashes_case_file_and_settings_and_its_gate_passes(run, tmp_path):
+    rec = read_json(run / "summary.json")["records"][0]
+    assert rec["files"]["natcoord.csv"] == sha256_of(_csv(run).read_bytes())
+    assert rec["case_hash"] == load_case(CASES / "pendulum.toml").digest
+    assert rec["settings"]["method"] and rec["engine_version"]
+    p = _gate(run, tmp_path)
+    assert p.returncode == 0 and "judged from their result files" in p.stdout, p.stderr
+
+
+# ---- result files -------------------------------------------------------------------------
+def test_a_shifted_column_fails_as_altered_in_gate_and_compare(run, folder, tmp_path):
+    _edit_csv(folder, lambda t: t.__setitem__("x", t["x"] + 1e-3))
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and f"{_csv(folder)}: altered since the run" in p.stderr
+    c = _cli("compare", run, folder)
+    _clean(c)
+    assert c.returncode == 1 and "altered since the run" in c.stderr
+
+
+def test_a_shifted_column_with_its_hash_forged_fails_on_the_recomputed_error(folder, tmp_path):
+    _edit_csv(folder, lambda t: t.__setitem__("x", t["x"] + 1e-3), rehash=True)
+    p = _gate(folder, tmp_path)  # the summary still says every channel passed
+    assert p.returncode == 1 and "pendulum/natcoord: x max error 0.001 m > tolerance" \
+        in p.stderr, p.stderr
+
+
+def test_a_nan_in_a_result_fails_its_cell(folder, tmp_path):
+    _edit_csv(folder, lambda t: t.__setitem__("theta", t["theta"].where(t.index != 5, np.nan)),
+              rehash=True)
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and "theta: non-finite values" in p.stderr, p.stderr
+
+
+def test_a_deleted_result_file_fails_its_cell(folder, tmp_path):
+    _csv(folder).unlink()
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and f"{_csv(folder)}: missing" in p.stderr, p.stderr
+
+
+def test_every_result_deleted_fails_gate_and_compare(run, folder, tmp_path):
+    shutil.rmtree(folder / "results")  # the summary still says ok
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and "missing (deleted since the run)" in p.stderr
+    c = _cli("compare", run, folder)
+    assert c.returncode == 1 and "missing" in c.stderr, c.stderr
+    c = _cli("compare", folder, run)  # a base without evidence: bad input, not a pass
+    assert c.returncode == 2 and "(base)" in c.stderr and "missing" in c.stderr, c.stderr
+
+
+def test_a_summary_without_hashes_is_not_evidence(folder, tmp_path):
+    _edit_summary(folder, lambda r: r.pop("files"))
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and "no content hash in the summary" in p.stderr
+
+
+def test_an_unreadable_result_fails_its_cell(folder, tmp_path):
+    _csv(folder).write_text("t,x\n0,not-a-number\n")
+    _edit_summary(folder, lambda r: r["files"].__setitem__(
+        "natcoord.csv", sha256_of(_csv(folder).read_bytes())))
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and f"{_csv(folder)}: unreadable" in p.stderr, p.stderr
+
+
+# ---- the summary is an index, not a witness ------------------------------------------------
+def test_a_record_stripped_of_its_channels_is_judged_from_its_files(folder, tmp_path):
+    _edit_csv(folder, lambda t: t.__setitem__("y", t["y"] + 1e-3), rehash=True)
+    _edit_summary(folder, lambda r: r.update(channels={}, verdict="pass"))
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and "y max error" in p.stderr, p.stderr
+
+
+def test_a_tolerance_dropped_from_the_summary_switches_off_nothing(folder, tmp_path):
+    """Baseline x = 1e-12; the run's x error 5e-9 (within the 1e-8 tolerance, but 5000x
+    the baseline); the summary's x entry has no tolerance: the growth still fails."""
+    _edit_csv(folder, lambda t: t.__setitem__("x", t["x"] + 5e-9), rehash=True)
+    _edit_summary(folder, lambda r: r["channels"]["x"].update(
+        max_abs=5e-9, tolerance=None, **{"pass": None}))
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {CELL: {"x": 1e-12}}})
+    p = _cli("gate", "--results", folder, "--baseline", base)
+    _clean(p)
+    assert p.returncode == 1 and "pendulum/natcoord: x error 5.01e-09 m grew" in p.stderr
+
+
+def test_tolerances_come_from_the_case_file(folder, tmp_path):
+    home, env = _project(tmp_path)
+    case = home / "cases" / "pendulum.toml"
+    case.write_text(case.read_text().replace("[engines.natcoord.tolerance]\nangle = 1e-8",
+                                             "[engines.natcoord.tolerance]\nangle = 1e-15"))
+    p = _gate(folder, tmp_path, env=env)
+    assert p.returncode == 1 and "theta max error" in p.stderr and "> tolerance 1e-15" \
+        in p.stderr, p.stderr
+    assert "changed since the run" in p.stderr
+
+
+def test_the_baseline_stores_the_errors_judged_not_the_summarys(folder, tmp_path):
+    _edit_summary(folder, lambda r: r["channels"]["x"].update(max_abs=1e-30))
+    base = tmp_path / "baseline.json"
+    p = _cli("gate", "--results", folder, "--baseline", base, "--update-baseline")
+    _clean(p)
+    assert p.returncode == 0 and "baseline updated for the 1 cells" in p.stdout, p.stderr
+    stored = read_json(base)["errors"][CELL]["x"]
+    assert stored > 1e-14 and stored == pytest.approx(
+        gate.judge(read_json(folder / "summary.json"), folder,
+                   cases=gate.CaseBook(CASES), references=REFERENCES).errors[CELL]["x"])
+
+
+def test_a_failing_gate_updates_no_baseline(folder, tmp_path):
+    _csv(folder).unlink()
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {CELL: {"x": 1e-12}}})
+    before = base.read_text()
+    p = _cli("gate", "--results", folder, "--baseline", base, "--update-baseline")
+    assert p.returncode == 1 and base.read_text() == before
+
+
+def test_two_baseline_updates_at_once_lose_no_cell(tmp_path, monkeypatch):
+    """Threads updating different cells at once, each slow between reading and writing the
+    baseline: under the lock every cell is kept."""
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {"kept/natcoord": {"x": 1.0}}})
+    slow_write = gate.write_json
+
+    def write(path, data):
+        threading.Event().wait(0.05)  # widen the read-modify-write window
+        slow_write(path, data)
+
+    monkeypatch.setattr(gate, "write_json", write)
+    cells = [f"c{i}/natcoord" for i in range(4)]
+    start = threading.Barrier(len(cells))
+
+    def update(cell):
+        start.wait()
+        gate.update_baseline(gate.Verdict(0, channels={cell: {"x": {"max_abs": 1e-9}}},
+                                          outcome={cell: "pass"}), base)
+
+    threads = [threading.Thread(target=update, args=(c,)) for c in cells]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert set(gate.load_baseline(base)) == {"kept/natcoord", *cells}
+
+
+def test_a_baseline_that_cannot_be_written_is_not_a_regression(folder, tmp_path):
+    (tmp_path / "file").write_text("")
+    p = _cli("gate", "--results", folder, "--baseline", tmp_path / "file" / "baseline.json",
+             "--update-baseline")
+    _clean(p)
+    assert p.returncode == gate.CANNOT_WRITE and "cannot write the baseline" in p.stderr
+
+
+def test_a_bad_baseline_is_blamed_on_the_baseline_file(folder, tmp_path):
+    base = tmp_path / "baseline.json"
+    base.write_text(json.dumps({"errors": {CELL: 3}}))
+    p = _cli("gate", "--results", folder, "--baseline", base)
+    _clean(p)
+    assert p.returncode == 2 and f"{base}: malformed baseline" in p.stderr
+    assert "summary" not in p.stderr
+
+
+# ---- references ---------------------------------------------------------------------------
+def test_a_renamed_reference_column_is_bad_input_naming_the_reference(folder, tmp_path):
+    home, env = _project(tmp_path)
+    ref = home / "references" / "pendulum.csv"
+    ref.write_text(ref.read_text().replace(",x,", ",X,", 1))
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {CELL: {"x": 1e-11}}})
+    before = base.read_text()
+    p = _cli("gate", "--results", folder, "--baseline", base, "--update-baseline", env=env)
+    _clean(p)
+    assert p.returncode == 2 and f"{ref}: reference lacks column(s) x" in p.stderr, p.stderr
+    assert base.read_text() == before  # the channel's baseline is kept
+
+
+def test_a_malformed_undetermined_field_is_bad_input_naming_the_provenance(folder, tmp_path):
+    home, env = _project(tmp_path)
+    prov = home / "references" / "pendulum.json"
+    data = read_json(prov)
+    data["undetermined"] = "x"
+    write_json(prov, data)
+    p = _gate(folder, tmp_path, env=env)
+    assert p.returncode == 2 and f"{prov}: undetermined: must be a list" in p.stderr
+
+
+def test_a_nan_in_the_reference_is_blamed_on_the_reference(folder, tmp_path):
+    home, env = _project(tmp_path)
+    ref = home / "references" / "pendulum.csv"
+    table = pd.read_csv(ref)
+    table.loc[3, "O_y"] = np.nan
+    write_csv(ref, table)
+    p = _gate(folder, tmp_path, env=env)
+    assert p.returncode == 2 and f"{ref}: non-finite values" in p.stderr and "O_y" in p.stderr
+    assert "this engine" not in p.stderr
+
+
+def test_a_missing_reference_is_not_nothing_ran(folder, tmp_path):
+    home, env = _project(tmp_path)
+    (home / "references" / "pendulum.csv").unlink()
+    p = _gate(folder, tmp_path, env=env)
+    assert p.returncode == 2 and "no reference stored" in p.stderr, p.stderr
+    assert "nothing ran" not in p.stderr
+
+
+def test_reference_update_refuses_to_write_corrupt_columns(tmp_path, monkeypatch):
+    """A table whose time column a channel overwrote is never stored as a reference."""
+    real = references.evaluate_channels
+
+    def corrupt(case, motion):
+        table = real(case, motion)
+        table["t"] = table["x"]
+        return table
+
+    monkeypatch.setattr(references, "evaluate_channels", corrupt)
+    case = load_case(CASES / "pendulum.toml")
+    with pytest.raises(BadReference, match="not written: .*sample times"):
+        references.update_reference(case, tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("name", ["t", "time"])
+def test_channels_named_like_the_time_column_are_refused(tmp_path, name):
+    text = (CASES / "pendulum.toml").read_text().replace("[channels]\ntheta =",
+                                                         f"[channels]\n{name} =")
+    assert f"[channels]\n{name} =" in text
+    (tmp_path / "pendulum.toml").write_text(text)
+    with pytest.raises(CaseError, match=f"channels.{name}: '{name}' is reserved"):
+        load_case(tmp_path / "pendulum.toml")
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--cases-dir", tmp_path,
+             "--out", tmp_path / "r")
+    _clean(p)
+    assert p.returncode == 2 and "is reserved for the time column" in p.stderr
+
+
+# ---- compare ------------------------------------------------------------------------------
+def test_compare_reports_version_case_file_and_settings_changes(run, folder):
+    _edit_summary(folder, lambda r: (r.update(engine_version="9.9", case_hash="0" * 64),
+                                     r["settings"].update(rtol=1e-6)))
+    c = _cli("compare", run, folder)
+    _clean(c)
+    assert c.returncode == 0, c.stderr
+    assert "pendulum/natcoord: engine version" in c.stderr and "-> 9.9" in c.stderr
+    assert "case file changed" in c.stderr and "setting rtol: 1e-12 -> 1e-06" in c.stderr
+    j = json.loads(_cli("compare", run, folder, "--json").stdout)
+    assert len(j["changes"]) == 3
