@@ -12,6 +12,7 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..errors import StoredFileError
 from .io import read_json, write_json
 
 OK, REGRESSION, BAD_INPUT, NOT_RUN = 0, 1, 2, 3
@@ -128,9 +129,18 @@ def update_baseline(summary: dict, path: Path) -> None:
 
 
 def load_baseline(path: Path) -> dict | None:
-    if not Path(path).exists():
+    """The stored baseline's errors ({cell: {channel: error}}), None when there is none;
+    StoredFileError (a ValueError) naming the file and the problem when it is malformed."""
+    if not Path(path).exists() and not Path(path).is_symlink():
         return None
-    try:
-        return read_json(path)["errors"]
-    except (json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: malformed baseline ({e})") from None
+    data = read_json(path)
+    errors = data.get("errors") if isinstance(data, dict) else None
+    if not isinstance(errors, dict):
+        raise StoredFileError(f"{path}: errors: missing or not a table (malformed baseline)")
+    for cell, channels in errors.items():
+        if not isinstance(channels, dict) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool)
+                for v in channels.values()):
+            raise StoredFileError(f"{path}: errors.{cell}: not a table of channel errors "
+                                  "(malformed baseline)")
+    return errors

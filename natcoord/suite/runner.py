@@ -71,6 +71,24 @@ def as_job(case: Case | Job) -> Job:
     return case if isinstance(case, Job) else prepare(case)
 
 
+def time_limit(case: Case, timeout_s: float) -> float:
+    """Seconds one run of ``case`` may take: the stricter of the command's limit and the
+    case file's own ``timeout``."""
+    return min(timeout_s, case.timeout) if case.timeout else timeout_s
+
+
+def worker_command(job_file: Path, out: Path) -> list[str]:
+    """The engine process's command line. ``-I`` (isolated mode) keeps the current
+    directory and PYTHON* variables off the import path, so the worker imports the
+    natcoord this command runs (a ``natcoord/`` folder where the command is started is
+    not imported); that package's folder is put on the path explicitly."""
+    package_root = str(Path(__file__).resolve().parents[2])
+    return [sys.executable, "-I", "-c",
+            "import sys; sys.path.insert(0, sys.argv.pop(1)); "
+            "from natcoord.suite.worker import main; sys.exit(main())",
+            package_root, str(job_file), str(out)]
+
+
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
                    settings: dict | None = None, repeat: int = 1,
                    cpu: int | None = None) -> dict:
@@ -87,8 +105,8 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     with open(job_file, "wb") as f:
         pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {}),
                                         repeat=repeat), f)
-    cmd = [sys.executable, "-m", "natcoord.suite.worker", str(job_file), str(out)]
-    timeout_s = (case.timeout or timeout_s) * max(1, repeat)
+    cmd = worker_command(job_file, out)
+    timeout_s = time_limit(case, timeout_s) * max(1, repeat)
     env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
            "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
