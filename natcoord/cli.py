@@ -273,13 +273,16 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     results = resolve(results, "reports/latest")
     if not (results / "summary.json").exists():
         _fail(f"{results}: no summary.json; run `natcoord run` or `natcoord suite` first")
-    try:
-        gate.load_summary(results)  # the shape of what the report reads, checked first
+    from .suite import history as hist
+
+    history = resolve(history, "reports/history.db")
+    try:  # what the report reads, checked first: a damaged file is named, exit 2
+        gate.load_summary(results)
         diff.read_bench(results)
+        hist.check(history)
     except ValueError as e:
         _fail(str(e))
-    path = write_report(results, resolve(references, "references"),
-                        resolve(history, "reports/history.db"))
+    path = write_report(results, resolve(references, "references"), history)
     out.print(f"report: {path.resolve()}")
 
 
