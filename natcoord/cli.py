@@ -104,14 +104,18 @@ def _cases(names: list[str] | None, cases_dir: Path | None):
 
 
 def _check_references(jobs, references: Path) -> None:
-    """Read every selected case's stored reference (CSV and provenance) before running:
-    a damaged one is bad input (exit 2 naming the file), not a failed cell later."""
+    """Read the stored reference (CSV and provenance) of every case (prepared jobs or
+    names) before using them: a damaged one is bad input (exit 2 naming the file), not a
+    failed cell or a silent gap later."""
     from .suite.references import load_provenance, load_reference
 
     try:
-        for job in jobs:
-            load_reference(job.case.name, references)
-            load_provenance(job.case.name, references)
+        for name in (getattr(j, "case", j) for j in jobs):
+            name = getattr(name, "name", name)
+            if not isinstance(name, str) or "/" in name or name.startswith("."):
+                continue  # not a case name (a malformed record: the summary check's job)
+            load_reference(name, references)
+            load_provenance(name, references)
     except NatcoordError as e:
         _fail(str(e))
 
@@ -276,13 +280,15 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     from .suite import history as hist
 
     history = resolve(history, "reports/history.db")
+    references = resolve(references, "references")
     try:  # what the report reads, checked first: a damaged file is named, exit 2
-        gate.load_summary(results)
+        summary = gate.load_summary(results)
         diff.read_bench(results)
         hist.check(history)
     except ValueError as e:
         _fail(str(e))
-    path = write_report(results, resolve(references, "references"), history)
+    _check_references(sorted({r["case"] for r in summary["records"]}), references)
+    path = write_report(results, references, history)
     out.print(f"report: {path.resolve()}")
 
 
@@ -511,7 +517,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     names = _engines(engines)
     references = resolve(references, "references")
     history = resolve(history, "reports/history.db")
-    hist.check(history)  # a damaged or foreign history: exit 2 before anything runs
+    hist.check(history, write=True)  # damaged, foreign or read-only: exit 2 before running
     hist.import_jsonl(history, history.with_suffix(".jsonl"))
     target = _out_dir(out_dir, "suite")
     nightly = out_dir is None and not cases and engines is None  # a subset is not nightly

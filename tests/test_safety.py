@@ -353,6 +353,10 @@ def test_a_damaged_reference_exits_2_naming_it_before_running(tmp_path, damage):
     p = _run(tmp_path / "out", home)
     _clean(p, 2)
     assert str(bad) in p.stderr and not (tmp_path / "out").exists(), p.stderr
+    p = _cli("report", "--results", _gate_folder(tmp_path), "--references",
+             home / "references", "--history", tmp_path / "none.db")
+    _clean(p, 2)
+    assert str(bad) in p.stderr, p.stderr
 
 
 # ---- the environment -------------------------------------------------------------------------

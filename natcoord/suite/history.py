@@ -147,11 +147,14 @@ def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connect
             raise _problem(path, e, wait_s) from None
 
 
-def check(path: Path) -> None:
+def check(path: Path, write: bool = False) -> None:
     """Raise HistoryError unless ``path`` is absent, empty or natcoord's history database
-    (read-only: the file is not touched)."""
+    (and, with ``write``, writable); the file is not touched."""
     with reading(path):
         pass
+    path = Path(path)
+    if write and path.exists() and not os.access(path, os.W_OK):
+        raise HistoryError(f"{path}: read-only; make it writable or give another --history")
 
 
 @contextmanager

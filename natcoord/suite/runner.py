@@ -77,16 +77,16 @@ def time_limit(case: Case, timeout_s: float) -> float:
     return min(timeout_s, case.timeout) if case.timeout else timeout_s
 
 
-def worker_command(job_file: Path, out: Path) -> list[str]:
-    """The engine process's command line. ``-I`` (isolated mode) keeps the current
-    directory and PYTHON* variables off the import path, so the worker imports the
-    natcoord this command runs (a ``natcoord/`` folder where the command is started is
-    not imported); that package's folder is put on the path explicitly."""
+def worker_command(job_file: Path, out: Path) -> tuple[list[str], dict]:
+    """The engine process's command line and environment. ``-P`` keeps the current
+    directory off the import path and PYTHONPATH starts with the folder of the natcoord
+    this command runs, so the worker imports that natcoord (never a ``natcoord/`` folder
+    where the command happens to be started)."""
     package_root = str(Path(__file__).resolve().parents[2])
-    return [sys.executable, "-I", "-c",
-            "import sys; sys.path.insert(0, sys.argv.pop(1)); "
-            "from natcoord.suite.worker import main; sys.exit(main())",
-            package_root, str(job_file), str(out)]
+    path = os.pathsep.join(filter(None, (package_root, os.environ.get("PYTHONPATH"))))
+    env = {**os.environ, "PYTHONPATH": path, "OPENBLAS_NUM_THREADS": "1",
+           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    return [sys.executable, "-P", "-m", "natcoord.suite.worker", str(job_file), str(out)], env
 
 
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
@@ -105,10 +105,8 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     with open(job_file, "wb") as f:
         pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {}),
                                         repeat=repeat), f)
-    cmd = worker_command(job_file, out)
+    cmd, env = worker_command(job_file, out)
     timeout_s = time_limit(case, timeout_s) * max(1, repeat)
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
-           "MKL_NUM_THREADS": "1"}
     t0 = time.perf_counter()
     if _STOPPING.is_set():
         job_file.unlink(missing_ok=True)
