@@ -16,7 +16,9 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 import re
+import stat
 import tomllib
 from pathlib import Path
 
@@ -185,6 +187,26 @@ def _depth(x, limit: int) -> int:
     return depth
 
 
+def _read_bounded(path: Path, r: _Reader) -> bytes:
+    """The bytes of a case file: a regular file (not a device, FIFO or socket, whatever a
+    link points at), opened without blocking and read to at most MAX_FILE_BYTES."""
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    try:
+        mode = os.fstat(fd).st_mode
+        if stat.S_ISDIR(mode):
+            raise IsADirectoryError(str(path))
+        if not stat.S_ISREG(mode):
+            r.fail("", "not a regular file (a device, FIFO or socket); a case file is a "
+                       "short text file")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            data = f.read(MAX_FILE_BYTES + 1)
+    finally:
+        os.close(fd)
+    if len(data) > MAX_FILE_BYTES:
+        r.fail("", f"larger than {MAX_FILE_BYTES} bytes; a case file is a short text")
+    return data
+
+
 def load_case(path: str | Path) -> Case:
     """Parse and validate one case file.
 
@@ -196,9 +218,8 @@ def load_case(path: str | Path) -> Case:
     path = Path(path)
     r = _Reader(str(path))
     try:
-        if path.stat().st_size > MAX_FILE_BYTES:
-            r.fail("", f"larger than {MAX_FILE_BYTES} bytes; a case file is a short text")
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
+        raw = _read_bounded(path, r)  # read once: the hash below is of these bytes
+        data = tomllib.loads(raw.decode("utf-8"))
     except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
         r.fail("", "no such case file")
     except PermissionError:
@@ -341,7 +362,7 @@ def load_case(path: str | Path) -> Case:
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
                 comparison=comparison, timeout=timeout, benchmark=benchmark,
-                digest=hashlib.sha256(path.read_bytes()).hexdigest())
+                digest=hashlib.sha256(raw).hexdigest())
     return case
 
 

@@ -5,7 +5,8 @@ project folder (:mod:`natcoord.project`) unless an option names them. Results go
 folder per command (``reports/runs/<time>-<command>``) and are published whole when the
 command completes; ``reports/latest`` points at the last complete ``suite``, which
 ``report`` and ``gate`` read by default. Ctrl-C ends every engine process and exits 130,
-SIGTERM (a cancelled CI job) 143; bad input exits 2 with one line naming the problem.
+SIGTERM (a cancelled CI job) 143; bad input (a case file, a stored file) exits 2 with one
+line naming the problem, a fault of the environment (a full disk, a read-only folder) 5.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from rich.text import Text
 
 from .casefile import load_case
 from .engines import ENGINES
-from .errors import CaseError, NatcoordError
+from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
 from .project import resolve
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -34,6 +35,8 @@ out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
 
 DEFAULT_TIMEOUT_S = 600.0
+RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
+ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
 CasesDir = Annotated[Path | None, typer.Option(
     "--cases-dir", help="Folder of case files [default: <project>/cases].", show_default=False)]
 RefDir = Annotated[Path | None, typer.Option(
@@ -46,7 +49,8 @@ ResultsDir = Annotated[Path | None, typer.Option(
     "--results", help="Results folder [default: <project>/reports/latest, the last suite].",
     show_default=False)]
 Timeout = Annotated[float, typer.Option(
-    min=0.001, help="Seconds per engine run (a case file's `timeout` takes precedence).")]
+    min=0.001, help="Seconds per engine run (a case file's own `timeout`, when stricter, "
+                    "wins).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 Jobs = Annotated[int | None, typer.Option(
     "--jobs", min=1, help="Accuracy runs at once [default: every core]; timing stays serial.",
@@ -97,6 +101,23 @@ def _cases(names: list[str] | None, cases_dir: Path | None):
     except NatcoordError as e:
         _fail(str(e))
     return [_prepared(case) for case in cases]
+
+
+def _check_references(jobs, references: Path) -> None:
+    """Read the stored reference (CSV and provenance) of every case (prepared jobs or
+    names) before using them: a damaged one is bad input (exit 2 naming the file), not a
+    failed cell or a silent gap later."""
+    from .suite.references import load_provenance, load_reference
+
+    try:
+        for name in (getattr(j, "case", j) for j in jobs):
+            name = getattr(name, "name", name)
+            if not isinstance(name, str) or "/" in name or name.startswith("."):
+                continue  # not a case name (a malformed record: the summary check's job)
+            load_reference(name, references)
+            load_provenance(name, references)
+    except NatcoordError as e:
+        _fail(str(e))
 
 
 def _prepared(case):
@@ -228,18 +249,22 @@ def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = N
 
     names = _engines(engines)
     target = _out_dir(out_dir, "run")
-    with publishing(target) as staging:  # a refused input publishes nothing
+    with publishing(target, "run") as staging:  # a refused input publishes nothing
         selected = _cases(cases, cases_dir)
+        references = resolve(references, "references")
+        _check_references(selected, references)
         total = len(selected) * len(names)
         n, where = _where(jobs, scheduler)
         out.print(f"running {len(selected)} case(s) x {len(names)} engine(s), {where} -> "
                   f"{target}")
-        summary = run_suite(selected, names, staging, references=resolve(references,
-                                                                         "references"),
+        summary = run_suite(selected, names, staging, references=references,
                             timeout_s=timeout, progress=_progress_printer(total, where),
                             jobs=n, scheduler=scheduler)
     out.print(f"{counts_line(summary['records'])}; summary: {target / 'summary.json'}")
     out.print(f"judge it with: natcoord gate --results {target}")
+    if any(r["status"] == "failed" for r in summary["records"]):
+        err.print(f"[bold red]some runs failed[/] (exit {RUN_FAILED}): see the reasons above")
+        raise typer.Exit(RUN_FAILED)
 
 
 @app.command("report")
@@ -247,12 +272,23 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
                history: HistoryDb = None):
     """Write RESULTS/index.html from a results folder (trends from the history database)."""
     from .report.html import write_report
+    from .suite import diff, gate
 
     results = resolve(results, "reports/latest")
     if not (results / "summary.json").exists():
         _fail(f"{results}: no summary.json; run `natcoord run` or `natcoord suite` first")
-    path = write_report(results, resolve(references, "references"),
-                        resolve(history, "reports/history.db"))
+    from .suite import history as hist
+
+    history = resolve(history, "reports/history.db")
+    references = resolve(references, "references")
+    try:  # what the report reads, checked first: a damaged file is named, exit 2
+        summary = gate.load_summary(results)
+        diff.read_bench(results)
+        hist.check(history)
+    except ValueError as e:
+        _fail(str(e))
+    _check_references(sorted({r["case"] for r in summary["records"]}), references)
+    path = write_report(results, references, history)
     out.print(f"report: {path.resolve()}")
 
 
@@ -296,6 +332,8 @@ def gate_cmd(results: ResultsDir = None,
         slower = [s for s in diff.against_history(
             bench_result, resolve(history, "reports/history.db"),
             exclude_dir=str(results.resolve())) if s.slower] if bench_result else []
+    except StoredFileError as e:  # bench.json or the history, named in the message
+        _fail(str(e))
     except (ValueError, KeyError, TypeError) as e:
         _fail(f"{results / 'bench.json'}: malformed ({type(e).__name__}: {e})")
     if verdict.code == 0 and slower:
@@ -453,7 +491,7 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
 
     names = _engines(engines)
     target = _out_dir(out_dir, "bench")
-    with publishing(target) as staging:
+    with publishing(target, "bench") as staging:
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
                         resolve(references, "references"), timeout, quiet=as_json)
@@ -488,14 +526,16 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     names = _engines(engines)
     references = resolve(references, "references")
     history = resolve(history, "reports/history.db")
+    hist.check(history, write=True)  # damaged, foreign or read-only: exit 2 before running
     hist.import_jsonl(history, history.with_suffix(".jsonl"))
     target = _out_dir(out_dir, "suite")
-    latest = resolve(None, "reports/latest")
     nightly = out_dir is None and not cases and engines is None  # a subset is not nightly
+    latest = resolve(None, "reports/latest") if nightly else None
     if nightly and latest.is_symlink():  # until this suite completes, no suite is
         latest.unlink()                  # "the latest": a gate finds no summary
-    with publishing(target) as staging:
+    with publishing(target, "suite") as staging:
         selected = _cases(cases, cases_dir)
+        _check_references(selected, references)
         try:
             base = gate.load_baseline(references / "baseline.json")
         except ValueError as e:
@@ -517,7 +557,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                 bench_result, selected, repeats, timeout, history,
                 say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "
                                         "their history"))
-            bench.store(bench_result, staging, history.parent / "bench")
+            # the dated copy only for the nightly suite, under the project's reports/
+            bench.store(bench_result, staging,
+                        resolve(None, "reports/bench") if nightly else None)
         verdict = gate.judge(summary, staging, references=references, baseline=base,
                              cases=gate.CaseBook(resolve(cases_dir, "cases"),
                                                  {j.case.name: j.case for j in selected}))
@@ -525,19 +567,33 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower]
         write_report(staging, references, history)
-        diff.write_ci_summary(staging, summary, verdict.code, slower, target / "index.html")
-    if nightly:
-        point_latest(latest, target)
+        ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
+                                        target / "index.html")
+    if nightly and not point_latest(latest, target):
+        err.print(f"warning: {escape(str(latest))} is not a link natcoord made; left as it "
+                  "is (not pointed at this suite)", highlight=False)
     for line in verdict.lines:
         err.print(escape(line), highlight=False)
-    hist.record(history, kind="suite", summary=summary, bench=bench_result,
-                gate=verdict.code, results_dir=str(target.resolve()),
-                commit=hist.git_commit(resolve(None, ".")))
+    code, faults = verdict.code, []
+    try:  # the results are published: a fault from here on is reported, not fatal
+        hist.record(history, kind="suite", summary=summary, bench=bench_result,
+                    gate=verdict.code, results_dir=str(target.resolve()),
+                    commit=hist.git_commit(resolve(None, ".")))
+    except NatcoordError as e:
+        faults.append((e, ENVIRONMENT if isinstance(e, EnvironmentFault) else 2))
+    try:
+        diff.append_step_summary(ci_text)
+    except NatcoordError as e:
+        faults.append((e, ENVIRONMENT))
     out.print(counts_line(summary["records"]))
     out.print(f"report: {(target / 'index.html').resolve()}")
     out.print("[green]gate passed[/]" if verdict.code == 0
               else f"[bold red]gate failed[/] (exit {verdict.code})")
-    raise typer.Exit(verdict.code)
+    for e, c in faults:
+        err.print(f"[bold red]error:[/] {escape(str(e))} (the results are kept in "
+                  f"{escape(str(target))})", highlight=False)
+        code = code or c
+    raise typer.Exit(code)
 
 
 @app.command("compare")
@@ -642,9 +698,12 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                  out_file: Annotated[Path, typer.Option("--out", help="Case file to write; "
                                                         "its stem is the case name.")],
                  duration: Annotated[float | None, typer.Option(
-                     help="s [default: the family's specification].")] = None):
-    """Write one member of a parametric case family as a case file (loaded back to check)."""
-    from .generate import FAMILIES
+                     help="s [default: the family's specification].")] = None,
+                 force: Annotated[bool, typer.Option(
+                     "--force", help="Replace an existing case file.")] = False):
+    """Write one member of a parametric case family as a case file (loaded back to check
+    before it is written; an existing file is kept unless --force)."""
+    from .generate import FAMILIES, write_case
 
     if family not in FAMILIES:
         _fail(f"unknown family {family!r}; families are {', '.join(FAMILIES)}")
@@ -652,11 +711,10 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
         text = FAMILIES[family](n, name=out_file.stem, duration=duration)
     except ValueError as e:
         _fail(str(e))
-    out_file.write_text(text, encoding="utf-8")
     try:
-        load_case(out_file)
+        write_case(out_file, text, force=force)
     except NatcoordError as e:
-        _fail(f"generated file does not load: {e}")
+        _fail(str(e))
     out.print(f"{family} N = {n}: {out_file}")
 
 
@@ -671,9 +729,18 @@ def main():  # pragma: no cover - console entry
     signal.signal(signal.SIGTERM, _stop)
     try:
         app()
+    except EnvironmentFault as e:
+        err.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False)
+        sys.exit(ENVIRONMENT)
     except NatcoordError as e:
         err.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)
+    except OSError as e:  # the machine, not the input: a full disk, a read-only folder
+        where = f"{e.filename}: " if e.filename else ""
+        err.print(f"[bold red]error:[/] {escape(where + (e.strerror or str(e)))} (a fault of "
+                  "the environment: disk space, permissions or a read-only folder)",
+                  highlight=False)
+        sys.exit(ENVIRONMENT)
     except Stopped as e:
         what = "interrupted" if e.signum == signal.SIGINT else "terminated"
         err.print(f"{what}: every engine process stopped; no results of this command "

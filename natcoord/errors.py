@@ -34,3 +34,13 @@ class Unsupported(NatcoordError):
 class StepFailure(NatcoordError, RuntimeError):
     """A stage of a step cannot be evaluated (e.g. a position Newton diverged because the
     step reached too far); the adaptive loop rejects the step and retries a shorter one."""
+
+
+class StoredFileError(NatcoordError, ValueError):
+    """A stored file (history, baseline, reference, summary, bench) is missing a part,
+    malformed or unreadable: names the file and the problem. Exit status 2."""
+
+
+class EnvironmentFault(NatcoordError):
+    """The machine, not the input: a full disk, a read-only folder, an unwritable file
+    outside the results. Exit status 5."""

@@ -10,7 +10,11 @@ Families:
 
 from __future__ import annotations
 
+import tempfile
 from collections.abc import Callable
+from pathlib import Path
+
+from .errors import NatcoordError
 
 # Engine settings and tolerances measured for the specification's members (N = 2 for 10 s,
 # N = 40 for 20 s), by `natcoord run` against the stored reference (which equals the exact
@@ -253,3 +257,32 @@ def n_four_bar(n: int, *, name: str | None = None, duration: float | None = None
 
 
 FAMILIES: dict[str, Callable[..., str]] = {"n_four_bar": n_four_bar}
+
+
+def write_case(path: Path, text: str, *, force: bool = False) -> None:
+    """Write a generated case file to ``path`` once it loads back (CaseError otherwise). An
+    existing file is kept (NatcoordError) unless ``force``; a folder or a special file in
+    its place is never replaced."""
+    from .casefile import load_case
+    from .suite.io import write_atomic
+
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise NatcoordError(f"{path}: exists and is not a regular file; not replaced")
+    if path.exists() and not force:
+        raise NatcoordError(f"{path}: exists; give --force to replace it")
+    with tempfile.TemporaryDirectory(prefix="natcoord-generate-") as tmp:
+        trial = Path(tmp) / path.name
+        trial.write_text(text, encoding="utf-8")
+        try:
+            load_case(trial)
+        except NatcoordError as e:
+            raise NatcoordError(f"generated file does not load: {e}") from None
+    if force:
+        write_atomic(path, text)
+        return
+    try:
+        with open(path, "x", encoding="utf-8") as f:
+            f.write(text)
+    except FileExistsError:
+        raise NatcoordError(f"{path}: exists; give --force to replace it") from None

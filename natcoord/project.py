@@ -3,7 +3,8 @@
 The command line works from any directory. The project folder (the one holding ``cases/``
 and ``references/``) is, in this order:
 
-1. ``$NATCOORD_HOME`` when it is set;
+1. ``$NATCOORD_HOME`` when it is set (a folder holding ``cases/``; anything else is
+   refused, never replaced by another project);
 2. the current directory or the nearest parent that holds ``cases/``;
 3. the checkout this natcoord was installed from (an editable install of the repository).
 
@@ -37,6 +38,16 @@ def candidates() -> list[tuple[str, Path]]:
 
 def home() -> Path:
     """The project folder (see the module docstring); raises ProjectNotFound."""
+    given = os.environ.get(ENV)
+    if given:
+        folder = Path(given).expanduser()
+        if not folder.is_dir():
+            raise ProjectNotFound(f"${ENV}={given}: no such folder; set it to a natcoord "
+                                  "project (a folder holding cases/) or unset it")
+        if not (folder / "cases").is_dir():
+            raise ProjectNotFound(f"${ENV}={given}: not a natcoord project (no cases/ "
+                                  "folder); set it to one or unset it")
+        return folder
     tried = []
     for how, folder in candidates():
         if (folder / "cases").is_dir():

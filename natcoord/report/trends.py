@@ -53,8 +53,8 @@ def change_point(values: list[float], factor: float) -> dict | None:
 
 
 def _in_history(path: Path, results_dir: Path) -> bool:
-    with hist.connect(path) as db:
-        return db.execute("SELECT 1 FROM runs WHERE results_dir = ? LIMIT 1",
+    with hist.reading(path) as db:
+        return db is not None and db.execute("SELECT 1 FROM runs WHERE results_dir = ? LIMIT 1",
                           (str(Path(results_dir).resolve()),)).fetchone() is not None
 
 
@@ -65,10 +65,11 @@ def series(history: Path | None, results_dir: Path, summary: dict,
     suite writes its report)."""
     cells: dict[str, dict] = {}
     n_runs = 0
-    if history is not None and Path(history).is_file():
+    if history is not None and (Path(history).exists() or Path(history).is_symlink()):
         raw = hist.trends(history, last=LAST_RUNS)
-        with hist.connect(history) as db:
-            n_runs = min(LAST_RUNS, db.execute("SELECT COUNT(*) FROM runs").fetchone()[0])
+        with hist.reading(history) as db:
+            n_runs = 0 if db is None else min(
+                LAST_RUNS, db.execute("SELECT COUNT(*) FROM runs").fetchone()[0])
         for cell, t in raw.items():
             cells[cell] = {
                 "acc": [(g, v) for g, v in zip(t["generated"], t["worst_rel"], strict=False)

@@ -16,15 +16,16 @@ takes precedence), 2 bad input, 4 a significant slowdown.
 
 from __future__ import annotations
 
-import json
 import os
 import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..errors import EnvironmentFault
 from . import bench, gate, history, speed
 from .io import read_json, write_atomic
+from .stored import check_bench
 
 SLOWER = 4
 
@@ -54,13 +55,7 @@ def read_bench(folder: Path) -> dict | None:
     path = Path(folder) / "bench.json"
     if not path.exists():
         return None
-    try:
-        data = read_json(path)
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-    if not isinstance(data, dict) or not isinstance(data.get("records", []), list):
-        raise ValueError(f"{path}: records: missing or not a list")
-    return data
+    return check_bench(path, read_json(path))
 
 
 def _worst(channels: dict | None) -> float | None:
@@ -164,13 +159,26 @@ def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Pat
 
 
 def write_ci_summary(folder: Path, summary: dict, code: int, slower: list,
-                     report: Path) -> None:
-    """summary.md in the results folder, and appended to $GITHUB_STEP_SUMMARY when set."""
+                     report: Path) -> str:
+    """summary.md in the results folder; returns its text (for
+    :func:`append_step_summary`, once the results are published)."""
     text = markdown(summary, code, slower, str(report))
     write_atomic(Path(folder) / "summary.md", text)
-    if os.environ.get("GITHUB_STEP_SUMMARY"):
-        with open(os.environ["GITHUB_STEP_SUMMARY"], "a", encoding="utf-8") as f:
+    return text
+
+
+def append_step_summary(text: str) -> None:
+    """Append ``text`` to $GITHUB_STEP_SUMMARY when it is set; a path that cannot be
+    written raises EnvironmentFault naming it."""
+    path = os.environ.get("GITHUB_STEP_SUMMARY")
+    if not path:
+        return
+    try:
+        with open(path, "a", encoding="utf-8") as f:
             f.write(text)
+    except OSError as e:
+        raise EnvironmentFault(f"GITHUB_STEP_SUMMARY={path}: cannot be written "
+                               f"({e.strerror or e})") from None
 
 
 def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: str) -> str:

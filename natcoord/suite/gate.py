@@ -23,7 +23,7 @@ from pathlib import Path
 
 from ..casefile import NAME_PATTERN, load_case
 from ..engines import ENGINES
-from ..errors import CaseError
+from ..errors import CaseError, StoredFileError
 from ..mechanism import Case
 from . import evidence
 from .io import locked, read_json, write_json
@@ -224,25 +224,22 @@ def update_baseline(verdict: Verdict, path: Path, generated: str | None = None) 
 
 
 def load_baseline(path: Path) -> dict | None:
-    """The stored baseline's errors (None when there is none); raises ValueError naming
-    the baseline file and what is wrong in it."""
+    """The stored baseline's errors ({cell: {channel: error}}), None when there is none;
+    StoredFileError (a ValueError) naming the baseline file and what is wrong in it."""
     path = Path(path)
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         return None
-    try:
-        data = read_json(path)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: malformed baseline: not readable JSON ({e})") from None
+    data = read_json(path)  # StoredFileError: unreadable, not JSON
     errors = data.get("errors") if isinstance(data, dict) else None
     if not isinstance(errors, dict):
-        raise ValueError(f"{path}: malformed baseline: errors: missing or not a table")
+        raise StoredFileError(f"{path}: malformed baseline: errors: missing or not a table")
     for cell, channels in errors.items():
         if not isinstance(channels, dict):
-            raise ValueError(f"{path}: malformed baseline: errors.{cell[:80]}: not a table "
-                             "of channel errors")
+            raise StoredFileError(f"{path}: malformed baseline: errors.{cell[:80]}: not a "
+                                  "table of channel errors")
         for name, x in channels.items():
             if x is not None and (isinstance(x, bool) or not isinstance(x, (int, float))
                                   or not math.isfinite(x) or x < 0):
-                raise ValueError(f"{path}: malformed baseline: errors.{cell[:80]}."
-                                 f"{name[:40]}: not an error (a number >= 0)")
+                raise StoredFileError(f"{path}: malformed baseline: errors.{cell[:80]}."
+                                      f"{name[:40]}: not an error (a number >= 0)")
     return errors

@@ -1,5 +1,9 @@
 """The nightly history in an embedded database (SQLite, WAL mode, versioned schema).
 
+Readers (the gate, the report, compare) open it read-only with a bounded wait; a file that
+is not natcoord's history (another schema, not SQLite, damaged, a folder) is refused with
+the file and the problem, and never modified.
+
 One row per run (``runs``), per case x engine x channel result (``results``) and per case x
 engine benchmark with the raw wall time of every repeat (``bench``), with provenance: the
 natcoord version and git commit, the sha256 of the case file, engine versions, settings and
@@ -11,6 +15,7 @@ Lines of the former ``history.jsonl`` are imported once.
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import statistics
 import subprocess
@@ -18,6 +23,9 @@ import time
 from collections.abc import Iterator
 from contextlib import closing, contextmanager
 from pathlib import Path
+from urllib.parse import quote
+
+from ..errors import EnvironmentFault, NatcoordError, StoredFileError
 
 SCHEMA_VERSION = 1
 SCHEMA = """
@@ -38,30 +46,157 @@ CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash);
 """
 
 
+TABLES = {"meta": {"key", "value"},
+          "runs": {"id", "generated", "kind", "natcoord_version", "git_commit", "machine",
+                   "machine_info", "gate", "results_dir"},
+          "results": {"run_id", "case_name", "engine", "case_hash", "engine_version",
+                      "status", "verdict", "settings", "channel", "kind", "max_abs",
+                      "max_rel", "tolerance", "determined"},
+          "bench": {"run_id", "case_name", "engine", "case_hash", "engine_version",
+                    "settings", "samples", "wall_time_s", "us_per_step", "n_steps",
+                    "counters"}}
+READ_WAIT_S = 5.0  # a reader waits this long for a writer, then says so
+WRITE_WAIT_S = 60.0
+
+
+class HistoryError(StoredFileError):
+    """The history database cannot be used: not natcoord's, damaged, unreadable or locked
+    (names the file and the problem; exit 2). It is never modified then."""
+
+
+class HistoryFull(EnvironmentFault):
+    """The disk holding the history database is full (exit 5)."""
+
+
+def _problem(path: Path, e: sqlite3.Error, wait_s: float) -> NatcoordError:
+    """The error to raise for an SQLite error on ``path``: the file and the problem."""
+    text = str(e)
+    if "locked" in text or "busy" in text:
+        return HistoryError(f"{path}: locked by another process for more than {wait_s:g} s "
+                            "(a suite writing it?); try again when it has finished")
+    if "full" in text:
+        return HistoryFull(f"{path}: the disk is full ({text})")
+    if "readonly" in text or "read-only" in text:
+        return HistoryError(f"{path}: cannot be written ({text}): make it and its folder "
+                            "writable, or give another --history")
+    if "not a database" in text or "malformed" in text or "corrupt" in text:
+        return HistoryError(f"{path}: not a natcoord history database, or damaged ({text})")
+    return HistoryError(f"{path}: cannot be used as the history database ({text})")
+
+
+def _check_file(path: Path) -> None:
+    if path.is_dir():
+        raise HistoryError(f"{path}: is a folder, not a history database")
+    if path.exists() and not path.is_file():
+        raise HistoryError(f"{path}: is not a regular file, not a history database")
+    if path.exists() and not os.access(path, os.R_OK):
+        raise HistoryError(f"{path}: cannot be read (permission denied)")
+
+
+def _check_schema(path: Path, db: sqlite3.Connection) -> bool:
+    """Raise HistoryError unless ``db`` is natcoord's history (or holds no table at all:
+    then False, a new database). Checks the integrity too (a truncated file)."""
+    names = {n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    if not names:
+        return False
+    for table, columns in TABLES.items():
+        have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
+        if not columns <= have:
+            raise HistoryError(f"{path}: not a natcoord history database (table {table!r} "
+                               f"{'lacks columns' if have else 'missing'}; it has tables "
+                               f"{', '.join(sorted(names))[:200]})")
+    row = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
+    if row is None or not str(row[0]).isdigit():
+        raise HistoryError(f"{path}: not a natcoord history database (no schema version)")
+    if int(row[0]) > SCHEMA_VERSION:
+        raise HistoryError(f"{path}: history schema {row[0]} is newer than this natcoord's "
+                           f"({SCHEMA_VERSION}); upgrade natcoord")
+    check = db.execute("PRAGMA quick_check").fetchone()
+    if not check or check[0] != "ok":
+        raise HistoryError(f"{path}: damaged (integrity check: {check and check[0]})")
+    return True
+
+
+@contextmanager
+def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connection | None]:
+    """Open the history database read-only (SQLite ``mode=ro``: no write lock, no change
+    to the file), after checking it is natcoord's; yields None when there is none yet.
+    Raises HistoryError naming the file and the problem."""
+    path = Path(path)
+    if not path.exists():
+        yield None
+        return
+    _check_file(path)
+    uri = f"file:{quote(str(path.resolve()))}?mode=ro"
+    try:
+        db = sqlite3.connect(uri, uri=True, timeout=wait_s, isolation_level=None)
+    except sqlite3.Error as e:
+        raise _problem(path, e, wait_s) from None
+    with closing(db):
+        try:
+            db.execute(f"PRAGMA busy_timeout={int(wait_s * 1000)}")
+            fresh = not _check_schema(path, db)
+        except sqlite3.Error as e:
+            raise _problem(path, e, wait_s) from None
+        if fresh:
+            yield None
+            return
+        try:
+            yield db
+        except sqlite3.Error as e:
+            raise _problem(path, e, wait_s) from None
+
+
+def check(path: Path, write: bool = False) -> None:
+    """Raise HistoryError unless ``path`` is absent, empty or natcoord's history database
+    (and, with ``write``, writable); the file is not touched."""
+    with reading(path):
+        pass
+    path = Path(path)
+    if write and path.exists() and not os.access(path, os.W_OK):
+        raise HistoryError(f"{path}: read-only; make it writable or give another --history")
+
+
 @contextmanager
 def connect(path: Path) -> Iterator[sqlite3.Connection]:
-    """Open (and create or migrate) the history database; commits on success."""
+    """Open (and create or migrate) the history database for writing; commits on success.
+    A file that is not natcoord's history is refused (HistoryError) before anything is
+    written to it."""
     path = Path(path)
+    check(path)  # read-only first: a foreign or damaged file is never switched to WAL
     path.parent.mkdir(parents=True, exist_ok=True)
-    with closing(sqlite3.connect(path, timeout=60.0, isolation_level=None)) as db:
-        db.execute("PRAGMA busy_timeout=60000")
-        _wal(db)
-        # the schema in one write transaction: BEGIN IMMEDIATE waits for another writer
-        # (executescript would commit first and create tables outside any lock)
-        db.execute("BEGIN IMMEDIATE")
-        for statement in filter(str.strip, SCHEMA.split(";")):
-            db.execute(statement)
-        version = db.execute("SELECT value FROM meta WHERE key = 'schema_version'").fetchone()
-        if version is None:
-            db.execute("INSERT INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
-        db.execute("COMMIT")
-        if version is not None and int(version[0]) > SCHEMA_VERSION:
-            raise ValueError(f"{path}: history schema {version[0]} is newer than this "
-                             f"natcoord's ({SCHEMA_VERSION}); upgrade natcoord")
-        yield db
+    try:
+        db = sqlite3.connect(path, timeout=WRITE_WAIT_S, isolation_level=None)
+    except sqlite3.Error as e:
+        raise _problem(path, e, WRITE_WAIT_S) from None
+    with closing(db):
+        try:
+            db.execute(f"PRAGMA busy_timeout={int(WRITE_WAIT_S * 1000)}")
+            _wal(db, WRITE_WAIT_S)
+            # the schema in one write transaction: BEGIN IMMEDIATE waits for another writer
+            # (executescript would commit first and create tables outside any lock)
+            db.execute("BEGIN IMMEDIATE")
+            if _check_schema(path, db) is False:  # still empty: a new history
+                for statement in filter(str.strip, SCHEMA.split(";")):
+                    db.execute(statement)
+                db.execute("INSERT INTO meta VALUES ('schema_version', ?)",
+                           (str(SCHEMA_VERSION),))
+            db.execute("COMMIT")
+        except sqlite3.Error as e:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise _problem(path, e, WRITE_WAIT_S) from None
+        except BaseException:
+            if db.in_transaction:
+                db.execute("ROLLBACK")
+            raise
+        try:
+            yield db
+        except sqlite3.Error as e:
+            raise _problem(path, e, WRITE_WAIT_S) from None
 
 
-def _wal(db: sqlite3.Connection, wait_s: float = 60.0) -> None:
+def _wal(db: sqlite3.Connection, wait_s: float = WRITE_WAIT_S) -> None:
     """Switch to write-ahead logging. Changing the journal mode needs the database to
     itself and SQLite does not wait for that (no busy handler), so retry for a while."""
     deadline = time.monotonic() + wait_s
@@ -120,7 +255,8 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                             json.dumps(r.get("counters", {}))))
             db.execute("COMMIT")
         except BaseException:
-            db.execute("ROLLBACK")
+            if db.in_transaction:
+                db.execute("ROLLBACK")
             raise
     return run_id
 
@@ -163,9 +299,9 @@ def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: st
     """Pooled wall-time samples (s) of the last ``last`` benchmarks of a cell with the same
     case file and machine fingerprint (not those of the results folder ``exclude_dir``),
     and the most recent counters; ([], None) when there are none."""
-    if not Path(path).exists():
-        return [], None
-    with connect(path) as db:
+    with reading(path) as db:
+        if db is None:
+            return [], None
         rows = db.execute(
             "SELECT bench.samples, bench.counters FROM bench JOIN runs ON runs.id = "
             "bench.run_id WHERE case_name = ? AND engine = ? AND case_hash = ? AND "
@@ -180,10 +316,10 @@ def trends(path: Path, *, last: int = 30) -> dict:
     """For the report: per cell, the last ``last`` runs' worst determined relative error
     and median wall time, oldest first: ``{cell: {"generated": [...], "worst_rel": [...],
     "median_s": [...]}}``."""
-    if not Path(path).exists():
-        return {}
     out: dict[str, dict] = {}
-    with connect(path) as db:
+    with reading(path) as db:
+        if db is None:
+            return {}
         ids = [r[0] for r in db.execute("SELECT id FROM runs ORDER BY id DESC LIMIT ?",
                                         (last,))][::-1]
         if not ids:

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from ..errors import StoredFileError
+
 
 def _umask() -> int:
     mask = os.umask(0o022)
@@ -63,8 +65,49 @@ def write_csv(path: Path, table: pd.DataFrame) -> None:
     write_atomic(path, table.to_csv(index=False, float_format="%.17g"))
 
 
+MAX_STORED_BYTES = 1 << 30  # no stored file natcoord writes comes near this
+
+
 def read_json(path: Path):
-    return json.loads(Path(path).read_text(encoding="utf-8"))
+    """The JSON content of a stored file. A file that cannot be read or is not JSON raises
+    StoredFileError naming the file and the problem (the command exits 2)."""
+    path = Path(path)
+    try:
+        if not path.is_file():
+            raise StoredFileError(f"{path}: " + ("is a folder, not a JSON file" if path.is_dir()
+                                                 else "no such file" if not path.exists()
+                                                 else "not a regular file"))
+        with open(path, encoding="utf-8") as f:
+            text = f.read(MAX_STORED_BYTES + 1)
+        if len(text) > MAX_STORED_BYTES:
+            raise StoredFileError(f"{path}: larger than {MAX_STORED_BYTES} bytes")
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise StoredFileError(f"{path}: not valid JSON ({e})") from None
+    except UnicodeDecodeError as e:
+        raise StoredFileError(f"{path}: not UTF-8 text ({e.reason})") from None
+    except RecursionError:
+        raise StoredFileError(f"{path}: nested too deeply") from None
+    except OSError as e:
+        raise StoredFileError(f"{path}: cannot be read ({e.strerror or e})") from None
+
+
+def read_csv(path: Path) -> pd.DataFrame:
+    """A stored CSV table (results, references). A file that cannot be read or parsed
+    raises StoredFileError naming the file and the problem (the command exits 2)."""
+    path = Path(path)
+    try:
+        if not path.is_file():
+            raise StoredFileError(f"{path}: " + ("no such file" if not path.exists()
+                                                 else "not a regular file"))
+        return pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError,
+            ValueError) as e:
+        if isinstance(e, StoredFileError):
+            raise
+        raise StoredFileError(f"{path}: not a readable CSV table ({e})") from None
+    except OSError as e:
+        raise StoredFileError(f"{path}: cannot be read ({e.strerror or e})") from None
 
 
 @contextlib.contextmanager

@@ -1,13 +1,18 @@
-"""Results folders with integrity: one writer at a time, published whole or not at all.
+"""Results folders with integrity: one writer at a time, published whole or not at all,
+and nothing natcoord did not write is ever removed or moved.
 
-A run first moves the previous content of its target aside (to ``.<name>.previous``
-beside it, replacing an older one), writes into a staging folder and, when it completes,
-renames the staging folder to the target. An interrupted, crashed or refused run removes
-its staging folder and leaves no target: a gate then finds no summary (exit 2) instead of
-judging the previous run as if it were this one. So no stale file of an earlier run
-survives into a new one, and no mixture of two runs is ever published. A lock file beside
-the target keeps a second run from writing the same folder (it is refused with the other
-run's pid).
+Every results folder natcoord publishes holds a marker, ``.natcoord-results`` (JSON: the
+natcoord version, the command, when, and every file the command wrote). A command writes
+into a staging folder beside its target (``.<name>.staging-<pid>``) and, when it
+completes, swaps it in for the target. The target may be absent, an empty folder or a
+previous natcoord results folder holding only what natcoord wrote; anything else (a file,
+a link, a user's folder, a results folder with files added by hand) is refused before
+anything is written. A previous results folder stays as it is until the new one is
+complete; then the files its marker lists are removed, and nothing else. An interrupted,
+crashed or refused command publishes nothing and leaves the previous folder as it was.
+A lock file beside the target keeps a second command from writing the same folder (it is
+refused with the other command's pid); staging folders of commands that were killed (their
+pid is gone) are removed by the next command in the same parent folder.
 """
 
 from __future__ import annotations
@@ -15,16 +20,27 @@ from __future__ import annotations
 import contextlib
 import datetime as dt
 import fcntl
+import json
 import os
+import re
 import shutil
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
+from .. import __version__
 from ..errors import NatcoordError
+
+MARKER = ".natcoord-results"
+_STAGING = re.compile(r"^\.(?P<name>.+)\.(?P<kind>staging|replaced)-(?P<pid>\d+)$")
 
 
 class FolderBusy(NatcoordError):
     """Another run holds the lock of the results folder."""
+
+
+class NotResults(NatcoordError):
+    """The target exists and is not a results folder natcoord may replace."""
 
 
 def stamped(parent: Path, kind: str) -> Path:
@@ -32,57 +48,240 @@ def stamped(parent: Path, kind: str) -> Path:
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
     path = Path(parent) / f"{stamp}-{kind}"
     k = 1
-    while path.exists():
+    while path.exists() or path.is_symlink():
         k += 1
         path = Path(parent) / f"{stamp}-{kind}-{k}"
     return path
 
 
-@contextlib.contextmanager
-def publishing(target: Path) -> Iterator[Path]:
-    """Lock ``target``, move its previous content aside, yield a fresh staging folder and on
-    success rename it to ``target``. On any exception (an interruption included) the
-    staging folder is removed and ``target`` is left absent. Raises FolderBusy when another
-    run writes ``target``."""
+# ---- the marker ---------------------------------------------------------------------------
+def read_marker(folder: Path) -> dict | None:
+    """The marker of a natcoord results folder, or None when ``folder`` has no valid one."""
+    path = Path(folder) / MARKER
+    if path.is_symlink() or not path.is_file():
+        return None
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.loads(f.read(1 << 22))
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(data, dict) and data.get("natcoord") and isinstance(data.get("files"),
+                                                                            list)
+            and all(isinstance(p, str) for p in data["files"])):
+        return None
+    return data
+
+
+def _write_marker(folder: Path, kind: str, files: list[str], state: str) -> None:
+    data = {"natcoord": __version__, "command": kind, "state": state, "pid": os.getpid(),
+            "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "files": files}
+    (Path(folder) / MARKER).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+
+
+def _listing(folder: Path) -> tuple[list[str], list[str]]:
+    """(files, other entries) under ``folder``, relative paths; links and special files
+    are 'other' (never followed)."""
+    files, other = [], []
+    for root, dirs, names in os.walk(folder):
+        for d in list(dirs):
+            if os.path.islink(os.path.join(root, d)):
+                dirs.remove(d)
+                other.append(os.path.relpath(os.path.join(root, d), folder))
+        for n in names:
+            p = os.path.join(root, n)
+            rel = os.path.relpath(p, folder)
+            (files if os.path.isfile(p) and not os.path.islink(p) else other).append(rel)
+    return sorted(files), sorted(other)
+
+
+def _foreign(folder: Path) -> list[str]:
+    """Entries of a natcoord results folder that its marker does not list (a user's)."""
+    marker = read_marker(folder) or {"files": []}
+    files, other = _listing(folder)
+    listed = set(marker["files"]) | {MARKER}
+    return sorted([f for f in files if f not in listed] + other)
+
+
+def _remove_written(folder: Path) -> bool:
+    """Remove the files ``folder``'s marker lists, then the folders left empty; True when
+    nothing is left (the folder itself is gone)."""
+    marker = read_marker(folder)
+    if marker is None:
+        return False
+    root = Path(folder).resolve()
+    for rel in marker["files"]:
+        p = (root / rel)
+        if ".." in Path(rel).parts or Path(rel).is_absolute():
+            continue  # a marker never names a path outside its folder
+        if p.is_file() and not p.is_symlink():
+            p.unlink()
+    (root / MARKER).unlink(missing_ok=True)
+    for dirpath, _, _ in sorted(os.walk(root), key=lambda w: -len(w[0])):
+        with contextlib.suppress(OSError):
+            os.rmdir(dirpath)  # only empty folders go
+    return not root.exists()
+
+
+# ---- checks -------------------------------------------------------------------------------
+def check_target(target: Path) -> None:
+    """Refuse (NotResults) a target that natcoord may not replace: anything but an absent
+    path, an empty folder, or a natcoord results folder holding only what natcoord wrote."""
     target = Path(target)
-    target.parent.mkdir(parents=True, exist_ok=True)
+    if target.is_symlink():
+        raise NotResults(f"{target}: --out is a symbolic link; give a new folder or a "
+                         "natcoord results folder itself")
+    if not target.exists():
+        return
+    if not target.is_dir():
+        raise NotResults(f"{target}: --out exists and is not a folder; natcoord never "
+                         "replaces a file: give a new folder")
+    if not any(target.iterdir()):
+        return
+    if read_marker(target) is None:
+        raise NotResults(f"{target}: --out is a folder that natcoord did not write (no "
+                         f"valid {MARKER} marker); natcoord only replaces its own results "
+                         "folders: give a new or empty folder")
+    foreign = _foreign(target)
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5
+                                          else "")
+        raise NotResults(f"{target}: this results folder holds files natcoord did not "
+                         f"write ({shown}); move them or give another --out")
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+# ---- the lock -----------------------------------------------------------------------------
+@contextlib.contextmanager
+def _locked(target: Path) -> Iterator[None]:
+    """Hold the lock of ``target`` (``.<name>.lock`` beside it), or raise FolderBusy. The
+    lock file is removed on release (a waiter that opened it retries on the new one)."""
     lock_path = target.parent / f".{target.name}.lock"
-    with open(lock_path, "a+") as lock:
+    while True:
+        lock = open(lock_path, "a+")  # noqa: SIM115 - held open for the whole block
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             lock.seek(0)
             who = lock.read().strip() or "?"
+            lock.close()
             raise FolderBusy(f"{target}: another natcoord run (pid {who}) is writing this "
                              "folder; wait for it or give another --out") from None
+        try:
+            same = os.stat(lock_path).st_ino == os.fstat(lock.fileno()).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        lock.close()  # removed by its last holder while we opened it: take the new one
+    try:
         lock.seek(0)
         lock.truncate()
         lock.write(str(os.getpid()))
         lock.flush()
-        previous = target.parent / f".{target.name}.previous"
-        if target.is_symlink() or target.is_file():
-            target.unlink()
-        elif target.exists():
-            shutil.rmtree(previous, ignore_errors=True)
-            os.replace(target, previous)
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            lock_path.unlink()
+        lock.close()
+
+
+def clean_stale(parent: Path, held: str = "") -> list[Path]:
+    """Remove the staging folders (and set-aside previous folders) that killed commands
+    left in ``parent``: those whose pid is gone and whose target's lock is free. A staging
+    folder goes whole (natcoord made it); a set-aside results folder loses only the files
+    its marker lists. ``held``: the name of a target whose lock the caller holds already.
+    Returns what was removed."""
+    removed = []
+    try:
+        entries = list(Path(parent).iterdir())
+    except OSError:
+        return removed
+    for p in entries:
+        m = _STAGING.match(p.name)
+        if not m or p.is_symlink() or not p.is_dir() or int(m["pid"]) == os.getpid() \
+                or _pid_alive(int(m["pid"])) or read_marker(p) is None:
+            continue
+        try:
+            with contextlib.nullcontext() if m["name"] == held else \
+                    _locked(Path(parent) / m["name"]):
+                if m["kind"] == "staging":
+                    shutil.rmtree(p)
+                else:
+                    _remove_written(p)
+                removed.append(p)
+        except (FolderBusy, OSError):
+            continue
+    return removed
+
+
+# ---- publishing ---------------------------------------------------------------------------
+@contextlib.contextmanager
+def publishing(target: Path, kind: str = "run") -> Iterator[Path]:
+    """Lock ``target``, check it may be replaced (:func:`check_target`: NotResults
+    otherwise), yield a fresh staging folder and, when the block completes, mark it and
+    swap it in for ``target``; the previous results folder then loses the files natcoord
+    wrote. On any exception (an interruption included) the staging folder is removed and
+    ``target`` is left as it was. Raises FolderBusy when another command writes
+    ``target``."""
+    target = Path(os.path.abspath(target))
+    check_target(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(target):
+        check_target(target)  # again, under the lock
+        clean_stale(target.parent, held=target.name)
         staging = target.parent / f".{target.name}.staging-{os.getpid()}"
         shutil.rmtree(staging, ignore_errors=True)
         staging.mkdir()
         try:
+            _write_marker(staging, kind, [], "staging")
             yield staging
+            files, _ = _listing(staging)
+            _write_marker(staging, kind, [f for f in files if f != MARKER], "complete")
+            _swap(staging, target)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
             raise
+
+
+def _swap(staging: Path, target: Path) -> None:
+    """Put ``staging`` in ``target``'s place; a previous results folder there is set aside
+    and loses what natcoord wrote (a file added meanwhile keeps it, named in a warning)."""
+    if not target.exists():
         os.replace(staging, target)
+        return
+    check_target(target)
+    if not any(target.iterdir()):
+        os.replace(staging, target)  # over an empty folder
+        return
+    aside = target.parent / f".{target.name}.replaced-{os.getpid()}"
+    os.replace(target, aside)
+    try:
+        os.replace(staging, target)
+    except BaseException:
+        os.replace(aside, target)
+        raise
+    if not _remove_written(aside):
+        print(f"warning: {aside} keeps files added to the previous results folder while "
+              "this command ran; nothing else of it is left", file=sys.stderr)
 
 
-def point_latest(link: Path, target: Path) -> None:
-    """Make ``link`` (e.g. reports/latest) a symlink to ``target``, atomically. A real
-    folder in its place (from an older natcoord) is moved beside ``target`` first."""
+def point_latest(link: Path, target: Path) -> bool:
+    """Make ``link`` (e.g. reports/latest) a symlink to ``target``, atomically. Anything
+    but a symlink in its place (a user's folder or file) is left alone: returns False."""
     link = Path(link)
     if link.exists() and not link.is_symlink():
-        os.replace(link, stamped(Path(target).parent, "earlier"))
+        return False
     tmp = link.parent / f".{link.name}.tmp-{os.getpid()}"
     tmp.unlink(missing_ok=True)
     tmp.symlink_to(os.path.relpath(Path(target).resolve(), link.parent.resolve()))
     os.replace(tmp, link)
+    return True

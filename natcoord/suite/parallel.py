@@ -76,8 +76,10 @@ def distributed(jobs, engines, out: Path, timeout_s: float, scheduler: str,
         from distributed import as_completed as dask_done
     except ImportError as e:
         raise NatcoordError("--scheduler needs Dask: pip install 'natcoord[cluster]'") from e
+    from .runner import time_limit
+
     todo = cells(jobs, engines)
-    longest = max((job.case.timeout or timeout_s) for job, _ in todo) if todo else timeout_s
+    longest = max(time_limit(job.case, timeout_s) for job, _ in todo) if todo else timeout_s
     try:
         client = Client(scheduler, timeout=connect_s)
     except (OSError, TimeoutError) as e:

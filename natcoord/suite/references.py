@@ -25,7 +25,7 @@ from ..independent import check as independent_check
 from ..mechanism import Case
 from ..result import evaluate_channels, methods_table
 from .evidence import BadReference, reference_problem
-from .io import read_json, write_csv, write_json
+from .io import read_csv, read_json, write_csv, write_json
 
 REFERENCE_SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
 CHECK_SETTINGS = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
@@ -37,7 +37,7 @@ MODEL_SETTINGS = ("coordinates",)  # settings that choose the model, kept in the
 
 def load_reference(case: str, directory: Path) -> pd.DataFrame | None:
     path = Path(directory) / f"{case}.csv"
-    return pd.read_csv(path) if path.exists() else None
+    return read_csv(path) if path.exists() else None
 
 
 def load_provenance(case: str, directory: Path) -> dict | None:

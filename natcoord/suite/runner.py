@@ -67,6 +67,24 @@ def as_job(case: Case | Job) -> Job:
     return case if isinstance(case, Job) else prepare(case)
 
 
+def time_limit(case: Case, timeout_s: float) -> float:
+    """Seconds one run of ``case`` may take: the stricter of the command's limit and the
+    case file's own ``timeout``."""
+    return min(timeout_s, case.timeout) if case.timeout else timeout_s
+
+
+def worker_command(job_file: Path, out: Path) -> tuple[list[str], dict]:
+    """The engine process's command line and environment. ``-P`` keeps the current
+    directory off the import path and PYTHONPATH starts with the folder of the natcoord
+    this command runs, so the worker imports that natcoord (never a ``natcoord/`` folder
+    where the command happens to be started)."""
+    package_root = str(Path(__file__).resolve().parents[2])
+    path = os.pathsep.join(filter(None, (package_root, os.environ.get("PYTHONPATH"))))
+    env = {**os.environ, "PYTHONPATH": path, "OPENBLAS_NUM_THREADS": "1",
+           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    return [sys.executable, "-P", "-m", "natcoord.suite.worker", str(job_file), str(out)], env
+
+
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
                    settings: dict | None = None, repeat: int = 1,
                    cpu: int | None = None) -> dict:
@@ -83,10 +101,8 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     with open(job_file, "wb") as f:
         pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {}),
                                         repeat=repeat), f)
-    cmd = [sys.executable, "-m", "natcoord.suite.worker", str(job_file), str(out)]
-    timeout_s = (case.timeout or timeout_s) * max(1, repeat)
-    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
-           "MKL_NUM_THREADS": "1"}
+    cmd, env = worker_command(job_file, out)
+    timeout_s = time_limit(case, timeout_s) * max(1, repeat)
     t0 = time.perf_counter()
     if _STOPPING.is_set():
         job_file.unlink(missing_ok=True)

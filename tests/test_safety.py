@@ -1,0 +1,496 @@
+"""Nothing a command is given is destroyed, stored state is read safely, and the faults a
+tester found end in the right exit code with the file and the problem named: real
+commands through the command line, on temporary folders (issue 30, items 2, 4 and 6)."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import resource
+import shutil
+import sqlite3
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+from natcoord import CaseError, load_case
+from natcoord.suite import history, outdir
+from natcoord.suite.io import read_json, write_json
+
+from .conftest import CASES, REFERENCES
+
+PENDULUM = (CASES / "pendulum.toml").read_text()
+NATCOORD = Path(sys.executable).parent / "natcoord"  # the console script, as a user runs it
+
+
+def _cli(*args, cwd=None, env=None, timeout=300, preexec_fn=None):
+    e = {**os.environ, **(env or {})}
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", *map(str, args)], cwd=cwd,
+                          env=e, capture_output=True, text=True, timeout=timeout,
+                          preexec_fn=preexec_fn)
+
+
+def _clean(p, code):
+    """Exit ``code``, one error line, no traceback."""
+    assert p.returncode == code, (p.returncode, p.stdout[-1500:], p.stderr[-1500:])
+    assert "Traceback" not in p.stdout + p.stderr, p.stderr[-1500:]
+
+
+def _project(tmp_path: Path, *cases: str) -> Path:
+    home = tmp_path / "project"
+    (home / "cases").mkdir(parents=True)
+    shutil.copytree(REFERENCES, home / "references")
+    for c in cases:
+        shutil.copy(CASES / f"{c}.toml", home / "cases")
+    return home
+
+
+def _snapshot(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else None)
+            for p in sorted(folder.rglob("*"))}
+
+
+def _run(out, home, *extra, cwd=None):
+    return _cli("run", "pendulum", "--engines", "natcoord", "--out", out, *extra, cwd=cwd,
+                env={"NATCOORD_HOME": str(home)})
+
+
+# ---- nothing a command is given is destroyed -------------------------------------------------
+def test_a_users_folder_given_as_out_survives_two_runs(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    mine = tmp_path / "mine"
+    (mine / "sub").mkdir(parents=True)
+    (mine / "notes.txt").write_text("my notes")
+    (mine / "sub" / "data.csv").write_text("1,2\n")
+    (mine / ".git").mkdir()
+    before = _snapshot(mine)
+    for _ in range(2):
+        p = _run(mine, home)
+        _clean(p, 2)
+        assert "natcoord did not write" in p.stderr and str(mine) in p.stderr
+        assert _snapshot(mine) == before
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["mine", "project"]  # nothing aside
+
+
+def test_an_existing_file_given_as_out_is_refused_not_unlinked(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    f = tmp_path / "results.txt"
+    f.write_text("keep me")
+    p = _run(f, home)
+    _clean(p, 2)
+    assert "not a folder" in p.stderr and f.read_text() == "keep me"
+    link = tmp_path / "link"
+    link.symlink_to(f)
+    _clean(_run(link, home), 2)
+    assert link.is_symlink() and f.read_text() == "keep me"
+
+
+def test_a_results_folder_is_replaced_only_by_a_complete_run(tmp_path):
+    """The previous results stay in place while the new run writes, and after a failed one;
+    a complete run replaces them and leaves nothing beside."""
+    home = _project(tmp_path, "pendulum")
+    out = tmp_path / "res"
+    _clean(_run(out, home), 0)
+    marker = read_json(out / outdir.MARKER)
+    assert marker["command"] == "run" and "summary.json" in marker["files"]
+    before = _snapshot(out)
+    with pytest.raises(RuntimeError), outdir.publishing(out) as staging:
+        assert _snapshot(out) == before  # kept while the new one is written
+        (staging / "summary.json").write_text("{}")
+        raise RuntimeError("the run fails")
+    assert _snapshot(out) == before
+    old_stamp = read_json(out / outdir.MARKER)["created"]
+    time.sleep(1.1)
+    _clean(_run(out, home), 0)
+    assert read_json(out / outdir.MARKER)["created"] > old_stamp  # the new run's folder
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["project", "res"]
+
+
+def test_a_results_folder_with_a_users_file_in_it_is_not_replaced(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    out = tmp_path / "res"
+    _clean(_run(out, home), 0)
+    (out / "my-analysis.ipynb").write_text("{}")
+    before = _snapshot(out)
+    p = _run(out, home)
+    _clean(p, 2)
+    assert "my-analysis.ipynb" in p.stderr and _snapshot(out) == before
+
+
+def test_an_empty_folder_may_be_the_target(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    out = tmp_path / "empty"
+    out.mkdir()
+    _clean(_run(out, home), 0)
+    assert (out / "summary.json").is_file()
+
+
+def _workers(where: Path) -> list[int]:
+    out = []
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"natcoord.suite.worker" in cmd and str(where).encode() in cmd:
+                out.append(int(pid))
+    return out
+
+
+def test_a_killed_run_leaves_no_staging_folder_for_ever(tmp_path):
+    """SIGKILL (no clean-up possible) leaves a staging folder; the next command in the same
+    parent folder removes it (its pid is gone)."""
+    home = _project(tmp_path, "pendulum")
+    slow = PENDULUM.replace("duration = 10.0", "duration = 2000.0").replace(
+        "output_dt = 0.01", "output_dt = 1.0").replace(
+        "[engines.natcoord]\n", '[engines.natcoord]\nsettings = { method = "rk4", h = 1e-4, '
+        'formulation = "index1" }\n', 1)
+    (home / "cases" / "slow.toml").write_text(slow.replace('name = "pendulum"',
+                                                           'name = "slow"'))
+    runs = tmp_path / "runs"
+    proc = subprocess.Popen([sys.executable, "-m", "natcoord.cli", "run", "slow", "--engines",
+                             "natcoord", "--out", str(runs / "a")],
+                            env={**os.environ, "NATCOORD_HOME": str(home)},
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while not _workers(runs) and time.time() < deadline:
+        time.sleep(0.05)
+    assert _workers(runs), "the worker never started"
+    proc.kill()
+    proc.wait()
+    left = [q.name for q in runs.iterdir()]
+    assert any(".staging-" in n for n in left), left  # what a killed command leaves
+    _clean(_run(runs / "b", home), 0)
+    assert sorted(q.name for q in runs.iterdir()) == ["b"]
+
+
+def test_point_latest_never_moves_a_users_folder(tmp_path):
+    latest = tmp_path / "latest"
+    latest.mkdir()
+    (latest / "mine.txt").write_text("x")
+    target = tmp_path / "runs" / "r1"
+    target.mkdir(parents=True)
+    assert outdir.point_latest(latest, target) is False
+    assert (latest / "mine.txt").read_text() == "x" and not latest.is_symlink()
+    assert sorted(q.name for q in (tmp_path / "runs").iterdir()) == ["r1"]
+    link = tmp_path / "link"
+    assert outdir.point_latest(link, target) and link.resolve() == target.resolve()
+
+
+def test_suite_writes_no_bench_folder_beside_out(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    where = tmp_path / "ci"
+    where.mkdir()
+    p = _cli("suite", "pendulum", "--engines", "natcoord", "--repeats", "1", "--out",
+             where / "out", "--history", where / "history.db",
+             env={"NATCOORD_HOME": str(home)}, timeout=600)
+    _clean(p, 0)
+    assert sorted(q.name for q in where.iterdir()) == ["history.db", "out"]
+    assert (where / "out" / "bench.json").is_file()
+    assert not (home / "reports" / "bench").exists()  # a subset is not the nightly
+
+
+# ---- stored state is read safely -------------------------------------------------------------
+def _gate_folder(tmp_path: Path) -> Path:
+    """A results folder with a passing summary and a bench.json, so that the gate reads
+    the history (speed against the past)."""
+    d = tmp_path / "g"
+    d.mkdir()
+    write_json(d / "summary.json", {"generated": "now", "records": [
+        {"case": "pendulum", "engine": "natcoord", "status": "ok", "verdict": "pass",
+         "channels": {"x": {"kind": "position", "unit": "m", "max_abs": 1e-9,
+                            "tolerance": 1e-6, "pass": True}}}]})
+    write_json(d / "bench.json", {"generated": "now", "machine": {"fingerprint": "m"},
+                                  "records": [{"case": "pendulum", "engine": "natcoord",
+                                               "case_hash": "h", "samples_s": [0.1] * 7}]})
+    return d
+
+
+def _natcoord_history(path: Path) -> Path:
+    history.record(path, kind="suite", summary={"generated": "then", "records": []},
+                   bench={"machine": {"fingerprint": "m"}, "records": [
+                       {"case": "pendulum", "engine": "natcoord", "case_hash": "h",
+                        "samples_s": [0.1] * 7}]}, gate=0)
+    return path
+
+
+def _damaged(kind: str, tmp_path: Path) -> Path:
+    db = tmp_path / "history.db"
+    if kind == "foreign schema":
+        with sqlite3.connect(db) as con:
+            con.execute("CREATE TABLE runs (x TEXT)")
+            con.execute("INSERT INTO runs VALUES ('theirs')")
+        con.close()
+    elif kind == "random bytes":
+        db.write_bytes(os.urandom(8192))
+    elif kind == "truncated":
+        _natcoord_history(db)
+        with sqlite3.connect(db) as con:  # one file (no WAL) so that it can be cut
+            con.execute("PRAGMA journal_mode=DELETE")
+        con.close()
+        raw = db.read_bytes()
+        db.write_bytes(raw[:len(raw) // 2])
+    elif kind == "a folder":
+        db.mkdir()
+    elif kind == "text":
+        db.write_text("SQLite format 3 but not really\n")
+    return db
+
+
+@pytest.mark.parametrize("kind", ["foreign schema", "random bytes", "truncated", "a folder",
+                                  "text"])
+@pytest.mark.parametrize("command", ["gate", "report"])
+def test_a_damaged_or_foreign_history_exits_2_and_is_not_modified(tmp_path, kind, command):
+    db = _damaged(kind, tmp_path)
+    before = _snapshot(tmp_path)
+    d = _gate_folder(tmp_path)
+    args = ["--results", d, "--history", db]
+    if command == "report":
+        args += ["--references", REFERENCES]
+    p = _cli(command, *args, timeout=60)
+    _clean(p, 2)
+    assert str(db) in p.stderr, p.stderr
+    after = _snapshot(tmp_path)
+    assert {k: v for k, v in after.items() if not k.startswith("g")} == before  # no -wal
+
+
+def test_suite_refuses_a_foreign_history_before_running(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    db = _damaged("foreign schema", tmp_path)
+    before = db.read_bytes()
+    p = _cli("suite", "pendulum", "--engines", "natcoord", "--repeats", "0", "--out",
+             tmp_path / "out", "--history", db, env={"NATCOORD_HOME": str(home)})
+    _clean(p, 2)
+    assert str(db) in p.stderr and "not a natcoord history" in p.stderr
+    assert db.read_bytes() == before and not (tmp_path / "out").exists()
+    assert not Path(f"{db}-wal").exists()
+
+
+def test_the_gate_reads_a_locked_history_without_waiting_long_or_writing(tmp_path):
+    """A history another process holds an exclusive lock on: the gate waits a few seconds
+    (not a minute), says so, exits 2; it never takes a write lock itself."""
+    db = _natcoord_history(tmp_path / "history.db")
+    con = sqlite3.connect(db, isolation_level=None)
+    con.execute("PRAGMA journal_mode=DELETE")
+    con.execute("BEGIN EXCLUSIVE")
+    try:
+        t0 = time.monotonic()
+        p = _cli("gate", "--results", _gate_folder(tmp_path), "--history", db, timeout=40)
+        assert time.monotonic() - t0 < 30
+        _clean(p, 2)
+        assert "locked" in p.stderr and str(db) in p.stderr
+    finally:
+        con.execute("ROLLBACK")
+        con.close()
+    # unlocked, read-only: the gate reads it and changes nothing
+    db.chmod(0o444)
+    before = _snapshot(tmp_path)
+    p = _cli("gate", "--results", tmp_path / "g", "--history", db, timeout=60)
+    _clean(p, 0)
+    assert _snapshot(tmp_path) == before
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("not json", "not valid JSON"), ('{"records": 3}', "records"),
+    ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": "fast"}]}',
+     "samples_s")])
+def test_a_malformed_bench_json_exits_2_naming_it(tmp_path, text, problem):
+    d = _gate_folder(tmp_path)
+    (d / "bench.json").write_text(text)
+    for args in (["report", "--results", d, "--references", REFERENCES,
+                  "--history", tmp_path / "none.db"], ["compare", d, d],
+                 ["gate", "--results", d, "--history", tmp_path / "none.db"]):
+        p = _cli(*args)
+        _clean(p, 2)
+        assert str(d / "bench.json") in p.stderr and problem in p.stderr, (args, p.stderr)
+
+
+@pytest.mark.parametrize("make", ["not json", "a folder", "a list"])
+def test_a_malformed_summary_exits_2_in_report_and_compare(tmp_path, make):
+    d = _gate_folder(tmp_path)
+    (d / "summary.json").unlink()
+    if make == "a folder":
+        (d / "summary.json").mkdir()
+    else:
+        (d / "summary.json").write_text("not json" if make == "not json" else "[1, 2]")
+    for args in (["report", "--results", d, "--references", REFERENCES], ["compare", d, d]):
+        p = _cli(*args)
+        _clean(p, 2)
+        assert str(d / "summary.json") in p.stderr, (args, p.stderr)
+
+
+@pytest.mark.parametrize("text", ['{"errors": 3}', '{"errors": {"a/b": {"x": "big"}}}',
+                                  "{not json", '["errors"]'])
+def test_a_malformed_baseline_is_named_as_the_baseline(tmp_path, text):
+    base = tmp_path / "baseline.json"
+    base.write_text(text)
+    p = _cli("gate", "--results", _gate_folder(tmp_path), "--baseline", base,
+             "--history", tmp_path / "none.db")
+    _clean(p, 2)
+    assert str(base) in p.stderr and "summary.json" not in p.stderr, p.stderr
+
+
+@pytest.mark.parametrize("damage", ["garbage", "a folder", "bad json"])
+def test_a_damaged_reference_exits_2_naming_it_before_running(tmp_path, damage):
+    home = _project(tmp_path, "pendulum")
+    csv, meta = home / "references" / "pendulum.csv", home / "references" / "pendulum.json"
+    if damage == "garbage":
+        csv.write_bytes(b'"\x00\xff unterminated\n' * 3)
+        bad = csv
+    elif damage == "a folder":
+        csv.unlink()
+        csv.mkdir()
+        bad = csv
+    else:
+        meta.write_text("{oops")
+        bad = meta
+    p = _run(tmp_path / "out", home)
+    _clean(p, 2)
+    assert str(bad) in p.stderr and not (tmp_path / "out").exists(), p.stderr
+    p = _cli("report", "--results", _gate_folder(tmp_path), "--references",
+             home / "references", "--history", tmp_path / "none.db")
+    _clean(p, 2)
+    assert str(bad) in p.stderr, p.stderr
+
+
+# ---- the environment -------------------------------------------------------------------------
+def _cli_with_fault(code: int, *args, env=None):
+    """The command line with every atomic write failing with OSError(code) (a full disk,
+    a read-only folder) at the file it writes."""
+    prog = textwrap.dedent(f"""
+        import os, sys
+        import natcoord.suite.io as io
+        def write_atomic(path, text):
+            raise OSError({code}, os.strerror({code}), str(path))
+        io.write_atomic = write_atomic
+        sys.argv = ["natcoord", *sys.argv[1:]]
+        from natcoord.cli import main
+        main()
+    """)
+    return subprocess.run([sys.executable, "-c", prog, *map(str, args)], capture_output=True,
+                          text=True, timeout=300, env={**os.environ, **(env or {})})
+
+
+def test_a_passing_gate_that_updates_the_baseline_exits_0(tmp_path):
+    base = tmp_path / "baseline.json"
+    shutil.copy(REFERENCES / "baseline.json", base)
+    p = _cli("gate", "--results", _gate_folder(tmp_path), "--baseline", base,
+             "--history", tmp_path / "none.db", "--update-baseline")
+    _clean(p, 0)
+    assert read_json(base)["errors"]["pendulum/natcoord"] == {"x": 1e-9}
+
+
+@pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS])
+def test_a_full_disk_or_read_only_folder_exits_5_never_1(tmp_path, code):
+    base = tmp_path / "baseline.json"
+    shutil.copy(REFERENCES / "baseline.json", base)
+    before = base.read_bytes()
+    p = _cli_with_fault(code, "gate", "--results", _gate_folder(tmp_path), "--baseline",
+                        base, "--history", tmp_path / "none.db", "--update-baseline")
+    _clean(p, 5)
+    assert os.strerror(code) in p.stderr and str(base) in p.stderr
+    assert base.read_bytes() == before
+
+
+def test_an_unwritable_step_summary_keeps_the_nightly_results(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    step = tmp_path / "step-summary"
+    step.mkdir()
+    out = tmp_path / "out"
+    p = _cli("suite", "pendulum", "--engines", "natcoord", "--repeats", "0", "--out", out,
+             "--history", tmp_path / "history.db",
+             env={"NATCOORD_HOME": str(home), "GITHUB_STEP_SUMMARY": str(step)})
+    _clean(p, 5)
+    assert "GITHUB_STEP_SUMMARY" in p.stderr and str(step) in p.stderr
+    assert read_json(out / "summary.json")["records"][0]["status"] == "ok"
+    assert (out / "summary.md").is_file() and (out / "index.html").is_file()
+    with history.reading(tmp_path / "history.db") as db:  # recorded too
+        assert db.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 1
+
+
+# ---- other defects ---------------------------------------------------------------------------
+def test_the_worker_runs_the_installed_package_whatever_the_current_folder(tmp_path):
+    home = _project(tmp_path, "pendulum")
+    here = tmp_path / "here"
+    (here / "natcoord" / "suite").mkdir(parents=True)
+    (here / "natcoord" / "__init__.py").write_text("raise ImportError('the wrong natcoord')\n")
+    (here / "natcoord" / "suite" / "__init__.py").write_text("")
+    p = subprocess.run([str(NATCOORD), "run", "pendulum", "--engines", "natcoord", "--out",
+                        tmp_path / "out"], cwd=here, capture_output=True, text=True,
+                       timeout=300, env={**os.environ, "NATCOORD_HOME": str(home)})
+    _clean(p, 0)
+    rec = read_json(tmp_path / "out" / "summary.json")["records"][0]
+    assert rec["status"] == "ok" and rec["verdict"] == "pass", rec
+
+
+def test_run_exits_3_when_a_cell_failed(tmp_path):
+    home = _project(tmp_path)
+    text = PENDULUM.replace('name = "pendulum"', 'name = "pendulum"\ntimeout = "10 ms"')
+    (home / "cases" / "pendulum.toml").write_text(text)
+    p = _run(tmp_path / "out", home)
+    _clean(p, 3)
+    rec = read_json(tmp_path / "out" / "summary.json")["records"][0]
+    assert rec["status"] == "failed" and "0 within tolerance, 0 over tolerance, 1 failed" \
+        in p.stdout
+
+
+def test_the_stricter_time_limit_wins(tmp_path):
+    """--timeout 0.05 beside a case file's own 600 s: the run is held to 0.05 s."""
+    home = _project(tmp_path)
+    (home / "cases" / "pendulum.toml").write_text(
+        PENDULUM.replace('name = "pendulum"', 'name = "pendulum"\ntimeout = "600 s"'))
+    p = _run(tmp_path / "out", home, "--timeout", "0.05")
+    _clean(p, 3)
+    rec = read_json(tmp_path / "out" / "summary.json")["records"][0]
+    assert rec["status"] == "failed" and "timed out after 0.05 s" in rec["reason"]
+
+
+def _limit_memory():  # pragma: no cover - in the child
+    resource.setrlimit(resource.RLIMIT_AS, (2 << 30, 2 << 30))
+
+
+def test_a_case_file_that_is_not_a_regular_file_is_refused(tmp_path):
+    """A link to /dev/zero is not read without bound, a FIFO does not hang."""
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    (cases / "pendulum.toml").symlink_to("/dev/zero")
+    p = _cli("run", cases / "pendulum.toml", "--out", tmp_path / "o", timeout=60,
+             preexec_fn=_limit_memory)
+    _clean(p, 2)
+    assert str(cases / "pendulum.toml") in p.stderr
+    with pytest.raises(CaseError, match="not a regular file"):
+        load_case(cases / "pendulum.toml")
+    (cases / "pendulum.toml").unlink()
+    os.mkfifo(cases / "pendulum.toml")
+    p = _cli("run", cases / "pendulum.toml", "--out", tmp_path / "o", timeout=60)
+    _clean(p, 2)
+    assert "not a regular file" in p.stderr and str(cases / "pendulum.toml") in p.stderr
+
+
+@pytest.mark.parametrize("what", ["missing", "no cases"])
+def test_an_invalid_natcoord_home_is_refused(tmp_path, what):
+    home = tmp_path / "home"
+    if what == "no cases":
+        home.mkdir()
+    p = _cli("cases", cwd=tmp_path, env={"NATCOORD_HOME": str(home)})
+    _clean(p, 2)
+    assert f"$NATCOORD_HOME={home}" in p.stderr
+
+
+def test_generate_keeps_an_existing_case_file_unless_forced(tmp_path):
+    f = tmp_path / "a02_four_bar_n3.toml"
+    f.write_text("# mine\n")
+    p = _cli("generate", "n_four_bar", "--n", "3", "--out", f)
+    _clean(p, 2)
+    assert "--force" in p.stderr and f.read_text() == "# mine\n"
+    _clean(_cli("generate", "n_four_bar", "--n", "3", "--out", f, "--force"), 0)
+    assert load_case(f).name == "a02_four_bar_n3"
+    new = tmp_path / "a02_four_bar_n4.toml"
+    _clean(_cli("generate", "n_four_bar", "--n", "4", "--out", new), 0)
+    assert json.dumps(load_case(new).name) == '"a02_four_bar_n4"'
