@@ -542,7 +542,7 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     """What changed in accuracy and speed between two results folders.
 
     Exit 0 nothing significant, 1 an accuracy regression, 2 bad input, 4 a significant
-    slowdown (median past 1.4x and Mann-Whitney U at p <= 0.05 on the calibrated samples;
+    slowdown (median past 1.5x and Mann-Whitney U at p <= 0.05 on the calibrated samples;
     a cell with too few samples for that test says "cannot judge speed").
     """
     import json as _json

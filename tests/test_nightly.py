@@ -33,7 +33,7 @@ def test_speed_rule_needs_factor_significance_and_power():
     base = list(1.0 + 0.05 * rng.random(7))
     assert not speed.judge("c", "e", base, list(1.0 + 0.05 * rng.random(7))).slower  # noise
     assert speed.judge("c", "e", base, [2 * x for x in base]).slower  # 2x, 7 vs 7 samples
-    assert not speed.judge("c", "e", base, [1.3 * x for x in base]).slower  # under 1.4x
+    assert not speed.judge("c", "e", base, [1.4 * x for x in base]).slower  # under 1.5x
     three = speed.judge("c", "e", base[:3], [2 * x for x in base[:3]])
     assert three.judged and three.slower  # calibrated samples: 3 vs 3 have the power
     two = speed.judge("c", "e", base[:2], [3 * x for x in base[:2]])

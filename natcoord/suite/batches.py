@@ -93,8 +93,8 @@ def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine:
 
     if samples * cost() > budget_s:  # fewer runs per batch first
         f = budget_s / (samples * cost())
-        m = [max(1, math.floor(x * f)) if x else 0 for x in m]
-    n = min(samples, math.floor(budget_s / cost()))
+        m = [max(1, math.floor(x * f + 1e-9)) if x else 0 for x in m]
+    n = min(samples, math.floor(budget_s / cost() + 1e-9))
     full, short = Samples(), (Samples() if cut is not None else None)
     if n == 0:  # a long run: the warm-up is the one sample
         full.wall_s, full.runs = [run.wall_time_s], [1]
