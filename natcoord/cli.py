@@ -572,8 +572,10 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     out.print(table)
     for line in c.accuracy:
         err.print(escape(line), highlight=False)
-    for s in c.slower + c.unjudged:
+    for s in c.slower:
         err.print(escape(s.line()), highlight=False)
+    for line in diff.speed_notes(c.speed):
+        err.print(escape(line), highlight=False)
     if c.speed_note:
         err.print(escape(c.speed_note), highlight=False)
     for s in c.speed:

@@ -130,12 +130,18 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
 
 def speed_notes(changes: list[speed.SpeedChange], history_db: Path | None = None) -> list[str]:
     """What a verdict says about speed beyond slowdowns: each cell that has too few samples
-    to be judged, and (against a history) how many cells have none to be judged against."""
+    to be judged, (against a history) how many cells have none to be judged against, and
+    how many were judged."""
     none = [s for s in changes if not s.judged and s.n_base == 0] if history_db else []
     lines = [s.line() for s in changes if not s.judged and s not in none]
     if none:
         lines.append(f"speed not judged for {len(none)} cell(s): no earlier benchmark of the "
                      f"same case file on this machine in {history_db}")
+    judged = [s for s in changes if s.judged]
+    if judged:
+        cpu = sum(s.clock == "cpu" for s in judged)
+        lines.append(f"speed judged for {len(judged)} cell(s) ({cpu} on CPU time), "
+                     f"{sum(s.slower for s in judged)} significantly slower")
     return lines
 
 
