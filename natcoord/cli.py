@@ -327,15 +327,16 @@ def gate_cmd(results: ResultsDir = None,
     verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
                          references=resolve(references, "references"), required=required,
                          baseline=base)
+    history = resolve(history, "reports/history.db")
     try:
         bench_result = diff.read_bench(results)
-        slower = [s for s in diff.against_history(
-            bench_result, resolve(history, "reports/history.db"),
-            exclude_dir=str(results.resolve())) if s.slower] if bench_result else []
+        speed = diff.against_history(bench_result, history, exclude_dir=str(
+            results.resolve())) if bench_result else []
     except StoredFileError as e:  # bench.json or the history, named in the message
         _fail(str(e))
     except (ValueError, KeyError, TypeError) as e:
         _fail(f"{results / 'bench.json'}: malformed ({type(e).__name__}: {e})")
+    slower = [s for s in speed if s.slower]
     if verdict.code == 0 and slower:
         verdict.code = diff.SLOWER
     verdict.lines += [s.line() for s in slower]
@@ -344,6 +345,8 @@ def gate_cmd(results: ResultsDir = None,
                   highlight=False)
     for line in verdict.notes:
         err.print(f"note: {escape(line)}", highlight=False)
+    for line in diff.speed_notes(speed, history):
+        err.print(escape(line), highlight=False)
     n = len(summary["records"])
     if verdict.code == 0:
         out.print(f"[green]gate passed[/]: {len(verdict.passed)} of {n} case x engine runs "
@@ -367,7 +370,7 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
 
     total = len(selected) * len(names)
     say = (lambda *a: None) if quiet else out.print
-    say(f"benchmarking {total} case x engine pairs, best of {repeats}")
+    say(f"benchmarking {total} case x engine pairs, best of {repeats} calibrated samples")
     result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
                          progress=None if quiet else _progress_printer(total),
                          references=references)
@@ -467,7 +470,8 @@ def _score_table(rows: list[dict]) -> Table:
 @app.command("bench")
 def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
               repeats: Annotated[int, typer.Option(
-                  min=1, help="Whole runs per cell, every wall time kept.")] = 7,
+                  min=1, help="Timing samples per cell, each a calibrated batch (the run "
+                              "repeated for at least 0.1 s), every one kept.")] = 7,
               out_dir: OutDir = None,
               history: Annotated[Path | None, typer.Option(
                   help="Where dated copies go [default: <project>/reports/bench].",
@@ -509,7 +513,8 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
 @app.command("suite")
 def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               repeats: Annotated[int, typer.Option(
-                  min=0, help="Bench runs per cell (0: no bench).")] = 7,
+                  min=0, help="Bench timing samples per cell, each a calibrated batch "
+                              "(0: no bench).")] = 7,
               timeout: Timeout = DEFAULT_TIMEOUT_S, jobs: Jobs = None,
               scheduler: Scheduler = None, cases: CaseArgs = None,
               cases_dir: CasesDir = None, references: RefDir = None,
@@ -547,25 +552,26 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         summary = run_suite(selected, names, staging, references=references,
                             timeout_s=timeout, progress=_progress_printer(total, where),
                             jobs=n, scheduler=scheduler)
-        bench_result, slower = None, []
+        bench_result, speed = None, []
         if repeats:
-            out.print(f"[bold]bench[/]: {repeats} runs per cell, every wall time kept")
+            out.print(f"[bold]bench[/]: {repeats} calibrated samples per cell, every one kept")
             bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
                                        progress=_progress_printer(total, "serial, one core"),
                                        references=references)
-            slower = diff.slower_rechecked(
+            speed = diff.slower_rechecked(
                 bench_result, selected, repeats, timeout, history,
                 say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "
                                         "their history"))
             # the dated copy only for the nightly suite, under the project's reports/
             bench.store(bench_result, staging,
                         resolve(None, "reports/bench") if nightly else None)
+        slower = [s for s in speed if s.slower]
         verdict = gate.judge(summary, staging, references=references, baseline=base,
                              cases=gate.CaseBook(resolve(cases_dir, "cases"),
                                                  {j.case.name: j.case for j in selected}))
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
-        verdict.lines += [s.line() for s in slower]
+        verdict.lines += [s.line() for s in slower] + diff.speed_notes(speed, history)
         write_report(staging, references, history)
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
                                         target / "index.html")
@@ -605,7 +611,8 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     their result files), and in engine versions, case files and settings.
 
     Exit 0 nothing significant, 1 an accuracy regression, 2 bad input, 4 a significant
-    slowdown (median past 1.25x and Mann-Whitney U at p < 0.002 on the raw samples).
+    slowdown (median past 1.5x and Mann-Whitney U at p <= 0.05 on the calibrated samples;
+    a cell with too few samples for that test says "cannot judge speed").
     """
     import json as _json
 
@@ -628,7 +635,9 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
         table.add_row(escape(r["case"]), r["engine"], r["status"], r["verdict"],
                       fmt(r["worst_of_tolerance_base"], ".3g"),
                       fmt(r["worst_of_tolerance_new"], ".3g"),
-                      fmt(r["speed_ratio"], ".3g") + (" SLOWER" if r["slower"] else ""),
+                      fmt(r["speed_ratio"], ".3g") + (" SLOWER" if r["slower"] else
+                                                      " (cannot judge)" if r["speed_judged"]
+                                                      is False else ""),
                       fmt(r["speed_p"], ".2g"))
     out.print(table)
     for line in c.accuracy:
@@ -637,6 +646,10 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
         err.print(f"changed: {escape(line)}", highlight=False)
     for s in c.slower:
         err.print(escape(s.line()), highlight=False)
+    for line in diff.speed_notes(c.speed):
+        err.print(escape(line), highlight=False)
+    if c.speed_note:
+        err.print(escape(c.speed_note), highlight=False)
     for s in c.speed:
         if s.counters:
             err.print(escape(f"{s.case}/{s.engine}: behaviour change: counters {s.counters}"))

@@ -12,6 +12,7 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from natcoord import load_case
 from natcoord.suite import bench, diff, history, speed
@@ -27,15 +28,33 @@ def _cli(*args, env=None, timeout=600):
                           env={**os.environ, **(env or {})})
 
 
-def test_mann_whitney_rule_needs_factor_and_significance():
+def test_speed_rule_needs_factor_significance_and_power():
     rng = np.random.default_rng(0)
     base = list(1.0 + 0.05 * rng.random(7))
     assert not speed.judge("c", "e", base, list(1.0 + 0.05 * rng.random(7))).slower  # noise
     assert speed.judge("c", "e", base, [2 * x for x in base]).slower  # 2x, 7 vs 7 samples
-    assert not speed.judge("c", "e", base, [1.2 * x for x in base]).slower  # under 1.25x
-    assert not speed.judge("c", "e", base[:3], [3 * x for x in base[:3]]).slower  # no power
+    assert not speed.judge("c", "e", base, [1.4 * x for x in base]).slower  # under 1.5x
+    three = speed.judge("c", "e", base[:3], [2 * x for x in base[:3]])
+    assert three.judged and three.slower  # calibrated samples: 3 vs 3 have the power
+    two = speed.judge("c", "e", base[:2], [3 * x for x in base[:2]])
+    assert not two.judged and not two.slower  # no power: said so, never a silent pass
+    assert "cannot judge speed: 2 vs 2 samples" in two.line()
+    assert speed.judge("c", "e", base, [3 * base[0]]).judged is False  # 1 vs 7
     c = speed.judge("c", "e", base, base, {"steps": 70}, {"steps": 71})
     assert c.counters == {"steps": (70, 71)}  # a behaviour change, reported apart
+
+
+def test_speed_rule_judges_cpu_time_where_both_sides_have_it():
+    """Waiting for the core inflates wall time, not CPU time: with CPU samples on both
+    sides they are judged (a doubled wall time from a busy core is no slowdown); a real
+    slowdown doubles both."""
+    base, cpu = [1.0, 1.01, 1.02, 0.99, 1.0], [0.9, 0.91, 0.92, 0.89, 0.9]
+    busy = speed.judge("c", "e", base, [2 * x for x in base], base_cpu=cpu, new_cpu=cpu)
+    assert busy.clock == "cpu" and not busy.slower and busy.ratio == 1.0
+    real = speed.judge("c", "e", base, [2 * x for x in base], base_cpu=cpu,
+                       new_cpu=[2 * x for x in cpu])
+    assert real.clock == "cpu" and real.slower
+    assert speed.judge("c", "e", base, [2 * x for x in base], base_cpu=cpu).clock == "wall"
 
 
 def _folder(tmp_path: Path, name: str, cases, engines=("natcoord",), repeats=7) -> Path:
@@ -46,22 +65,75 @@ def _folder(tmp_path: Path, name: str, cases, engines=("natcoord",), repeats=7) 
     return out, summary, result
 
 
-def test_compare_unchanged_runs_exit_0_and_doctored_samples_exit_4(tmp_path):
-    cases = [load_case(CASES / "pendulum.toml")]
-    a, *_ = _folder(tmp_path, "a", cases)
-    b, *_ = _folder(tmp_path, "b", cases)
-    p = _cli("compare", a, b)
-    assert p.returncode == 0, p.stderr
-    slow = tmp_path / "slow"
-    shutil.copytree(b, slow)
-    data = read_json(slow / "bench.json")
+def _doctored(src: Path, dst: Path, edit) -> Path:
+    """A copy of results folder ``src`` whose bench records are changed by ``edit``: speed
+    figures made from stored data, never timed on the fly, so a verdict on them does not
+    depend on the machine's load."""
+    shutil.copytree(src, dst)
+    data = read_json(dst / "bench.json")
     for r in data["records"]:
-        r["samples_s"] = [3 * s for s in r["samples_s"]]
-    write_json(slow / "bench.json", data)
+        edit(r)
+    write_json(dst / "bench.json", data)
+    return dst
+
+
+def _scaled(k):
+    def edit(r):
+        for key in ("samples_s", "cpu_samples_s"):
+            r[key] = [k * s for s in r[key]]
+    return edit
+
+
+@pytest.fixture(scope="module")
+def pendulum_folder(tmp_path_factory):
+    """One real run + bench of pendulum in natcoord (7 calibrated samples)."""
+    tmp = tmp_path_factory.mktemp("nightly")
+    return _folder(tmp, "a", [load_case(CASES / "pendulum.toml")])
+
+
+def test_compare_unchanged_runs_exit_0_and_doctored_samples_exit_4(tmp_path, pendulum_folder):
+    """Deterministic: the unchanged run is a copy of the timed one (same samples), the slow
+    one the same samples tripled (the judged CPU times as well as the wall times)."""
+    a, *_ = pendulum_folder
+    rec = read_json(a / "bench.json")["records"][0]
+    assert len(rec["samples_s"]) == len(rec["cpu_samples_s"]) == 7, rec
+    same = _doctored(a, tmp_path / "same", lambda r: None)
+    p = _cli("compare", a, same)
+    assert p.returncode == 0 and "cannot judge" not in p.stderr, p.stderr
+    slow = _doctored(a, tmp_path / "slow", _scaled(3))
     p = _cli("compare", a, slow)
     assert p.returncode == 4 and "pendulum/natcoord: SLOWER" in p.stderr, p.stderr
+    assert "cpu time" in p.stderr
     j = _cli("compare", a, slow, "--json")
     assert j.returncode == 4 and json.loads(j.stdout)["slower"][0]["case"] == "pendulum"
+
+
+def test_compare_says_it_cannot_judge_speed_on_too_few_samples(tmp_path, pendulum_folder):
+    """Two samples a side cannot reach p <= 0.05: even tripled, compare says "cannot judge
+    speed" (text and JSON) instead of passing silently; folders without bench.json say why
+    speed is absent."""
+    a, *_ = pendulum_folder
+
+    def cut(k):
+        def edit(r):
+            for key in ("samples_s", "cpu_samples_s"):
+                r[key] = [k * s for s in r[key][:2]]
+        return edit
+
+    few = _doctored(a, tmp_path / "few", cut(1))
+    slow = _doctored(a, tmp_path / "slow", cut(3))
+    p = _cli("compare", few, slow)
+    assert p.returncode == 0, p.stderr
+    assert "pendulum/natcoord: cannot judge speed: 2 vs 2 samples" in p.stderr, p.stderr
+    j = json.loads(_cli("compare", few, slow, "--json").stdout)
+    (un,) = j["cannot_judge_speed"]
+    assert (un["case"], un["n_base"], un["n_new"], un["judged"]) == ("pendulum", 2, 2, False)
+    assert j["rows"][0]["speed_judged"] is False
+    bare = tmp_path / "run-only"
+    shutil.copytree(a, bare)
+    (bare / "bench.json").unlink()
+    p = _cli("compare", a, bare)
+    assert p.returncode == 0 and "speed not compared: no bench.json in" in p.stderr, p.stderr
 
 
 def test_compare_a_heavier_mass_is_an_accuracy_regression(tmp_path):
@@ -129,22 +201,30 @@ def test_history_jsonl_is_imported_once(tmp_path):
     assert history.trends(db)["pendulum/natcoord"]["worst_rel"] == [1e-9]
 
 
-def test_gate_judges_speed_against_history(tmp_path):
-    """A doctored copy of a run whose natcoord samples are tripled gives exit 4 against the
-    history of the same case file on this machine; the unchanged run passes."""
-    cases = [load_case(CASES / "pendulum.toml")]
-    a, summary, result = _folder(tmp_path, "a", cases)
+def test_gate_judges_speed_against_history(tmp_path, pendulum_folder):
+    """A copy of a recorded run passes the speed gate against the history of the same case
+    file on this machine, its samples tripled give exit 4, and too few samples are said to
+    be unjudged (deterministic: no sample is timed for the verdicts)."""
+    a, summary, result = pendulum_folder
     db = tmp_path / "history.db"
+    empty = _cli("gate", "--results", a, "--history", db)
+    assert empty.returncode == 0, empty.stderr
+    assert "speed not judged for 1 cell(s): no earlier benchmark" in empty.stderr
     history.record(db, kind="suite", summary=summary, bench=result, gate=0,
                    results_dir=str(a.resolve()))
-    b, *_ = _folder(tmp_path, "b", cases)
-    assert _cli("gate", "--results", b, "--history", db).returncode == 0
-    data = read_json(b / "bench.json")
-    for r in data["records"]:
-        r["samples_s"] = [3 * s for s in r["samples_s"]]
-    write_json(b / "bench.json", data)
+    b = _doctored(a, tmp_path / "b", lambda r: None)
     p = _cli("gate", "--results", b, "--history", db)
+    assert p.returncode == 0 and "cannot judge" not in p.stderr, p.stderr
+    slow = _doctored(a, tmp_path / "slow", _scaled(3))
+    p = _cli("gate", "--results", slow, "--history", db)
     assert p.returncode == 4 and "SLOWER" in p.stderr, p.stderr
+
+    def one(r):
+        for key in ("samples_s", "cpu_samples_s"):
+            r[key] = r[key][:1]
+    lone = _doctored(a, tmp_path / "lone", one)
+    p = _cli("gate", "--results", lone, "--history", db)
+    assert p.returncode == 0 and "cannot judge speed: 1 vs 7 samples" in p.stderr, p.stderr
 
 
 def test_ci_summary_is_markdown_with_verdicts():

@@ -524,11 +524,17 @@ def _speed_context(bench: dict | None, bench_error: str, by_key: dict, case_name
                       if isinstance(r, dict))
     runs = "–".join(str(r) for r in dict.fromkeys([reps[0], reps[-1]])) if reps else "?"
     when = f" of {escape(fmt_when(bench['generated']))}" if bench.get("generated") else ""
-    how = (f"<code>bench.json</code>{when}: every cell run {runs} time(s), each run a whole "
-           "simulation in a fresh process pinned to one core; <i>best</i> and <i>median</i> "
-           "over those repeats; "
-           + ("<i>spread</i>: fastest–slowest repeat (<code>samples_s</code>)" if has_samples
-              else "<i>spread</i>: slowest over best (no per-repeat samples recorded)"))
+    batched = any(r.get("batch_runs") for r in bench.get("records") or []
+                  if isinstance(r, dict))
+    how = (f"<code>bench.json</code>{when}: " + (
+        f"every cell timed in {runs} sample(s), each a calibrated batch (the stepping "
+        "repeated for at least 0.1 s; the sample is its time per run) in one process "
+        "pinned to one core; <i>best</i> and <i>median</i> over those samples; "
+        if batched else
+        f"every cell run {runs} time(s), each run a whole simulation in a fresh process "
+        "pinned to one core; <i>best</i> and <i>median</i> over those repeats; ")
+        + ("<i>spread</i>: fastest–slowest repeat (<code>samples_s</code>)" if has_samples
+           else "<i>spread</i>: slowest over best (no per-repeat samples recorded)"))
     return {"source": "bench", "error": bench_error, "tta": tta, "wp": wp, "own": own,
             "cost": speed.cost_explained(bench, case_names, _engine_order, anchor, fmt_time,
                                          fmt_int),

@@ -1,18 +1,24 @@
 """Speed benchmark: per case x engine, the wall time of repeated whole runs, measured in one
 session.
 
-Each cell runs once in a fresh engine process (single-threaded BLAS; build time kept apart
-from the stepping time), then ``repeats - 1`` more times in a second process, as many as fit
-in ``BATCH_S`` (a run longer than that is measured once per process). Every repeat's wall
-time is kept as ``samples_s`` beside the best and the median, and the deterministic cost
-counters (steps, right-hand sides, factorizations) beside them, so that a speed judgement
-can tell noise from a regression (:mod:`natcoord.suite.speed`). Ratios to natcoord are
-computed within the same benchmark run, so machine load drifts cancel as far as they can.
+Each cell runs in one engine process (single-threaded BLAS, pinned to one core; build time
+kept apart from the stepping time): a warm-up run, then ``repeats`` timing samples, each a
+**calibrated batch** (the stepping repeated until the batch lasts at least ``MIN_BATCH_S``;
+its time per run is the sample), as many as fit in ``BUDGET_S`` (a run longer than that is
+measured once). A preemption then costs a sample a few per cent, not 10x
+(:mod:`natcoord.suite.batches`). Every sample's time per run is kept as ``samples_s`` (wall
+clock) and, where the engine measures it (natcoord), ``cpu_samples_s`` (CPU time, which
+waiting for the core does not inflate), with the runs of each batch in ``batch_runs``,
+beside the best and the median, and the deterministic cost counters (steps, right-hand
+sides, factorizations) beside them, so that a speed judgement can tell noise from a
+regression (:mod:`natcoord.suite.speed`). Ratios to natcoord are computed within the same
+benchmark run, so machine load drifts cancel as far as they can.
 
-Cost explained (:func:`cost_fit`): every repeat also runs the same case over its first
-``FIT_FRACTION`` of samples, right after the full run in the same process, and the best wall
-time at each duration gives ``wall = fixed + per_step * steps`` (and the same line in
-right-hand-side evaluations where the engine counts them). natcoord's cold start (a fresh
+Cost explained (:func:`cost_fit`): every cell also times the same case over its first
+``FIT_FRACTION`` of samples in the same process (its batches interleaved with the full
+run's, or for natcoord right after them), and the best time per run at each duration
+gives ``wall = fixed + per_step * steps`` (and the same line in right-hand-side
+evaluations where the engine counts them). natcoord's cold start (a fresh
 Python process importing natcoord, loading its compiled kernels from the numba cache and
 running a tiny case) is measured apart (:func:`cold_start`): build time, never step time.
 
@@ -66,7 +72,8 @@ SWEEPS: dict[str, list[dict]] = {
     "simbody": [{"accuracy": a} for a in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)],
 }
 TARGETS = (1e-6, 1e-9)
-BATCH_S = 10.0  # wall time the repeats of one cell may take in their process
+MIN_BATCH_S = 0.1  # a timing sample: the stepping repeated for at least this long
+BUDGET_S = 10.0  # process time the timing samples of one cell may take
 CORE = max(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None  # timing
 # runs are pinned to one core (the last this process may use), one at a time
 COUNTERS = ("steps", "rejected", "rhs", "factorizations", "newton", "projections")
@@ -130,7 +137,7 @@ def explain_cost(full: dict, short: dict | None) -> dict:
         out["per_rhs_us"] = 1e6 * rhs[1] if rhs else None
     out["cost_fit"] = {
         "method": f"best wall time of the whole case and of its first {FIT_FRACTION:g} of "
-                  "samples (every repeat runs both, in the same process), line through them "
+                  "samples (both timed in the same process), line through them "
                   "in steps (and in right-hand sides), intercept >= 0",
         "points": rows, "determined": step is not None,
         # the free line's intercept: negative when the shorter run cost less per step (noise,
@@ -140,53 +147,45 @@ def explain_cost(full: dict, short: dict | None) -> dict:
 
 
 def timed_runs(job, engine: str, tmp: Path, timeout_s: float, repeats: int,
-               settings: dict | None = None, per_run: float = 1.0) -> list[dict]:
-    """The run records of one timed cell, pinned to the bench's core: one run in a fresh
-    engine process, then ``repeats - 1`` more in a second process, as many as fit in
-    ``BATCH_S`` (``per_run``: the work of one repeat in whole runs). Every repeat's wall
-    time is in the records' ``samples_s``."""
-    runs = [run_subprocess(job, engine, tmp, timeout_s, settings, cpu=CORE)]
-    first = runs[0].get("wall_time_s") or 0.0
-    more = (repeats - 1 if first <= 0 else
-            min(repeats - 1, int(BATCH_S / (first * per_run))))
-    if runs[0]["status"] == "ok" and more > 0:
-        runs.append(run_subprocess(job, engine, tmp, timeout_s, settings, repeat=more,
-                                   cpu=CORE))
-    return runs
+               settings: dict | None = None) -> list[dict]:
+    """The run record of one timed cell (a list of one), pinned to the bench's core: one
+    engine process that takes ``repeats`` calibrated samples within ``BUDGET_S``; their
+    times per run are in the record's ``samples_s`` (and ``cpu_samples_s``)."""
+    job = dataclasses.replace(as_job(job), batch_s=MIN_BATCH_S, budget_s=BUDGET_S)
+    return [run_subprocess(job, engine, tmp, timeout_s, settings, repeat=repeats, cpu=CORE)]
 
 
 def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
             references: Path | None = None) -> dict:
-    """One cell's benchmark record: every repeat's wall time (``samples_s``), best, median,
+    """One cell's benchmark record: every sample's time per run (``samples_s``, wall;
+    ``cpu_samples_s``, CPU, where measured; ``batch_runs``, runs per batch), best, median,
     spread, build time, steps and cost counters; the cost fit (``fixed_s``,
     ``per_step_us``, ``per_rhs_us``, ``cost_fit``); with ``references`` and a case
     ``[benchmark]``, the benchmark error of the run (``benchmark_error``)."""
     case = job.case
     job = dataclasses.replace(as_job(job), truncate=FIT_FRACTION)
-    runs = timed_runs(job, engine, tmp, timeout_s, repeats, per_run=1 + FIT_FRACTION)
-    ok = [r for r in runs if r["status"] == "ok" and r.get("wall_time_s")]
+    (run,) = timed_runs(job, engine, tmp, timeout_s, repeats)
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
-           "status": runs[-1]["status"],
-           "reason": runs[-1].get("reason", ""),
-           "engine_version": runs[-1].get("engine_version", "")}
-    if ok:
-        samples = [s for r in ok for s in (r.get("samples_s") or [r["wall_time_s"]])]
+           "status": run["status"], "reason": run.get("reason", ""),
+           "engine_version": run.get("engine_version", "")}
+    if run["status"] == "ok" and run.get("wall_time_s"):
+        samples = run.get("samples_s") or [run["wall_time_s"]]
         best = min(samples)
-        n_steps = ok[0]["n_steps"]
-        rec |= {"repeats": len(samples), "samples_s": samples, "wall_time_s": best,
+        n_steps = run["n_steps"]
+        counters = run.get("counters") or {}
+        rec |= {"repeats": len(samples), "samples_s": samples,
+                "cpu_samples_s": run.get("cpu_samples_s") or [],
+                "batch_runs": run.get("batch_runs") or [1] * len(samples),
+                "min_batch_s": MIN_BATCH_S, "wall_time_s": best,
                 "wall_spread": (max(samples) - best) / best,
                 "wall_median_s": statistics.median(samples),
-                "build_time_s": min(r["build_time_s"] or 0.0 for r in ok),
+                "build_time_s": run["build_time_s"] or 0.0,
                 "n_steps": n_steps, "us_per_step": 1e6 * best / n_steps if n_steps else None,
-                "wall_per_sim_s": best / case.duration, "settings": ok[0]["settings"],
-                "counters": {k: ok[0]["counters"][k] for k in COUNTERS
-                             if isinstance(ok[0].get("counters", {}).get(k), (int, float))}}
-        shorts = [r["short"] for r in ok if r.get("short")]
-        short = ({**shorts[0], "samples_s": [x for r in shorts for x in r["samples_s"]]}
-                 if shorts else None)
-        rec |= explain_cost({"samples_s": samples, "n_steps": n_steps,
-                             "counters": ok[0].get("counters"), "duration_s": case.duration},
-                            short)
+                "wall_per_sim_s": best / case.duration, "settings": run["settings"],
+                "counters": {k: counters[k] for k in COUNTERS
+                             if isinstance(counters.get(k), (int, float))}}
+        rec |= explain_cost({"samples_s": samples, "n_steps": n_steps, "counters": counters,
+                             "duration_s": case.duration}, run.get("short"))
         if references is not None and case.benchmark:
             csv = tmp / "results" / case.name / f"{engine}.csv"
             rec["benchmark_error"] = benchmark_error(case, csv, references)
@@ -314,8 +313,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                    progress: Callable[[str, dict], None] | None = None) -> list[dict]:
     """Error of the first angle channel (``error``) and, for a case with a ``[benchmark]``,
     the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep:
-    every sweep point timed as a bench cell (:func:`timed_runs`: a fresh process, then up
-    to ``repeats - 1`` more runs in a second one), its best wall time.
+    every sweep point timed as a bench cell (:func:`timed_runs`: ``repeats`` calibrated
+    samples in one process), its best time per run.
 
     Returns one record per case x engine x setting, and per case x engine the time to
     reach each error in TARGETS (the cheapest point at or below it; None if none does).

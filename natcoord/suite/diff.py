@@ -6,7 +6,8 @@ folders judged from their result files (a gated channel over tolerance, or an er
 past 10x the old one and a tenth of the tolerance; a result file missing or altered in the
 new folder is a regression, in the old one bad input), speed with
 :mod:`natcoord.suite.speed` on the raw samples. Changes of engine version, case file and
-engine settings between the runs are listed (``changes``); they fail nothing.
+engine settings between the runs are listed (``changes``); they fail nothing. A cell with too
+few samples to be judged is said so; folders without ``bench.json`` say why speed is absent.
 :func:`against_history` judges a benchmark against the history database instead (same case
 file, same machine).
 
@@ -39,15 +40,23 @@ class Comparison:
     speed: list[speed.SpeedChange] = field(default_factory=list)
     rows: list[dict] = field(default_factory=list)
     changes: list[str] = field(default_factory=list)
+    speed_note: str = ""  # why speed was not compared at all ('' when it was)
 
     @property
     def slower(self) -> list[speed.SpeedChange]:
         return [s for s in self.speed if s.slower]
 
+    @property
+    def unjudged(self) -> list[speed.SpeedChange]:
+        return [s for s in self.speed if not s.judged]
+
     def as_json(self) -> dict:
         return {"code": self.code, "accuracy": self.accuracy, "rows": self.rows,
                 "changes": self.changes,
                 "slower": [s.__dict__ for s in self.slower],
+                "cannot_judge_speed": [s.__dict__ | {"line": s.line()}
+                                       for s in self.unjudged],
+                "speed": [s.__dict__ for s in self.speed], "speed_note": self.speed_note,
                 "behaviour_changes": [s.__dict__ for s in self.speed if s.counters]}
 
 
@@ -104,6 +113,10 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
     if bb and nb:
         out.speed = speed.compare_bench(bb, nb)
         changed = {(s.case, s.engine): s for s in out.speed}
+    else:
+        lack = " and ".join(str(f) for f, x in ((base, bb), (new, nb)) if not x)
+        out.speed_note = (f"speed not compared: no bench.json in {lack} (`natcoord bench` "
+                          "and `natcoord suite` write one, `natcoord run` does not)")
     for r in n["records"]:
         key = (r["case"], r["engine"])
         s = changed.get(key)
@@ -117,6 +130,7 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
                              "/".join(key))),
                          "speed_ratio": None if s is None else s.ratio,
                          "speed_p": None if s is None else s.p,
+                         "speed_judged": None if s is None else s.judged,
                          "slower": bool(s and s.slower)})
     if out.code == 0 and out.slower:
         out.code = SLOWER
@@ -124,30 +138,50 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
 
 
 def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[speed.SpeedChange]:
-    """Judge every cell of a benchmark against the history's samples of the same case file
-    on the same machine (cells without history are not judged)."""
+    """Judge every cell of a benchmark that has samples against the history's samples of
+    the same case file on the same machine (CPU times where both have them); a cell without
+    history is unjudged with ``n_base`` 0."""
     machine = bench.get("machine", {}).get("fingerprint", "")
     out = []
     for r in bench.get("records", []):
         if not r.get("samples_s"):
             continue
-        past, counters = history.past_samples(db, r["case"], r["engine"],
-                                              r.get("case_hash", ""), machine,
-                                              exclude_dir=exclude_dir)
-        if past:
-            out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
-                                   r.get("counters")))
+        key = (db, r["case"], r["engine"], r.get("case_hash", ""), machine)
+        past, counters = history.past_samples(*key, exclude_dir=exclude_dir)
+        cpu = history.past_cpu_samples(*key, exclude_dir=exclude_dir)
+        out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
+                               r.get("counters"), base_cpu=cpu,
+                               new_cpu=r.get("cpu_samples_s")))
     return out
+
+
+def speed_notes(changes: list[speed.SpeedChange], history_db: Path | None = None) -> list[str]:
+    """What a verdict says about speed beyond slowdowns: each cell that has too few samples
+    to be judged, (against a history) how many cells have none to be judged against, and
+    how many were judged."""
+    none = [s for s in changes if not s.judged and s.n_base == 0] if history_db else []
+    lines = [s.line() for s in changes if not s.judged and s not in none]
+    if none:
+        lines.append(f"speed not judged for {len(none)} cell(s): no earlier benchmark of the "
+                     f"same case file on this machine in {history_db}")
+    judged = [s for s in changes if s.judged]
+    if judged:
+        cpu = sum(s.clock == "cpu" for s in judged)
+        lines.append(f"speed judged for {len(judged)} cell(s) ({cpu} on CPU time), "
+                     f"{sum(s.slower for s in judged)} significantly slower")
+    return lines
 
 
 def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Path,
                      say: Callable[[int], None] = lambda n: None) -> list[speed.SpeedChange]:
-    """Cells of a benchmark significantly slower than their history; each suspect is
-    measured once more (its new samples replace the first ones in ``result``) before it is
-    reported. ``say(n)`` is told how many are re-measured."""
-    suspects = [s for s in against_history(result, db) if s.slower]
+    """Every cell of a benchmark judged against its history (:func:`against_history`);
+    each cell significantly slower is measured once more (its new samples replace the first
+    ones in ``result``) and judged again before it is reported. ``say(n)`` is told how
+    many are re-measured."""
+    first = against_history(result, db)
+    suspects = [s for s in first if s.slower]
     if not suspects:
-        return []
+        return first
     say(len(suspects))
     by_name = {j.case.name: j for j in jobs}
     records = {(r["case"], r["engine"]): r for r in result["records"]}
@@ -155,7 +189,7 @@ def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Pat
         for s in suspects:
             records[(s.case, s.engine)].update(
                 bench.measure(by_name[s.case], s.engine, repeats, timeout_s, Path(tmp)))
-    return [s for s in against_history(result, db) if s.slower]
+    return against_history(result, db)
 
 
 def write_ci_summary(folder: Path, summary: dict, code: int, slower: list,

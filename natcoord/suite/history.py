@@ -9,7 +9,8 @@ engine benchmark with the raw wall time of every repeat (``bench``), with proven
 natcoord version and git commit, the sha256 of the case file, engine versions, settings and
 the machine fingerprint (CPU model, cores). Several suites may append at once: each run is
 one transaction that waits for the database (``BEGIN IMMEDIATE`` with a busy timeout).
-Lines of the former ``history.jsonl`` are imported once.
+Lines of the former ``history.jsonl`` are imported once. CPU-time samples, where a bench
+measured them, are in ``bench_cpu``.
 """
 
 from __future__ import annotations
@@ -41,6 +42,9 @@ CREATE TABLE IF NOT EXISTS bench (
     run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
     engine_version TEXT, settings TEXT, samples TEXT, wall_time_s REAL, us_per_step REAL,
     n_steps INTEGER, counters TEXT);
+CREATE TABLE IF NOT EXISTS bench_cpu (
+    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
+    samples TEXT);
 CREATE INDEX IF NOT EXISTS results_cell ON results (case_name, engine, channel);
 CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash);
 """
@@ -253,6 +257,10 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                             json.dumps(r["samples_s"]), r.get("wall_time_s"),
                             r.get("us_per_step"), r.get("n_steps"),
                             json.dumps(r.get("counters", {}))))
+                if r.get("cpu_samples_s"):  # CPU time per run of each sample (natcoord)
+                    db.execute("INSERT INTO bench_cpu VALUES (?, ?, ?, ?, ?)",
+                               (run_id, r["case"], r["engine"], r.get("case_hash", ""),
+                                json.dumps(r["cpu_samples_s"])))
             db.execute("COMMIT")
         except BaseException:
             if db.in_transaction:
@@ -310,6 +318,27 @@ def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: st
             (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
     samples = [s for raw, _ in rows for s in json.loads(raw)]
     return samples, (json.loads(rows[0][1]) if rows else None)
+
+
+def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
+                     last: int = 5, exclude_dir: str = "") -> list[float]:
+    """Pooled CPU-time samples (s per run) of the same benchmarks as :func:`past_samples`
+    ([] when none of them measured CPU time)."""
+    if not Path(path).exists():
+        return []
+    with connect(path) as db:
+        try:
+            rows = db.execute(
+                "SELECT bench_cpu.samples FROM bench_cpu JOIN runs ON runs.id = "
+                "bench_cpu.run_id WHERE case_name = ? AND engine = ? AND case_hash = ? AND "
+                "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?) "
+                "ORDER BY runs.id DESC LIMIT ?",
+                (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
+        except sqlite3.OperationalError as e:  # a history written before CPU samples
+            if "no such table" not in str(e):
+                raise
+            return []
+    return [s for (raw,) in rows for s in json.loads(raw)]
 
 
 def trends(path: Path, *, last: int = 30) -> dict:

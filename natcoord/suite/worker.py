@@ -10,10 +10,13 @@ again), the engine and its setting overrides. Writes
 process owns time limits and crashes: whatever this process does not write is reported by
 the parent as ``failed``.
 
-A bench job may ask for a cost fit (``Job.truncate``): every repeat then also runs the same
-case over its first ``truncate`` fraction of samples, right after the full run in this
-process, so that both durations see the same machine load (their wall times go to the
-record's ``short``).
+A bench job (``Job.batch_s`` > 0) takes ``repeat`` timing samples, each a calibrated batch
+of at least ``batch_s`` of stepping, within ``budget_s`` (:mod:`natcoord.suite.batches`:
+per-run wall times in the record's ``samples_s``, CPU times in ``cpu_samples_s`` where the
+engine measures them, runs per batch in ``batch_runs``). It may ask for a cost fit
+(``Job.truncate``): every sample then also times the same case over its first ``truncate``
+fraction of samples, interleaved in this process, so that both durations see the same
+machine load (their samples go to the record's ``short``).
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from ..engines.base import InitialState  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
 from ..mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..result import Result, Status, evaluate_channels, methods_table  # noqa: E402
+from . import batches  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
 
@@ -58,8 +62,10 @@ class Job:
     """One case x engine run: the loaded case, its assembled state at t = 0 (None with
     ``assembly_error`` when it does not assemble), the engine and setting overrides.
     ``repeat``: how many times to run it in this process (timing samples; the results are
-    the last run's). ``truncate``: a fraction in (0, 1) makes every repeat also run the case
-    cut to that fraction of its samples (the bench's cost fit); 0 does not."""
+    the last run's); with ``batch_s`` > 0 (a bench job) each sample is a calibrated batch
+    of at least that many seconds, all of them within ``budget_s``. ``truncate``: a
+    fraction in (0, 1) makes every sample also time the case cut to that fraction of its
+    samples (the bench's cost fit); 0 does not."""
 
     case: Case
     init: InitialState | None
@@ -68,6 +74,8 @@ class Job:
     assembly_error: str = ""
     repeat: int = 1
     truncate: float = 0.0
+    batch_s: float = 0.0
+    budget_s: float = math.inf
 
 
 def truncated(case: Case, fraction: float) -> Case:
@@ -86,8 +94,9 @@ def run_one(job: Job) -> Result:
 
 def run_job(job: Job) -> tuple[Result, dict]:
     """Run a job in this process: its Result (never raises for engine trouble: that becomes
-    the status) and, for a job with ``truncate``, the truncated runs' record ``{duration_s,
-    samples_s, n_steps, counters}`` (else {})."""
+    the status) and what a bench job adds to its record (else {}): ``cpu_samples_s``,
+    ``batch_runs`` and, with ``truncate``, the truncated runs' ``short`` record
+    ``{duration_s, samples_s, cpu_samples_s, batch_runs, n_steps, counters}``."""
     case, engine = job.case, job.engine
     spec = case.engine(engine)
     res = Result(case.name, engine)
@@ -106,16 +115,21 @@ def run_job(job: Job) -> tuple[Result, dict]:
         return res, {}
     settings = {**spec.settings, **job.settings}
     short_case = truncated(case, job.truncate) if 0 < job.truncate < 1 else None
-    short: dict = {}
+    extra: dict = {}
     try:
-        for _ in range(max(1, job.repeat)):  # every repeat a whole run: its own wall time
-            run = mod.run(case, job.init, settings)
-            res.samples_s.append(run.wall_time_s)
-            if short_case is not None:  # interleaved: both durations under the same load
-                cut = mod.run(short_case, job.init, settings)
-                short = {"duration_s": short_case.duration, "n_steps": cut.n_steps,
-                         "counters": cut.counters,
-                         "samples_s": [*short.get("samples_s", []), cut.wall_time_s]}
+        if job.batch_s > 0:
+            run, cut, full, part = batches.measure(
+                mod.run, case, short_case, job.init, settings, engine=engine,
+                samples=max(1, job.repeat), min_batch_s=job.batch_s, budget_s=job.budget_s)
+            res.samples_s = full.wall_s
+            extra = {"cpu_samples_s": full.cpu_s, "batch_runs": full.runs}
+            if cut is not None:
+                extra["short"] = {"duration_s": short_case.duration, "n_steps": cut.n_steps,
+                                  "counters": cut.counters} | part.record()
+        else:
+            for _ in range(max(1, job.repeat)):  # every repeat a whole run
+                run = mod.run(case, job.init, settings)
+                res.samples_s.append(run.wall_time_s)
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
         return res, {}
@@ -125,8 +139,8 @@ def run_job(job: Job) -> tuple[Result, dict]:
         res.notes.append(traceback.format_exc(limit=4))
         return res, {}
     res.table = evaluate_channels(case, run.motion)
-    res.build_time_s, res.wall_time_s, res.n_steps = (run.build_time_s, run.wall_time_s,
-                                                       run.n_steps)
+    res.build_time_s, res.n_steps = run.build_time_s, run.n_steps
+    res.wall_time_s = min(res.samples_s) if res.samples_s else run.wall_time_s
     res.settings, res.counters, res.notes = run.settings, run.counters, run.notes
     if run.methods:
         res.methods = methods_table(case, run)
@@ -137,7 +151,7 @@ def run_job(job: Job) -> tuple[Result, dict]:
         first = int(np.argmax(~np.isfinite(res.table[bad[0]].to_numpy())))
         res.reason = (f"non-finite values in {', '.join(bad)} from t = "
                       f"{res.table['t'].iloc[first]:.4g} s (the engine diverged)")
-    return res, short
+    return res, extra
 
 
 def main(argv=None) -> int:
@@ -147,15 +161,15 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     with open(a.job_file, "rb") as f:
         job: Job = pickle.load(f)
-    res, short = run_job(job)
+    res, extra = run_job(job)
     folder = Path(a.out_dir) / "results" / res.case
     if res.table is not None:
         write_csv(folder / f"{res.engine}.csv", res.table)
     if res.methods is not None:
         write_csv(folder / f"{res.engine}.methods.csv", res.methods)
     record = record_of(res, job.case.duration)
-    if short and res.status == Status.OK:
-        record["short"] = short
+    if res.status == Status.OK:
+        record |= extra
     write_json(folder / f"{res.engine}.json", record)
     return 0
 

@@ -1,0 +1,201 @@
+"""Speed verdicts with power: calibrated timing batches, the slowdown test hook, and the
+speed rule under load. Figures are never asserted by absolute time; the one benchmark-level
+test compares an unchanged cell and a deliberately slowed one with wide margins."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from natcoord import load_case, timing
+from natcoord.engines import natcoord_engine
+from natcoord.result import evaluate_channels
+from natcoord.suite import batches, bench, diff, history, speed
+from natcoord.suite.runner import as_job, machine_info
+
+from .conftest import CASES
+
+# ---------------------------------------------------------------- natcoord's own batches
+
+
+@pytest.mark.parametrize("extra", [
+    {}, {"formulation": "maggi"}, {"method": "rk4", "h": 1e-3},
+    {"formulation": "index3", "method": "trapezoidal", "h": 1e-3},
+    {"compiled": False, "rtol": 1e-6, "atol": 1e-8}], ids=["index1", "maggi", "rk4",
+                                                         "index3", "python"])
+def test_a_batched_run_gives_the_single_runs_results_and_counters(extra):
+    """The stepping repeated inside one run (a benchmark's calibrated batch) starts over
+    each time: the samples and every deterministic counter are those of one run."""
+    job = as_job(load_case(CASES / "slider_crank.toml"))
+    settings = {**job.case.engine("natcoord").settings, **extra}
+    one = natcoord_engine.run(job.case, job.init, settings)
+    try:
+        timing.configure(samples=2, min_batch_s=0.01)
+        many = natcoord_engine.run(job.case, job.init, settings)
+    finally:
+        timing.configure()
+    a, b = (evaluate_channels(job.case, r.motion) for r in (one, many))
+    assert np.array_equal(a.to_numpy(), b.to_numpy())
+    timed = ("batch_wall_s", "batch_cpu_s", "batch_runs")
+    assert not set(timed) & set(one.counters)
+    wall, cpu, runs = (many.counters.pop(k) for k in timed)
+    assert len(wall) == len(cpu) == len(runs) == 2 and min(runs) >= 1
+    assert all(w * n >= 0.01 for w, n in zip(wall, runs, strict=True))  # a batch >= 0.01 s
+    assert many.wall_time_s == min(wall)
+    drop = ("compile_time_s", "plan_time_s")
+    assert ({k: v for k, v in one.counters.items() if k not in drop}
+            == {k: v for k, v in many.counters.items() if k not in drop})
+
+
+def test_timing_policy_is_checked():
+    with pytest.raises(ValueError, match="timing policy"):
+        timing.configure(samples=0)
+    with pytest.raises(ValueError, match="timing policy"):
+        timing.configure(slowdown=0)
+    assert timing.policy() == timing.Policy()
+
+
+# ---------------------------------------------------------------- whole-run batches
+
+
+class _Clock:
+    """A fake clock that only the fake engine advances: batch sizes and budgets become
+    deterministic."""
+
+    def __init__(self):
+        self.t = 0.0
+
+    def perf_counter(self):
+        return self.t
+
+
+def _engine(clock, step_s: float, overhead_s: float):
+    """An engine that times one run (no batches of its own): stepping ``step_s`` (its
+    reported wall time) inside a run that costs ``overhead_s`` more (build, outputs)."""
+    calls = []
+
+    def run(case, init, settings):
+        calls.append(case)
+        k = 0.25 if case == "short" else 1.0
+        clock.t += k * (step_s + overhead_s)
+        return SimpleNamespace(wall_time_s=k * step_s, counters={}, n_steps=10)
+
+    return run, calls
+
+
+def test_whole_run_batches_are_calibrated_and_the_slowdown_hook_multiplies(monkeypatch):
+    clock = _Clock()
+    monkeypatch.setattr(batches, "time", clock)
+    monkeypatch.delenv(batches.SLOWDOWN_ENV, raising=False)
+    run, calls = _engine(clock, step_s=0.004, overhead_s=0.001)
+    _, _, full, short = batches.measure(run, "full", "short", None, {}, engine="e", samples=5,
+                                        min_batch_s=0.02, budget_s=100.0)
+    assert full.runs == [5] * 5 and full.wall_s == pytest.approx([0.004] * 5)
+    assert short.runs == [20] * 5 and short.wall_s == pytest.approx([0.001] * 5)
+    assert full.cpu_s == [] and len(calls) == 2 + 5 * (5 + 20)  # warm-up, then batches
+    monkeypatch.setenv(batches.SLOWDOWN_ENV, "other=5,e=3")
+    _, _, slow, _ = batches.measure(run, "full", None, None, {}, engine="e", samples=5,
+                                    min_batch_s=0.02, budget_s=100.0)
+    assert slow.wall_s == pytest.approx([3 * 0.004] * 5)  # every timed run executed 3x
+
+
+def test_whole_run_batches_stay_within_the_budget(monkeypatch):
+    clock = _Clock()
+    monkeypatch.setattr(batches, "time", clock)
+    monkeypatch.delenv(batches.SLOWDOWN_ENV, raising=False)
+    run, _ = _engine(clock, step_s=0.004, overhead_s=0.096)  # a run costs 0.1 s
+    _, _, full, _ = batches.measure(run, "full", None, None, {}, engine="e", samples=7,
+                                    min_batch_s=0.02, budget_s=1.4)
+    assert full.runs == [2] * 7  # fewer runs per batch first (5 would cost 3.5 s)
+    _, _, full, _ = batches.measure(run, "full", None, None, {}, engine="e", samples=7,
+                                    min_batch_s=0.02, budget_s=0.35)
+    assert full.runs == [1, 1, 1]  # then fewer samples
+    _, _, full, _ = batches.measure(run, "full", None, None, {}, engine="e", samples=7,
+                                    min_batch_s=0.02, budget_s=0.05)
+    assert full.runs == [1] and full.wall_s == [0.004]  # a long run: the warm-up only
+
+
+def test_slowdown_hook_is_read_per_engine_and_checked():
+    assert batches.slowdown("natcoord", "natcoord=3, mujoco=2") == 3
+    assert batches.slowdown("pinocchio", "natcoord=3") == 1
+    assert batches.slowdown("natcoord", "") == 1
+    for bad in ("natcoord", "natcoord=0", "natcoord=2x"):
+        with pytest.raises(ValueError, match=batches.SLOWDOWN_ENV):
+            batches.slowdown("natcoord", bad)
+
+
+# ---------------------------------------------------------------- history, notes
+
+
+def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
+    db = tmp_path / "history.db"
+    rec = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [2.0, 2.1],
+           "cpu_samples_s": [1.0, 1.1]}
+    other = {"case": "c", "engine": "e", "case_hash": "h", "samples_s": [3.0]}
+    history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"},
+                                            "records": [rec, other]})
+    assert history.past_samples(db, "c", "natcoord", "h", "m")[0] == [2.0, 2.1]
+    assert history.past_cpu_samples(db, "c", "natcoord", "h", "m") == [1.0, 1.1]
+    assert history.past_cpu_samples(db, "c", "e", "h", "m") == []
+    new = {"machine": {"fingerprint": "m"}, "records": [
+        {**rec, "samples_s": [4.0] * 3, "cpu_samples_s": [1.05] * 3},  # a busy core
+        {**other, "case": "unseen"}]}
+    judged, unseen = diff.against_history(new, db)
+    assert judged.clock == "cpu" and not judged.slower and not judged.judged  # 3 vs 2
+    assert unseen.n_base == 0 and not unseen.judged
+    notes = diff.speed_notes([judged, unseen], db)
+    assert notes[0].startswith("c/natcoord: cannot judge speed: 3 vs 2 samples")
+    assert notes[1].startswith("speed not judged for 1 cell(s): no earlier benchmark")
+
+
+# ---------------------------------------------------------------- the real timing path
+
+
+@pytest.mark.slow
+def test_under_load_unchanged_cells_pass_and_an_injected_slowdown_is_caught(
+        tmp_path, monkeypatch):
+    """A process busy on the other core throughout; slider_crank's natcoord cell measured
+    by the real bench path (worker process, calibrated batches, 5 samples) once for the
+    history, five times unchanged and once with its stepping executed three times per run
+    (the test hook). Judged as the suite judges (against the history, a suspect measured
+    again): the five unchanged cells raise no alarm (ratio ~1 against 1.5x), the 3x cell
+    is caught by the suite's and by compare's rule."""
+    job = as_job(load_case(CASES / "slider_crank.toml"))
+    others = sorted(set(os.sched_getaffinity(0)) - {bench.CORE}) if bench.CORE is not None \
+        else []
+    pin = (lambda: os.sched_setaffinity(0, set(others))) if others else None
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=pin)
+    db = tmp_path / "history.db"
+
+    def cell(slowdown: int = 1) -> dict:
+        if slowdown > 1:
+            monkeypatch.setenv(batches.SLOWDOWN_ENV, f"natcoord={slowdown}")
+        else:
+            monkeypatch.delenv(batches.SLOWDOWN_ENV, raising=False)
+        rec = bench.measure(job, "natcoord", 5, 600.0, tmp_path)
+        assert rec["status"] == "ok", rec
+        return {"machine": machine_info(), "records": [rec]}
+
+    def gate(result: dict) -> speed.SpeedChange:
+        (v,) = diff.slower_rechecked(result, [job], 5, 600.0, db)
+        assert v.judged and v.clock == "cpu", v.line()
+        return v
+
+    try:
+        base = cell()
+        history.record(db, kind="bench", bench=base)
+        unchanged = [gate(cell()) for _ in range(5)]
+        slow = cell(3)
+        caught = gate(slow)
+    finally:
+        busy.kill()
+        busy.wait()
+    assert not any(v.slower for v in unchanged), [v.line() for v in unchanged]
+    assert caught.slower, caught.line()
+    (compared,) = speed.compare_bench(base, slow)
+    assert compared.slower, compared.line()
