@@ -117,6 +117,7 @@ SCHEMA = (Setting("dt", "number", 1e-3, "step", "s", exclusive_minimum=0.0),
     ({"sub": {"y": 0}}, "sub.y", "unknown setting; known: x"),
     ({"sub": 3}, "sub", "must be a table"),
     ({"dtt": 1e-3}, "dtt", "unknown setting; known: dt, n, on, kind, gains, sub"),
+    (3, "", "must be a table of settings"),
 ])
 def test_check_names_the_field_and_the_reason(settings, field, words):
     found = check(settings, SCHEMA)

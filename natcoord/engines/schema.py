@@ -155,9 +155,8 @@ def check(settings, schema: tuple[Setting, ...], prefix: str = "") -> list[tuple
     """Problems of ``settings`` (a table from a case file) against ``schema``: a list of
     (field, reason), empty when every key is known and every value valid. ``field`` is
     the key (``prefix.key`` under a prefix); an unknown key names the known ones."""
-    where = prefix or "settings"
-    if not isinstance(settings, dict):
-        return [(where, f"must be a table of settings, got {_short(settings)}")]
+    if not isinstance(settings, dict):  # the field is the table itself ("" at the top)
+        return [(prefix, f"must be a table of settings, got {_short(settings)}")]
     by_name = {s.name: s for s in schema}
     out = []
     for key, v in settings.items():
