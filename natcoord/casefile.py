@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .engines.schema import shown
 from .errors import CaseError
 from .mechanism import (
     BODY_KINDS,
@@ -64,6 +65,7 @@ UNITS = {
 TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_dt", "ground",
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
             "drivers", "rods", "springs", "reactions", "comparison", "timeout", "benchmark"}
+ENGINE_KEYS = {"settings", "tolerance", "reason", "unsupported"}  # of [engines.<name>]
 MAX_FILE_BYTES = 1 << 20
 MAX_DEPTH = 8
 MAX_SAMPLES = 1_000_000
@@ -338,11 +340,15 @@ def load_case(path: str | Path) -> Case:
                 r.fail(f"{p}.tolerance.{key}", "neither a channel name nor a channel kind")
             tol[key] = r.quantity(value, f"{p}.tolerance.{key}", _kind_dim(key, channels),
                                   positive=True)
-        if ename == "natcoord":
-            _natcoord_settings(r, r.table(spec, "settings", p, required=False),
-                               f"{p}.settings")
+        unknown = sorted(set(spec) - ENGINE_KEYS) if isinstance(spec, dict) else []
+        if unknown:
+            r.fail(f"{p}.{shown(unknown[0])}", f"unknown field; expected some of "
+                   f"{', '.join(sorted(ENGINE_KEYS))}")
+        settings = r.table(spec, "settings", p, required=False)
+        for field, reason in _engine_settings(ename, settings):
+            r.fail(f"{p}.settings" + (f".{field}" if field else ""), reason)
         engines[ename] = EngineSpec(
-            settings=r.table(spec, "settings", p, required=False),
+            settings=settings,
             tolerance=tol,
             reason=r.string(spec, "reason", p, required=bool(tol), default=""),
             unsupported=r.string(spec, "unsupported", p, required=False, default=""),
@@ -363,27 +369,29 @@ def load_case(path: str | Path) -> Case:
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
                 comparison=comparison, timeout=timeout, benchmark=benchmark,
                 digest=hashlib.sha256(raw).hexdigest())
+    _model_checks(r, case)
     return case
 
 
-def _natcoord_settings(r: _Reader, settings: dict, field: str) -> None:
-    """natcoord's settings must make a valid solver (formulation, integrator, step control:
-    :class:`natcoord.solver.Solver`), and so must its ``reference`` and ``reference_check``
-    settings; ``coordinates`` must name a way to write the joints."""
-    from .casemodel import COORDINATES
-    from .solver import REFERENCE_KEYS, case_solver
+def _model_checks(r: _Reader, case: Case) -> None:
+    """What the mechanism as a whole must be (:func:`natcoord.casemodel.check`): bodies
+    whose points define their frames, at least one degree of freedom (drivers counted)."""
+    from .casemodel import check
+    from .errors import ModelError
 
-    if settings.get("coordinates", "joints") not in COORDINATES:
-        r.fail(f"{field}.coordinates", f"must be one of {', '.join(COORDINATES)}, got "
-               f"{settings['coordinates']!r}")
-    for key in ("", *REFERENCE_KEYS):
-        own = settings if not key else settings.get(key, {})
-        if not isinstance(own, dict):
-            r.fail(f"{field}.{key}", "must be a table of solver settings")
-        try:
-            case_solver(own)
-        except (ValueError, TypeError) as e:
-            r.fail(f"{field}{'.' + key if key else ''}", str(e))
+    try:
+        check(case)
+    except ModelError as e:
+        r.fail(e.field, e.reason)
+
+
+def _engine_settings(engine: str, settings: dict) -> list[tuple[str, str]]:
+    """Problems of an engine's settings against the settings its adapter declares
+    (:mod:`natcoord.engines.schema`; importing an adapter does not import its engine)."""
+    from .engines import adapter
+    from .engines.schema import problems
+
+    return problems(adapter(engine), settings)
 
 
 def _comparison(r: _Reader, table: dict, channels) -> dict:

@@ -32,7 +32,7 @@ import numpy as np
 from . import reactions
 from .builder import Builder
 from .drivers import ConstraintSystem
-from .errors import AssemblyError
+from .errors import AssemblyError, ModelError
 from .inertia import rod_second_moment, second_moment
 from .kinematics import Prescribed, State, assemble, solve_velocity
 from .mechanism import GROUND, PLANES, Case
@@ -101,9 +101,11 @@ def _point_classes(case: Case, shared: bool, ref) -> dict[tuple[str, str], str]:
             ends = list(zip(j.bodies, j.points, strict=True))
             xa, xb = (ref[b][p] for b, p in ends)
             if np.linalg.norm(xa - xb) > 1e-9:
-                raise ValueError(f"{case.name}: joint {j.name!r} cannot be a shared point: its "
-                                 "two points are apart in the file (give every point at its "
-                                 "t = 0 position, or use coordinates = \"joints\")")
+                raise ModelError(f"joints[{case.joints.index(j)}] ({j.name}).points",
+                                 "cannot be a shared point (engines.natcoord.settings."
+                                 "coordinates = \"shared\"): its two points are apart in the "
+                                 "file (give every point at its t = 0 position, or use "
+                                 "coordinates = \"joints\")")
             hit = [g for g in groups if any(e in g for e in ends)]
             merged = [e for g in hit for e in g] + [e for e in ends
                                                     if not any(e in g for g in hit)]
@@ -213,7 +215,7 @@ def build(case: Case, coordinates: str = "joints") -> CaseModel:
         for name, u in vectors[body.name]:
             b.vector(name, u)
 
-    for body in case.bodies:
+    for i, body in enumerate(case.bodies):
         R0, o0 = frames[body.name]
         if body.kind == "uniform_rod":
             Jg = rod_second_moment(body.mass, *(ref[body.name][e] for e in body.ends))
@@ -222,8 +224,14 @@ def build(case: Case, coordinates: str = "joints") -> CaseModel:
         else:
             Jg = (R0 @ second_moment(body.inertia) @ R0.T if d == 3 else
                   0.5 * body.inertia * np.eye(2))
-        b.body(body.name, basis[body.name], mass=body.mass, com=o0 + R0 @ body.com,
-               second_moment=Jg, frame=(R0, o0))
+        try:
+            b.body(body.name, basis[body.name], mass=body.mass, com=o0 + R0 @ body.com,
+                   second_moment=Jg, frame=(R0, o0))
+        except ValueError:  # its mass leaves the span of its points: no frame to carry it
+            raise ModelError(f"bodies[{i}] ({body.name}).points", "its points span only a "
+                             "plane and no joint gives it an axis out of that plane, but its "
+                             "mass (centre of mass or inertia) leaves that plane: they cannot "
+                             "define its frame; add a point out of the plane") from None
     for name, bodies in owner.items():
         for body in bodies:
             if name not in basis[body]:
@@ -335,6 +343,49 @@ def prescribed(cm: CaseModel, name: str, value: float) -> Prescribed:
     return Prescribed(name, "angle", body.G[0], value, float(np.arctan2(d_body[1], d_body[0])))
 
 
+def initial_positions(cm: CaseModel) -> np.ndarray:
+    """q at t = 0: the bodies where the case puts them, joints closed by Newton-Raphson with
+    ``initial.fix`` held (AssemblyError when they do not close)."""
+    m = cm.model
+    fix = [prescribed(cm, name, v) for name, v in cm.case.fix.items()]
+    return assemble(m, m.q0, fix, tol=1e-13)[0]
+
+
+def mobility(cm: CaseModel, q: np.ndarray) -> tuple[int, int, int, int]:
+    """(n coordinates, rank of Phi_q, rank with the driver rows, number of drivers) at q."""
+    con = ConstraintSystem(cm.model)
+    J = con.jacobian(q)
+    rank = reactions.left_null_space(J[:con.m0])[1] if con.m0 else 0
+    return con.n, rank, reactions.left_null_space(J)[1] if con.m else 0, con.k
+
+
+def check(case: Case) -> None:
+    """Refuse (ModelError, naming the field) a case natcoord's model cannot carry: a body
+    whose points cannot define its frame (:func:`build`), or a mechanism with no degree of
+    freedom at its initial configuration.
+
+    The rule, at q(0) with n coordinates: rank Phi_q = n (joints, rods) is a locked
+    structure; and each driver must take a degree of freedom of its own (the rank with the
+    driver rows = rank Phi_q + drivers), else the drivers over-constrain it (a four-bar with
+    a driver on each crank). Redundant constraints are fine (Bricard: 6 revolutes, Grübler
+    0, rank one short: mobility 1), and so is a mechanism whose drivers take every degree of
+    freedom (slider_crank_driven: the driver is the motion). A case that does not assemble
+    passes here: preparing it reports that."""
+    cm = build(case, case.engine("natcoord").settings.get("coordinates", "joints"))
+    try:
+        q = initial_positions(cm)
+    except AssemblyError:
+        return
+    n, r0, r, d = mobility(cm, q)
+    if r0 >= n:
+        raise ModelError("joints", f"the mechanism has no degree of freedom: {n} coordinates, "
+                         f"rank Phi_q = {r0}, drivers {d}")
+    if r - r0 < d:
+        raise ModelError("joints", f"the mechanism has no degree of freedom for its drivers: "
+                         f"{n} coordinates, rank Phi_q = {r} with the drivers ({r0} "
+                         f"without: {n - r0} degree(s) of freedom), drivers {d}")
+
+
 def initial_state(cm: CaseModel) -> State:
     """The case's state at t = 0: the bodies where the case puts them, joints closed by
     Newton-Raphson with ``initial.fix`` held; qd from ``initial.velocity`` and the drivers
@@ -347,8 +398,7 @@ def initial_state(cm: CaseModel) -> State:
     """
     m, case = cm.model, cm.case
     con = ConstraintSystem(m)
-    fix = [prescribed(cm, name, v) for name, v in case.fix.items()]
-    q, _ = assemble(m, m.q0, fix, tol=1e-13)
+    q = initial_positions(cm)
     moved = float(np.max(np.abs(q - m.q0), initial=0.0))
     if moved > case.pose_tolerance:
         phi = con.phi(m.q0)

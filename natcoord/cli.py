@@ -218,16 +218,25 @@ def counts_line(records: list[dict]) -> str:
 @app.command("cases")
 def cases_cmd(cases_dir: CasesDir = None,
               as_json: Annotated[bool, typer.Option(
-                  "--json", help="Print JSON: per case its name, description, file and, per "
-                                 "engine, null (supported) or the reason it is not.")] = False):
+                  "--json", help="Print JSON: cases (per case its name, description, file "
+                                 "and, per engine, null (supported) or the reason it is not) "
+                                 "and engines (per engine its package and settings schema).")
+              ] = False):
     """List the cases with a one-line description and the engines that support each."""
     jobs = _cases(None, cases_dir)
     if as_json:
         import json
 
-        print(json.dumps([{"name": c.name, "description": c.description, "file": str(c.file),
-                           "engines": {e: (c.engine(e).unsupported or None) for e in ENGINES}}
-                          for c in (job.case for job in jobs)], indent=1))
+        from .engines import adapter
+        from .engines.schema import describe
+
+        print(json.dumps({
+            "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
+                       "engines": {e: (c.engine(e).unsupported or None) for e in ENGINES}}
+                      for c in (job.case for job in jobs)],
+            "engines": {e: {"package": adapter(e).PACKAGE,
+                            "settings": describe(adapter(e).SETTINGS)} for e in ENGINES}},
+            indent=1))
         return
     table = Table(title=f"cases in {escape(str(resolve(cases_dir, 'cases')))}")
     table.add_column("case")

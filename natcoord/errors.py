@@ -18,6 +18,16 @@ class CaseError(NatcoordError):
         super().__init__(f"{self.file}: {field}: {reason}" if field else f"{self.file}: {reason}")
 
 
+class ModelError(NatcoordError):
+    """A loaded case describes a mechanism that cannot be modelled: names the field of the
+    case (``bodies[1] (plate).points``, ``joints``) and the reason; the loader adds the
+    file (a :class:`CaseError`)."""
+
+    def __init__(self, field: str, reason: str):
+        self.field, self.reason = field, reason
+        super().__init__(f"{field}: {reason}")
+
+
 class AssemblyError(NatcoordError):
     """The constraints cannot be met from the given initial guess."""
 

@@ -1,7 +1,9 @@
 """Fuzz the case loader: mutated case files are loaded or refused with a CaseError, never a
 traceback. Each example takes a shipped case file, replaces, deletes or nests some of its
 values (random types, control characters, huge numbers, long strings) and loads it; the
-command line is run on a sample of the mutants and must exit 0 or 2.
+command line is run on a sample of the mutants and must exit 0 or 2. Engine settings get
+their own fuzz: random keys (declared or not), types and values in
+``[engines.<name>].settings`` of every engine load cleanly or are refused naming the field.
 
 The budget is bounded (``max_examples``, no deadline per example) so that it runs in CI.
 """
@@ -19,6 +21,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from natcoord import CaseError, load_case
+from natcoord.engines import adapter
+from natcoord.engines.schema import problems, shown
+from natcoord.mechanism import ENGINES
 
 from .conftest import CASES
 
@@ -85,6 +90,64 @@ def test_mutated_case_files_load_or_are_refused_with_a_reason(tmp_path_factory, 
         assert str(f) in str(e)  # names the file
 
 
+SCHEMAS = {e: adapter(e).SETTINGS for e in ENGINES}
+SETTINGS_CASES = ("pendulum", "slider_crank", "four_bar_3d", "slider_crank_driven")
+
+
+def _declared_value(s):
+    """Values of the declared setting ``s``: valid ones, near misses and wrong types."""
+    numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10, 10**6))
+    by_type = {
+        "number": numbers,
+        "integer": st.one_of(st.integers(-10, 10**6), st.floats(0, 100)),
+        "boolean": st.booleans(),
+        "choice": st.one_of(st.sampled_from(s.choices), st.text(max_size=12),
+                            st.just('RK4" gravity="0 0 0'),
+                            st.just('<include file="/etc/hostname"/>')),
+        "numbers": st.lists(st.floats(-1, 3), min_size=max(0, (s.length or 2) - 1),
+                            max_size=(s.length or 2) + 1),
+        "table": st.dictionaries(st.one_of(st.sampled_from([f.name for f in s.fields]),
+                                           st.text(max_size=6)),
+                                 st.one_of(numbers, st.text(max_size=8), st.booleans()),
+                                 max_size=3),
+    }
+    return st.one_of(st.just(s.default) if s.default is not None else st.nothing(),
+                     by_type[s.type], values)
+
+
+@settings(max_examples=300, deadline=None, derandomize=True,
+          suppress_health_check=list(HealthCheck))
+@given(st.data())
+def test_random_engine_settings_load_or_are_refused_naming_the_field(tmp_path_factory, data):
+    name = data.draw(st.sampled_from(SETTINGS_CASES))
+    engine = data.draw(st.sampled_from(ENGINES))
+    declared = {s.name: s for s in SCHEMAS[engine]}
+    chosen = {}
+    for _ in range(data.draw(st.integers(1, 4))):
+        key = data.draw(st.one_of(st.sampled_from(sorted(declared)), st.text(max_size=10)))
+        chosen[key] = data.draw(_declared_value(declared[key]) if key in declared else values)
+    doc = tomllib.loads(tomli_w.dumps(TEXTS[name]))
+    doc.setdefault("engines", {}).setdefault(engine, {})["settings"] = chosen
+    try:
+        text = tomli_w.dumps(doc)
+    except (TypeError, ValueError):
+        return
+    f = tmp_path_factory.mktemp("fuzz") / f"{name}.toml"
+    f.write_text(text)
+    try:
+        case = load_case(f)
+    except CaseError as e:
+        assert e.file == str(f)
+        assert e.field.startswith(f"engines.{engine}.settings"), str(e)
+        rest = e.field[len(f"engines.{engine}.settings"):]
+        if rest:  # names the key at fault
+            assert any(rest == f".{shown(k)}" or rest.startswith((f".{k}.", f".{k}["))
+                       for k in chosen), str(e)
+    else:  # a clean load: every key declared, every value valid
+        assert set(case.engine(engine).settings) <= set(declared)
+        assert problems(adapter(engine), case.engine(engine).settings) == []
+
+
 @pytest.mark.parametrize("text, field", [
     ("a = " + "[" * 2000 + "]" * 2000, "nested too deeply"),
     ("x = " + "{a = " * 200 + "1" + "}" * 200, "nested too deeply"),
@@ -105,9 +168,14 @@ def test_the_command_line_exits_0_or_2_on_mutants(tmp_path):
         "name": base.replace('name = "pendulum"', 'name = "pend\\u0000ulum"'),
         "samples": base.replace("output_dt = 0.01", "output_dt = 1e-9"),
         "nested": base + "\ntags = " + "[" * 500 + "]" * 500 + "\n",
+        "mujoco setting": base.replace("[engines.mujoco]\nsettings = { dt = 1e-4 }",
+                                       "[engines.mujoco]\nsettings = { solver = '<include/>' }"),
+        "dart setting": base.replace("[engines.dart]\nsettings = { dt = 1e-4 }",
+                                     "[engines.dart]\nsettings = { dtt = [{}] }"),
     }
     for label, text in bad.items():
-        d = tmp_path / label
+        assert text != base, label
+        d = tmp_path / label.replace(" ", "_")
         d.mkdir()
         (d / "pendulum.toml").write_text(text)
         p = subprocess.run([sys.executable, "-m", "natcoord.cli", "cases", "--cases-dir", str(d)],

@@ -4,11 +4,12 @@ what it returns.
 An adapter is a module (or a small subpackage) of this package that follows
 :class:`Adapter`. ``init`` is the state natcoord assembled once per run (the same for every
 engine), ``settings`` the case's ``[engines.<name>].settings`` over the adapter's own
-defaults. Every body of a case has its points in its own frame; ``init[body]`` gives that
-frame's pose and rates at t = 0. All conventions of an engine (frames, signs, units,
-quaternion order) stay inside its adapter; what it returns is a
-:class:`~natcoord.result.Motion` in natcoord's neutral convention, sampled at
-``case.times``.
+defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines.schema`; importing the
+adapter must not import its engine, so that a case loads without it). Every body of a
+case has its points in its own frame; ``init[body]`` gives that frame's pose and rates at
+t = 0. All conventions of an engine (frames, signs, units, quaternion order) stay inside
+its adapter; what it returns is a :class:`~natcoord.result.Motion` in natcoord's neutral
+convention, sampled at ``case.times``.
 """
 
 from __future__ import annotations
@@ -45,6 +46,9 @@ class Adapter(Protocol):
 
     NAME: str       # engine name used in case files and results
     PACKAGE: str    # the PyPI package that provides the engine
+    SETTINGS: tuple  # the settings it reads, as natcoord.engines.schema.Setting: the loader
+    # refuses any other key or an invalid value; optional check_settings(settings) -> list
+    # of (field, reason) adds rules between settings
 
     def version(self) -> str:
         """The engine's version; raises ImportError when its package is missing."""

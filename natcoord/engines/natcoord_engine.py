@@ -6,7 +6,9 @@ Settings (``[engines.natcoord].settings``): ``coordinates`` (joints | shared, se
 ``method`` (dop853 | dopri5 | rk4 | trapezoidal | DOP853 | RK45 | Radau | LSODA | BDF),
 ``rtol`` and ``atol`` or a fixed step ``h`` (s), and the formulation's options
 (``stabilization``, ``linsolve``, ``penalty``, ``compiled``, ...). ``reference`` and
-``reference_check`` are solver settings for ``natcoord reference update``.
+``reference_check`` are solver settings for ``natcoord reference update``. They are declared
+in :data:`SETTINGS` (checked when a case is loaded; combinations by :func:`check_settings`).
+The solver and the model are imported when a run starts, not with this module.
 
 Every case runs the same way: the case's natural-coordinate model, started from the
 assembled state ``init`` (q, qd), every reaction method of the case, and the channels that
@@ -19,15 +21,83 @@ from __future__ import annotations
 
 import time
 
-from .. import __version__, casemodel, outputs
-from ..dynamics import integrate
-from ..kinematics import State
+from .. import __version__
+from ..casemodel import COORDINATES
 from ..mechanism import Case
-from ..solver import case_solver
+from ..solver import (
+    DEFAULT_METHOD,
+    DEFAULT_TOLERANCES,
+    FORMULATIONS,
+    METHODS,
+    REFERENCE_KEYS,
+    Formulation,
+    Index1,
+    Index3,
+    Maggi,
+    case_solver,
+)
 from .base import EngineRun, InitialState
+from .schema import Setting
 
 NAME = "natcoord"
 PACKAGE = "natcoord"
+
+_POSITIVE = {"exclusive_minimum": 0.0}
+SOLVER_SETTINGS = (
+    Setting("formulation", "choice", "index1", "the equations of motion: index1 "
+            "(Lagrange with acceleration constraints), maggi (null space), index3 "
+            "(augmented Lagrangian, trapezoidal)", choices=tuple(FORMULATIONS)),
+    Setting("method", "choice", None, "the integrator (none: "
+            + ", ".join(f"{m} for {f}" for f, m in DEFAULT_METHOD.items()) + ")",
+            choices=METHODS),
+    Setting("rtol", "number", DEFAULT_TOLERANCES["rtol"], "relative tolerance of adaptive "
+            "steps", **_POSITIVE),
+    Setting("atol", "number", DEFAULT_TOLERANCES["atol"], "absolute tolerance of adaptive "
+            "steps (m, m/s)", **_POSITIVE),
+    Setting("h", "number", None, "a fixed step instead of tolerances (rk4, trapezoidal; "
+            "none: adaptive)", "s", **_POSITIVE),
+    Setting("project_tol", "number", Formulation.project_tol, "tolerance of the "
+            "projections on |Phi|", "m", **_POSITIVE),
+    Setting("newton_tol", "number", Formulation.newton_tol, "Newton tolerance on |Phi|", "m",
+            **_POSITIVE),
+    Setting("rank_tol", "number", Formulation.rank_tol, "relative rank tolerance of Phi_q",
+            **_POSITIVE),
+    Setting("compiled", "boolean", Formulation.compiled, "run the integration as one "
+            "compiled numba loop where the model allows"),
+    Setting("stabilization", "choice", Index1.stabilization, "index1: drift control",
+            choices=("projection", "baumgarte", "none")),
+    Setting("baumgarte", "numbers", list(Index1.baumgarte), "index1: Baumgarte's (alpha, "
+            "beta)", "1/s", length=2, **_POSITIVE),
+    Setting("linsolve", "choice", Index1.linsolve, "index1: the linear solve (auto, Schur "
+            "complement or QR)", choices=("auto", "schur", "qr")),
+    Setting("generated", "boolean", Index1.generated, "index1: kernels written out for the "
+            "model on its Schur path"),
+    Setting("repartition_growth", "number", Maggi.repartition_growth, "maggi: re-partition "
+            "when max|R^d| grows by this factor", **_POSITIVE),
+    Setting("penalty", "number", Index3.penalty, "index3: penalty alpha h^2/4 relative to "
+            "max|M|", **_POSITIVE),
+)
+SETTINGS = (
+    Setting("coordinates", "choice", "joints", "joints: every body its own points, joints "
+            "as rows; shared: point joints as shared points (the paper's way)",
+            choices=COORDINATES),
+    *SOLVER_SETTINGS,
+    *(Setting(key, "table", None, f"solver settings of `natcoord reference update`'s "
+              f"{'stored reference' if key == 'reference' else 'check run'} (the keys "
+              "above but coordinates)", fields=SOLVER_SETTINGS) for key in REFERENCE_KEYS),
+)
+
+
+def check_settings(settings: dict) -> list[tuple[str, str]]:
+    """The settings, and its ``reference`` and ``reference_check`` tables, must each make
+    a valid solver (formulation, integrator and step control that fit together)."""
+    out = []
+    for key in ("", *REFERENCE_KEYS):
+        try:
+            case_solver(settings if not key else settings.get(key, {}))
+        except (ValueError, TypeError) as e:
+            out.append((key or "", str(e)))
+    return out
 
 
 def version() -> str:
@@ -37,6 +107,10 @@ def version() -> str:
 def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     """Integrate the case from ``init`` (assembled here when None, or when settings ask
     for other coordinates than ``init`` was assembled in)."""
+    from .. import casemodel, outputs
+    from ..dynamics import integrate
+    from ..kinematics import State
+
     solver = case_solver(settings)
     coordinates = settings.get("coordinates", "joints")
     t0 = time.perf_counter()

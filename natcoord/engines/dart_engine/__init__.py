@@ -75,19 +75,32 @@ import numpy as np
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
+from ..schema import Setting, defaults
 
 NAME = "dart"
 PACKAGE = "dartpy"
-DEFAULTS = {
-    "dt": 1e-4,  # s; must divide the case's output interval
-    "erp": 1.0,  # error-reduction parameter of the loop-joint constraints (DART static)
-    "loop_constraint": "ball",  # "ball" or "revolute"
-    "max_error_reduction_velocity": 10.0,  # m/s, DART's default cap on the correction
-    "particle_radius_of_gyration": 1e-3,  # m: a particle's tiny rotational inertia
-    "max_drift": 1e-2,  # m: loop-joint gap above which the run counts as diverged
-    "rod_mass": 1e-5,  # kg: a massless rod's light-body substitute (loads.LightRod)
-    "axial_inertia": 1e-3,  # slender rod: inertia about its axis / transverse inertia
-}
+SETTINGS = (
+    Setting("dt", "number", 1e-4, "time step of DART's semi-implicit Euler; must divide "
+            "the case's output interval", "s", exclusive_minimum=0.0),
+    Setting("erp", "number", 1.0, "error-reduction parameter of the loop-joint constraints "
+            "(DART's static)", minimum=0.0, maximum=1.0),
+    Setting("loop_constraint", "choice", "ball", "a loop-closing revolute as a "
+            "BallJointConstraint (every revolute axis parallel) or a "
+            "RevoluteJointConstraint", choices=("ball", "revolute")),
+    Setting("max_error_reduction_velocity", "number", 10.0, "DART's cap on the constraint "
+            "correction's velocity", "m/s", exclusive_minimum=0.0),
+    Setting("particle_radius_of_gyration", "number", 1e-3, "a particle's tiny rotational "
+            "inertia, as a radius of gyration (also the floor of a 2-D body's)", "m",
+            exclusive_minimum=0.0),
+    Setting("max_drift", "number", 1e-2, "a loop-joint gap above which the run counts as "
+            "diverged", "m", exclusive_minimum=0.0),
+    Setting("rod_mass", "number", 1e-5, "mass of the light rod that stands for a massless "
+            "rod", "kg", exclusive_minimum=0.0),
+    Setting("axial_inertia", "number", 1e-3, "slender rods: inertia about their axis, "
+            "times their transverse inertia (DART needs it positive)",
+            exclusive_minimum=0.0),
+)
+DEFAULTS = defaults(SETTINGS)
 
 
 def version() -> str:

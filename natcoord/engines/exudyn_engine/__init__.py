@@ -39,23 +39,34 @@ from ...errors import Unsupported
 from ...mechanism import GROUND, Case
 from ...result import Motion
 from ..base import EngineRun, merged
+from ..schema import Setting, defaults
+from .bodies import AXIAL_INERTIA
 
 NAME = "exudyn"
 PACKAGE = "exudyn"
-DEFAULTS = {
-    "solver": "generalized_alpha",  # implicit, index 3 (the only solver offered here)
-    "dt": 1e-3,                     # fixed time step h, s; must divide the output interval
-    "spectral_radius": 0.9,         # rho_inf; 1.0 makes the reactions noisy
-    "newton_rtol": 1e-10,           # Newton relative tolerance (Exudyn default 1e-8)
-    "newton_atol": 1e-10,           # Newton absolute tolerance (Exudyn default 1e-10)
-    "modified_newton": False,       # full Newton: ~2 iterations a step, faster here than
-                                    # Exudyn's default modified Newton (~7 iterations)
-    "linear_solver": "auto",        # auto: EigenDense + ignoreSingularJacobian when the
-                                    # constraints may be redundant (rods, 3-D), else
-                                    # Exudyn's default (EXUdense); or "default" |
-                                    # "singular" | "sparse" (EigenSparse: many bodies)
-    # "axial_inertia" (3-D uniform rods, relative to the largest moment): see bodies.py
-}
+SETTINGS = (
+    Setting("solver", "choice", "generalized_alpha", "Exudyn's solver: implicit "
+            "generalized-alpha, index 3 (the only one offered: the index-2 trapezoidal "
+            "variants drift by ~h^2)", choices=("generalized_alpha",)),
+    Setting("dt", "number", 1e-3, "fixed time step h; must divide the output interval", "s",
+            exclusive_minimum=0.0),
+    Setting("spectral_radius", "number", 0.9, "rho_inf of generalized-alpha (1.0 makes the "
+            "reactions noisy)", minimum=0.0, maximum=1.0),
+    Setting("newton_rtol", "number", 1e-10, "Newton's relative tolerance (Exudyn's default "
+            "1e-8)", exclusive_minimum=0.0),
+    Setting("newton_atol", "number", 1e-10, "Newton's absolute tolerance",
+            exclusive_minimum=0.0),
+    Setting("modified_newton", "boolean", False, "modified Newton (Jacobian kept over "
+            "iterations; Exudyn's default) instead of full Newton (~2 iterations a step)"),
+    Setting("linear_solver", "choice", "auto", "auto: EigenDense with "
+            "ignoreSingularJacobian when the constraints may be redundant (rods, 3-D), else "
+            "Exudyn's default EXUdense; default; singular (EigenDense, "
+            "ignoreSingularJacobian); sparse (EigenSparse: many bodies)",
+            choices=("auto", "default", "singular", "sparse")),
+    Setting("axial_inertia", "number", AXIAL_INERTIA, "3-D uniform rods: inertia added about "
+            "their own axis, times their largest moment", exclusive_minimum=0.0),
+)
+DEFAULTS = defaults(SETTINGS)
 
 COORDINATES = {2: "redundant absolute coordinates: one NodeRigidBody2D + ObjectRigidBody2D "
                   "per body at its centre of mass; every joint is a constraint (no tree)",

@@ -55,24 +55,56 @@ from __future__ import annotations
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
+from ..schema import Setting, defaults
 
 NAME = "mujoco"
 PACKAGE = "mujoco"
-DEFAULTS = {
-    "dt": 1e-4,
-    "integrator": "RK4",
-    "solver": "Newton",
-    "tolerance": 1e-10,
-    "iterations": 100,
-    "ls_iterations": 50,
-    "solref_steps": 10.0,  # equality time constant in time steps
-    "solref_damping": 1.0,  # damping ratio
-    "solimp": [0.9999, 0.9999, 0.001, 0.5, 2.0],
-    "particle_inertia": 1e-6,  # kg m^2, about every axis
-    "max_loop_drift": 1e-4,  # m: a soft loop or rod opened wider than this is a failed run
-    "loop_axis_offset": 0.0,  # m: > 0 holds a loop-closing 3-D revolute's axis by a 2nd connect
-    "zero_inertia": 1e-6,  # added along a zero principal axis, x the largest moment
-}
+SETTINGS = (
+    Setting("dt", "number", 1e-4, "time step; must divide the case's output interval",
+            "s", exclusive_minimum=0.0),
+    Setting("integrator", "choice", "RK4", "MuJoCo's integrator (<option integrator>)",
+            choices=("Euler", "RK4", "implicit", "implicitfast")),
+    Setting("solver", "choice", "Newton", "MuJoCo's constraint solver (<option solver>)",
+            choices=("PGS", "CG", "Newton")),
+    Setting("tolerance", "number", 1e-10, "the constraint solver's tolerance (0: run "
+            "every iteration)", minimum=0.0),
+    Setting("iterations", "integer", 100, "the constraint solver's iteration cap",
+            minimum=1),
+    Setting("ls_iterations", "integer", 50, "the solver's line-search iteration cap",
+            minimum=1),
+    Setting("solref_steps", "number", 10.0, "time constant of the soft equalities (loops, "
+            "rods) in time steps; below 2 MuJoCo's refsafe would clamp it", minimum=2.0),
+    Setting("solref_damping", "number", 1.0, "damping ratio of the soft equalities",
+            exclusive_minimum=0.0),
+    Setting("solimp", "numbers", (0.9999, 0.9999, 0.001, 0.5, 2.0), "impedance of the soft "
+            "equalities: dmin, dmax (below 1), width (m), midpoint (below 1), power (>= 1)",
+            exclusive_minimum=0.0, length=5),
+    Setting("particle_inertia", "number", 1e-6, "inertia about every axis given to a "
+            "particle on a slide or floating (MuJoCo needs one; it does not act)", "kg m^2",
+            exclusive_minimum=0.0),
+    Setting("max_loop_drift", "number", 1e-4, "a soft loop or rod opened wider than this is "
+            "a failed run", "m", exclusive_minimum=0.0),
+    Setting("loop_axis_offset", "number", 0.0, "> 0 holds a loop-closing 3-D revolute's axis "
+            "by a second connect this far along it (0: one connect, a ball joint)", "m",
+            minimum=0.0),
+    Setting("zero_inertia", "number", 1e-6, "inertia added along a zero principal axis "
+            "(a slender rod's own), times the largest principal moment",
+            exclusive_minimum=0.0),
+)
+DEFAULTS = defaults(SETTINGS)
+
+
+def check_settings(settings: dict) -> list[tuple[str, str]]:
+    """solimp's bounds that differ between its entries (MuJoCo would clamp them)."""
+    imp = settings.get("solimp")
+    if imp is None:
+        return []
+    out = [(f"solimp[{k}]", f"must be below 1, got {imp[k]!r}") for k in (0, 1, 3)
+           if imp[k] >= 1.0]
+    if imp[4] < 1.0:
+        out.append(("solimp[4]", f"must be >= 1 (a power), got {imp[4]!r}"))
+    return out
+
 
 JOINT_TYPES = ("revolute", "prismatic", "spherical", "universal", "cylindrical")  # modelled
 DRIVERS_UNSUPPORTED = (

@@ -1,6 +1,10 @@
 """The MJCF model of a lifted case (:func:`natcoord.engines.planar.lift_case`): one builder
 for every case.
 
+Nothing from a case file reaches the text unescaped: numbers are written by :func:`fmt`
+(``repr`` of a float) or ``int``, every name and word through ``quoteattr`` (the loader has
+also checked every setting against :data:`natcoord.engines.mujoco_engine.SETTINGS`).
+
 Each body is placed at its assembled frame at t = 0 (relative to its tree parent), so
 ``qpos0`` is the assembled state; the joints' initial velocities are returned in the XML's
 joint order.
@@ -125,7 +129,7 @@ def _inertia(b, s: dict, welded: bool, notes: list[str]) -> np.ndarray:
 
 def _inertial_xml(b, J: np.ndarray) -> str:
     full = fmt(J[0, 0], J[1, 1], J[2, 2], J[0, 1], J[0, 2], J[1, 2])
-    return (f'<inertial pos="{fmt(*b.com)}" mass="{b.mass!r}" '
+    return (f'<inertial pos="{fmt(*b.com)}" mass="{fmt(b.mass)}" '
             + (f'fullinertia="{full}"/>' if np.any(J) else 'diaginertia="0.0 0.0 0.0"/>'))
 
 
@@ -293,7 +297,7 @@ def document(case: Case, s: dict, sites: dict, lines: list, spatial: list,
         f"<mujoco model={quoteattr(case.name)}>",
         '  <compiler angle="radian" inertiafromgeom="false" balanceinertia="false"/>',
         f'  <option timestep="{float(s["dt"])!r}" gravity="{fmt(*case.gravity)}" '
-        f'integrator="{s["integrator"]}" solver="{s["solver"]}" '
+        f'integrator={quoteattr(str(s["integrator"]))} solver={quoteattr(str(s["solver"]))} '
         f'tolerance="{float(s["tolerance"])!r}" iterations="{int(s["iterations"])}" '
         f'ls_iterations="{int(s["ls_iterations"])}">',
         '    <flag contact="disable"/>',
@@ -335,12 +339,13 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     for b in case.bodies:
         if b.name not in parent:
             w.body(b.name, 4)
-    eq = [f'    <connect name={quoteattr(j.name)} site1="loop_{j.name}_0" '
-          f'site2="loop_{j.name}_1" solref="{fmt(*solref)}" solimp="{solimp}"/>'
+    eq = [f'    <connect name={quoteattr(j.name)} site1={quoteattr(f"loop_{j.name}_0")} '
+          f'site2={quoteattr(f"loop_{j.name}_1")} solref="{fmt(*solref)}" solimp="{solimp}"/>'
           for j in loops]
-    eq += [f'    <connect name={quoteattr(j.name + "_axis")} site1="loop_{j.name}_axis_0" '
-           f'site2="loop_{j.name}_axis_1" solref="{fmt(*solref)}" solimp="{solimp}"/>'
-           for j in loops if j.name in axial]
+    eq += [f'    <connect name={quoteattr(j.name + "_axis")} '
+           f'site1={quoteattr(f"loop_{j.name}_axis_0")} '
+           f'site2={quoteattr(f"loop_{j.name}_axis_1")} solref="{fmt(*solref)}" '
+           f'solimp="{solimp}"/>' for j in loops if j.name in axial]
     notes += w.notes
     notes += [f"loop revolute {j} also holds its axis: a second connect {axial[j]:g} m along "
               "it (6 rows for 5, one redundant; the joint force is the sum of both)"

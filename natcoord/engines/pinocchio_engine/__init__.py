@@ -63,23 +63,34 @@ from __future__ import annotations
 import time
 
 from ..base import EngineRun, merged, steps_per_sample
+from ..schema import Setting, defaults
 
 NAME = "pinocchio"
 PACKAGE = "pin"
-DEFAULTS = {
-    "dt": 1e-3,  # RK4 step, s; must divide the case's output_dt
-    "mu": 1e-8,  # proximal regularisation of constraintDynamics (> 0: planar zero rows)
-    "accuracy": 1e-12,  # proximal absolute accuracy
-    "max_iter": 20,  # proximal iteration cap
-    "baumgarte_kp": 0.0,  # Baumgarte gains on the loop constraints (1/s^2, 1/s)
-    "baumgarte_kd": 0.0,
-    "max_drift": 1e-3,  # m: a loop opening more than this is reported as divergence
-    "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
-    "rod_mass": 1e-6,  # kg: mass of the light body that stands for a massless rod
-    "method": "rk4",  # rk4 | radau (scipy Radau IIA on aba: stiff springs, no loops)
-    "rtol": 1e-8,  # Radau tolerances
-    "atol": 1e-10,
-}
+SETTINGS = (
+    Setting("dt", "number", 1e-3, "RK4 step; must divide the case's output interval", "s",
+            exclusive_minimum=0.0),
+    Setting("mu", "number", 1e-8, "proximal regularisation of constraintDynamics (> 0: a "
+            "planar loop's out-of-plane rows are zero)", exclusive_minimum=0.0),
+    Setting("accuracy", "number", 1e-12, "the proximal iterations' absolute accuracy",
+            exclusive_minimum=0.0),
+    Setting("max_iter", "integer", 20, "the proximal iteration cap", minimum=1),
+    Setting("baumgarte_kp", "number", 0.0, "Baumgarte position gain on the loop "
+            "constraints", "1/s^2", minimum=0.0),
+    Setting("baumgarte_kd", "number", 0.0, "Baumgarte velocity gain on the loop "
+            "constraints", "1/s", minimum=0.0),
+    Setting("max_drift", "number", 1e-3, "a loop opening more than this is reported as "
+            "divergence", "m", exclusive_minimum=0.0),
+    Setting("particle_inertia", "number", 1e-6, "rotational inertia given to a particle, "
+            "per kg of its mass", "m^2", exclusive_minimum=0.0),
+    Setting("rod_mass", "number", 1e-6, "mass of the light body that stands for a massless "
+            "rod", "kg", exclusive_minimum=0.0),
+    Setting("method", "choice", "rk4", "rk4 (fixed step dt) or radau (scipy's Radau IIA on "
+            "aba: stiff springs, no loops)", choices=("rk4", "radau")),
+    Setting("rtol", "number", 1e-8, "Radau's relative tolerance", exclusive_minimum=0.0),
+    Setting("atol", "number", 1e-10, "Radau's absolute tolerance", exclusive_minimum=0.0),
+)
+DEFAULTS = defaults(SETTINGS)
 
 
 def version() -> str:
@@ -152,4 +163,4 @@ def run(case, init, settings: dict) -> EngineRun:
     return EngineRun(motion, build_time, wall, n, s, counters, notes)
 
 
-__all__ = ["DEFAULTS", "NAME", "PACKAGE", "run", "version"]
+__all__ = ["DEFAULTS", "NAME", "PACKAGE", "SETTINGS", "run", "version"]

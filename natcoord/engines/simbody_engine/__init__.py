@@ -76,22 +76,33 @@ from __future__ import annotations
 import time
 
 from ..base import EngineRun, merged
+from ..schema import Setting, defaults
+from .simulate import INTEGRATORS
 
 NAME = "simbody"
 PACKAGE = "opensim"
-DEFAULTS = {
-    "integrator": "rk_merson",  # Simbody integrator (see simulate.INTEGRATORS)
-    "accuracy": 1e-10,  # the integrator's relative accuracy (error-controlled methods)
-    "constraint_tolerance": 1e-12,  # projection tolerance of the constraint manifold
-    "dt": None,  # s: a fixed step instead (fixed-step integrators only)
-    "step_limit": 100_000,  # internal steps per output interval before Simbody gives up (a
-    # stall, e.g. five_bar at accuracy 1e-10 near its -180 deg singular position, fails fast)
-    "loop_axis_offset": 0.0,  # m: > 0 holds a loop-closing 3-D revolute's axis by a 2nd
-    # PointConstraint that far along it (0: such a loop is Unsupported)
-    "min_step": 1e-12,  # s: a step Simbody would shrink below this is an error, not a stall
-    "particle_inertia": 1e-6,  # kg m^2 per kg: rotational inertia given to a particle
-    "velocity_check": 1e-9,  # m/s, rad/s: start must match natcoord's initial rates
-}
+SETTINGS = (
+    Setting("integrator", "choice", "rk_merson", "Simbody's integrator (cpodes for stiff "
+            "springs; explicit_euler, rk2, ... with a fixed dt)", choices=tuple(INTEGRATORS)),
+    Setting("accuracy", "number", 1e-10, "the integrator's relative accuracy "
+            "(error-controlled methods)", exclusive_minimum=0.0),
+    Setting("constraint_tolerance", "number", 1e-12, "projection tolerance of the "
+            "constraint manifold", exclusive_minimum=0.0),
+    Setting("dt", "number", None, "a fixed step instead of error control (fixed-step "
+            "integrators; none: error-controlled at accuracy)", "s", exclusive_minimum=0.0),
+    Setting("step_limit", "integer", 100_000, "internal steps per output interval before "
+            "Simbody gives up (a stall fails fast)", minimum=1),
+    Setting("loop_axis_offset", "number", 0.0, "> 0 holds a loop-closing 3-D revolute's "
+            "axis by a second PointConstraint this far along it (0: such a loop is "
+            "unsupported)", "m", minimum=0.0),
+    Setting("min_step", "number", 1e-12, "a step Simbody would shrink below this is an "
+            "error, not a stall", "s", exclusive_minimum=0.0),
+    Setting("particle_inertia", "number", 1e-6, "rotational inertia given to a particle, "
+            "per kg of its mass", "m^2", exclusive_minimum=0.0),
+    Setting("velocity_check", "number", 1e-9, "the start must match natcoord's initial "
+            "rates to this (m/s, rad/s)", exclusive_minimum=0.0),
+)
+DEFAULTS = defaults(SETTINGS)
 
 
 def version() -> str:
@@ -140,4 +151,4 @@ def run(case, init, settings: dict) -> EngineRun:
     return EngineRun(motion, build_time, wall, counters["steps"], s, counters, notes)
 
 
-__all__ = ["DEFAULTS", "NAME", "PACKAGE", "run", "version"]
+__all__ = ["DEFAULTS", "NAME", "PACKAGE", "SETTINGS", "run", "version"]
