@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -11,6 +12,20 @@ ROOT = Path(__file__).resolve().parents[1]
 CASES = ROOT / "cases"
 REFERENCES = ROOT / "references"
 DATA = Path(__file__).resolve().parent / "data"
+
+
+def worker_pids(where: Path) -> list[int]:
+    """The natcoord engine workers running now whose command line names ``where``."""
+    out = []
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"natcoord.suite.worker" in cmd and str(where).encode() in cmd:
+                out.append(int(pid))
+    return out
 
 
 @pytest.fixture

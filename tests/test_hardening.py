@@ -24,7 +24,7 @@ from natcoord.suite import gate
 from natcoord.suite.io import read_json, write_json
 from natcoord.suite.runner import run_suite
 
-from .conftest import CASES, REFERENCES, ROOT
+from .conftest import CASES, REFERENCES, ROOT, worker_pids
 
 PENDULUM = (CASES / "pendulum.toml").read_text()
 
@@ -113,17 +113,7 @@ def _slow_project(tmp_path) -> Path:
     return home
 
 
-def _workers(home: Path) -> list[int]:
-    out = []
-    for pid in os.listdir("/proc"):
-        if pid.isdigit():
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if b"natcoord.suite.worker" in cmd and str(home).encode() in cmd:
-                out.append(int(pid))
-    return out
+_workers = worker_pids
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])

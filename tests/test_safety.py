@@ -5,6 +5,7 @@ commands through the command line, on temporary folders (issue 30, items 2, 4 an
 from __future__ import annotations
 
 import errno
+import functools
 import json
 import os
 import resource
@@ -12,6 +13,7 @@ import shutil
 import sqlite3
 import subprocess
 import sys
+import tempfile
 import textwrap
 import time
 from pathlib import Path
@@ -22,7 +24,7 @@ from natcoord import CaseError, load_case
 from natcoord.suite import history, outdir
 from natcoord.suite.io import read_json, write_json
 
-from .conftest import CASES, REFERENCES
+from .conftest import CASES, REFERENCES, ROOT, worker_pids
 
 PENDULUM = (CASES / "pendulum.toml").read_text()
 NATCOORD = Path(sys.executable).parent / "natcoord"  # the console script, as a user runs it
@@ -130,17 +132,7 @@ def test_an_empty_folder_may_be_the_target(tmp_path):
     assert (out / "summary.json").is_file()
 
 
-def _workers(where: Path) -> list[int]:
-    out = []
-    for pid in os.listdir("/proc"):
-        if pid.isdigit():
-            try:
-                cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
-            except OSError:
-                continue
-            if b"natcoord.suite.worker" in cmd and str(where).encode() in cmd:
-                out.append(int(pid))
-    return out
+_workers = worker_pids
 
 
 def test_a_killed_run_leaves_no_staging_folder_for_ever(tmp_path):
@@ -197,15 +189,20 @@ def test_suite_writes_no_bench_folder_beside_out(tmp_path):
 
 
 # ---- stored state is read safely -------------------------------------------------------------
+@functools.cache
+def _real_run() -> Path:
+    """One real pendulum run in natcoord (its result files are the gate's evidence)."""
+    out = Path(tempfile.mkdtemp(prefix="natcoord-safety-")) / "run"
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--out", out, cwd=ROOT)
+    assert p.returncode == 0, p.stderr[-1500:]
+    return out
+
+
 def _gate_folder(tmp_path: Path) -> Path:
-    """A results folder with a passing summary and a bench.json, so that the gate reads
+    """A copy of a real passing results folder with a bench.json, so that the gate reads
     the history (speed against the past)."""
     d = tmp_path / "g"
-    d.mkdir()
-    write_json(d / "summary.json", {"generated": "now", "records": [
-        {"case": "pendulum", "engine": "natcoord", "status": "ok", "verdict": "pass",
-         "channels": {"x": {"kind": "position", "unit": "m", "max_abs": 1e-9,
-                            "tolerance": 1e-6, "pass": True}}}]})
+    shutil.copytree(_real_run(), d)
     write_json(d / "bench.json", {"generated": "now", "machine": {"fingerprint": "m"},
                                   "records": [{"case": "pendulum", "engine": "natcoord",
                                                "case_hash": "h", "samples_s": [0.1] * 7}]})
@@ -383,7 +380,11 @@ def test_a_passing_gate_that_updates_the_baseline_exits_0(tmp_path):
     p = _cli("gate", "--results", _gate_folder(tmp_path), "--baseline", base,
              "--history", tmp_path / "none.db", "--update-baseline")
     _clean(p, 0)
-    assert read_json(base)["errors"]["pendulum/natcoord"] == {"x": 1e-9}
+    stored = read_json(base)["errors"]["pendulum/natcoord"]  # the errors this gate judged
+    case = load_case(CASES / "pendulum.toml")
+    assert set(stored) == {c.name for c in case.channels}
+    own = case.engine("natcoord")
+    assert all(0 <= stored[c.name] <= own.tolerance_for(c) for c in case.channels)
 
 
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS])

@@ -22,6 +22,8 @@ from collections.abc import Callable, Iterable
 import numpy as np
 import plotly.graph_objects as go
 
+from ..suite.speed import positive_finite
+
 TARGET_KEY = "time_to_"
 WP_DASHES = ("solid", "dash", "dot", "dashdot", "longdash")
 WP_SYMBOLS = ("circle", "square", "diamond", "triangle-up", "x")
@@ -56,15 +58,7 @@ def angle_error(rec: dict | None) -> tuple[str, float | None, str]:
 
 def samples(rec: dict) -> list[float]:
     """Every repeat's wall time (s) of a bench record ([] when not recorded)."""
-    out = []
-    for s in rec.get("samples_s") or []:
-        try:
-            v = float(s)
-        except (TypeError, ValueError):
-            continue
-        if np.isfinite(v) and v > 0:
-            out.append(v)
-    return out
+    return positive_finite(rec.get("samples_s"))
 
 
 def _spread_text(rec: dict, ss: list[float], fmt_time: Callable) -> tuple[str, str]:

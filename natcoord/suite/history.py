@@ -324,9 +324,9 @@ def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine
                      last: int = 5, exclude_dir: str = "") -> list[float]:
     """Pooled CPU-time samples (s per run) of the same benchmarks as :func:`past_samples`
     ([] when none of them measured CPU time)."""
-    if not Path(path).exists():
-        return []
-    with connect(path) as db:
+    with reading(path) as db:
+        if db is None:
+            return []
         try:
             rows = db.execute(
                 "SELECT bench_cpu.samples FROM bench_cpu JOIN runs ON runs.id = "

@@ -76,7 +76,8 @@ class SpeedChange:
                 f"{self.clock} time)")
 
 
-def _clean(xs) -> list[float]:
+def positive_finite(xs) -> list[float]:
+    """The timing samples (s) of ``xs`` that are positive finite numbers."""
     out = []
     for x in xs or []:
         try:
@@ -95,8 +96,9 @@ def judge(case: str, engine: str, base: list[float], new: list[float],
     """Compare two sample sets of one cell (s per run): CPU times when both are given,
     else wall times."""
     factor = FACTORS.get(engine, FACTOR) if factor is None else factor
-    bc, nc = _clean(base_cpu), _clean(new_cpu)
-    clock, (b, n) = ("cpu", (bc, nc)) if bc and nc else ("wall", (_clean(base), _clean(new)))
+    bc, nc = positive_finite(base_cpu), positive_finite(new_cpu)
+    clock, (b, n) = (("cpu", (bc, nc)) if bc and nc else
+                     ("wall", (positive_finite(base), positive_finite(new))))
     ratio = statistics.median(n) / statistics.median(b) if b and n else float("nan")
     judged = has_power(len(b), len(n))
     p = (float(mannwhitneyu(n, b, alternative="greater", method="exact").pvalue)
