@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 from pathlib import Path
 
 import pytest
@@ -12,6 +13,16 @@ ROOT = Path(__file__).resolve().parents[1]
 CASES = ROOT / "cases"
 REFERENCES = ROOT / "references"
 DATA = Path(__file__).resolve().parent / "data"
+
+
+def project_copy(tmp_path: Path, *cases: str) -> Path:
+    """A project folder (cases/, references/) holding copies of shipped cases."""
+    home = tmp_path / "project"
+    (home / "cases").mkdir(parents=True)
+    shutil.copytree(REFERENCES, home / "references")
+    for c in cases:
+        shutil.copy(CASES / f"{c}.toml", home / "cases")
+    return home
 
 
 def worker_pids(where: Path) -> list[int]:

@@ -24,7 +24,7 @@ from natcoord.suite import gate
 from natcoord.suite.io import read_json, write_json
 from natcoord.suite.runner import run_suite
 
-from .conftest import CASES, REFERENCES, ROOT, worker_pids
+from .conftest import CASES, REFERENCES, ROOT, project_copy, worker_pids
 
 PENDULUM = (CASES / "pendulum.toml").read_text()
 
@@ -46,14 +46,7 @@ def _case_file(folder: Path, text: str, name: str = "pendulum") -> Path:
     return f
 
 
-def _project(tmp_path: Path, *cases: str) -> Path:
-    """A project folder (cases/, references/) holding copies of shipped cases."""
-    home = tmp_path / "project"
-    (home / "cases").mkdir(parents=True)
-    shutil.copytree(REFERENCES, home / "references")
-    for c in cases:
-        shutil.copy(CASES / f"{c}.toml", home / "cases")
-    return home
+_project = project_copy
 
 
 # ---- input --------------------------------------------------------------------------------

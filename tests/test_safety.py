@@ -24,7 +24,7 @@ from natcoord import CaseError, load_case
 from natcoord.suite import history, outdir
 from natcoord.suite.io import read_json, write_json
 
-from .conftest import CASES, REFERENCES, ROOT, worker_pids
+from .conftest import CASES, REFERENCES, ROOT, project_copy, worker_pids
 
 PENDULUM = (CASES / "pendulum.toml").read_text()
 NATCOORD = Path(sys.executable).parent / "natcoord"  # the console script, as a user runs it
@@ -43,13 +43,7 @@ def _clean(p, code):
     assert "Traceback" not in p.stdout + p.stderr, p.stderr[-1500:]
 
 
-def _project(tmp_path: Path, *cases: str) -> Path:
-    home = tmp_path / "project"
-    (home / "cases").mkdir(parents=True)
-    shutil.copytree(REFERENCES, home / "references")
-    for c in cases:
-        shutil.copy(CASES / f"{c}.toml", home / "cases")
-    return home
+_project = project_copy
 
 
 def _snapshot(folder: Path) -> dict:

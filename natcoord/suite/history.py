@@ -302,6 +302,17 @@ def import_jsonl(db_path: Path, jsonl: Path) -> int:
     return len(lines)
 
 
+def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str,
+            machine: str, last: int, exclude_dir: str) -> list[tuple]:
+    """``columns`` of ``table`` (bench or bench_cpu) for the last ``last`` benchmarks of a
+    cell with the same case file and machine, not those of the folder ``exclude_dir``."""
+    return db.execute(
+        f"SELECT {columns} FROM {table} JOIN runs ON runs.id = {table}.run_id WHERE "
+        "case_name = ? AND engine = ? AND case_hash = ? AND runs.machine = ? AND "
+        "(? = '' OR IFNULL(runs.results_dir, '') != ?) ORDER BY runs.id DESC LIMIT ?",
+        (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
+
+
 def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
                  last: int = 5, exclude_dir: str = "") -> tuple[list[float], dict | None]:
     """Pooled wall-time samples (s) of the last ``last`` benchmarks of a cell with the same
@@ -310,12 +321,8 @@ def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: st
     with reading(path) as db:
         if db is None:
             return [], None
-        rows = db.execute(
-            "SELECT bench.samples, bench.counters FROM bench JOIN runs ON runs.id = "
-            "bench.run_id WHERE case_name = ? AND engine = ? AND case_hash = ? AND "
-            "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?) "
-            "ORDER BY runs.id DESC LIMIT ?",
-            (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
+        rows = _recent(db, "bench", "bench.samples, bench.counters", case, engine,
+                       case_hash, machine, last, exclude_dir)
     samples = [s for raw, _ in rows for s in json.loads(raw)]
     return samples, (json.loads(rows[0][1]) if rows else None)
 
@@ -328,12 +335,8 @@ def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine
         if db is None:
             return []
         try:
-            rows = db.execute(
-                "SELECT bench_cpu.samples FROM bench_cpu JOIN runs ON runs.id = "
-                "bench_cpu.run_id WHERE case_name = ? AND engine = ? AND case_hash = ? AND "
-                "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?) "
-                "ORDER BY runs.id DESC LIMIT ?",
-                (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
+            rows = _recent(db, "bench_cpu", "bench_cpu.samples", case, engine, case_hash,
+                           machine, last, exclude_dir)
         except sqlite3.OperationalError as e:  # a history written before CPU samples
             if "no such table" not in str(e):
                 raise
