@@ -160,8 +160,10 @@ def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
 def test_under_load_unchanged_cells_pass_and_an_injected_slowdown_is_caught(
         tmp_path, monkeypatch):
     """A process busy on the other core throughout; slider_crank's natcoord cell measured
-    by the real bench path (worker process, calibrated batches, 5 samples) once for the
-    history, five times unchanged and once with its stepping executed three times per run
+    by the real bench path (worker process, calibrated batches, 5 samples) three times for
+    the history (as three nights leave it: a shared machine drifts between fast and slow
+    spells, up to 1.6x on CPU time over a minute, so one measurement is no baseline), five
+    times unchanged and once with its stepping executed three times per run
     (the test hook). Judged as the suite judges (against the history, a suspect measured
     again): the five unchanged cells raise no alarm (ratio ~1 against 1.5x), the 3x cell
     is caught by the suite's and by compare's rule."""
@@ -187,8 +189,9 @@ def test_under_load_unchanged_cells_pass_and_an_injected_slowdown_is_caught(
         return v
 
     try:
-        base = cell()
-        history.record(db, kind="bench", bench=base)
+        for _ in range(3):
+            base = cell()
+            history.record(db, kind="bench", bench=base)
         unchanged = [gate(cell()) for _ in range(5)]
         slow = cell(3)
         caught = gate(slow)

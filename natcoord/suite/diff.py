@@ -175,9 +175,10 @@ def speed_notes(changes: list[speed.SpeedChange], history_db: Path | None = None
 def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Path,
                      say: Callable[[int], None] = lambda n: None) -> list[speed.SpeedChange]:
     """Every cell of a benchmark judged against its history (:func:`against_history`);
-    each cell significantly slower is measured once more (its new samples replace the first
-    ones in ``result``) and judged again before it is reported. ``say(n)`` is told how
-    many are re-measured."""
+    each cell significantly slower is measured once more, with twice the samples (so they
+    span twice the time: a shared machine drifts between fast and slow spells lasting
+    seconds), its new samples replacing the first ones in ``result``, and judged again
+    before it is reported. ``say(n)`` is told how many are re-measured."""
     first = against_history(result, db)
     suspects = [s for s in first if s.slower]
     if not suspects:
@@ -188,7 +189,7 @@ def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Pat
     with tempfile.TemporaryDirectory(prefix="natcoord-recheck-") as tmp:
         for s in suspects:
             records[(s.case, s.engine)].update(
-                bench.measure(by_name[s.case], s.engine, repeats, timeout_s, Path(tmp)))
+                bench.measure(by_name[s.case], s.engine, 2 * repeats, timeout_s, Path(tmp)))
     return against_history(result, db)
 
 
