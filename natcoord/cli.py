@@ -673,7 +673,9 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
                 out_file: Annotated[Path | None, typer.Option(
                     "--out", help="Write the proposed blocks here too.")] = None,
                 timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
-                references: RefDir = None):
+                references: RefDir = None,
+                force: Annotated[bool, typer.Option(
+                    "--force", help="Replace an existing --out file.")] = False):
     """Propose tolerances for a new case: run it in every engine (at its settings and over
     the start of each engine's sweep), measure the errors against its reference and print
     the [engines.*] blocks to paste into the case file."""
@@ -682,6 +684,13 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
     (job,) = _cases([case], cases_dir)
     names = _engines(engines)
     refs = resolve(references, "references")
+    if out_file is not None:  # refused before the long runs, not after
+        from .suite.io import check_user_file
+
+        try:
+            check_user_file(out_file, force=force)
+        except NatcoordError as e:
+            _fail(str(e))
     try:
         rows = propose.propose(job, names, refs, margin=margin, timeout_s=timeout)
     except ValueError as e:
@@ -693,9 +702,12 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
             err.print(f"note: {row['engine']}'s error does not fall over its sweep; check its "
                       "settings before trusting the proposal")
     if out_file is not None:
-        from .suite.io import write_atomic
+        from .suite.io import write_user_file
 
-        write_atomic(out_file, text + "\n")
+        try:
+            write_user_file(out_file, text + "\n", force=force)
+        except NatcoordError as e:
+            _fail(str(e))
         out.print(f"written: {escape(str(out_file))}")
 
 

@@ -264,13 +264,10 @@ def write_case(path: Path, text: str, *, force: bool = False) -> None:
     existing file is kept (NatcoordError) unless ``force``; a folder or a special file in
     its place is never replaced."""
     from .casefile import load_case
-    from .suite.io import write_atomic
+    from .suite.io import check_user_file, write_user_file
 
     path = Path(path)
-    if path.is_symlink() or (path.exists() and not path.is_file()):
-        raise NatcoordError(f"{path}: exists and is not a regular file; not replaced")
-    if path.exists() and not force:
-        raise NatcoordError(f"{path}: exists; give --force to replace it")
+    check_user_file(path, force=force)
     with tempfile.TemporaryDirectory(prefix="natcoord-generate-") as tmp:
         trial = Path(tmp) / path.name
         trial.write_text(text, encoding="utf-8")
@@ -278,11 +275,4 @@ def write_case(path: Path, text: str, *, force: bool = False) -> None:
             load_case(trial)
         except NatcoordError as e:
             raise NatcoordError(f"generated file does not load: {e}") from None
-    if force:
-        write_atomic(path, text)
-        return
-    try:
-        with open(path, "x", encoding="utf-8") as f:
-            f.write(text)
-    except FileExistsError:
-        raise NatcoordError(f"{path}: exists; give --force to replace it") from None
+    write_user_file(path, text, force=force)

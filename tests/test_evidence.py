@@ -337,3 +337,41 @@ def test_compare_reports_version_case_file_and_settings_changes(run, folder):
     assert "case file changed" in c.stderr and "setting rtol: 1e-12 -> 1e-06" in c.stderr
     j = json.loads(_cli("compare", run, folder, "--json").stdout)
     assert len(j["changes"]) == 3
+
+
+
+def test_a_record_relabelled_unsupported_cannot_hide_a_cell_the_baseline_holds(tmp_path):
+    """Two cells ran; slider_crank's record is relabelled ``unsupported`` (an engine may
+    refuse a case at run time, so the label alone proves nothing). With the baseline
+    holding that cell's errors from a judged run: exit 3 naming the cell. Without a
+    baseline entry for it, the label is all there is: the other cell is judged, exit 0."""
+    out = tmp_path / "run"
+    p = _cli("run", "pendulum", "slider_crank", "--engines", "natcoord", "--out", out)
+    assert p.returncode == 0, p.stderr
+    summary = read_json(out / "summary.json")
+    (rec,) = [r for r in summary["records"] if r["case"] == "slider_crank"]
+    rec.update(status="unsupported", reason="relabelled")
+    write_json(out / "summary.json", summary)
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {"slider_crank/natcoord": {"theta": 1e-9}}})
+    p = _cli("gate", "--results", out, "--baseline", base)
+    _clean(p)
+    assert p.returncode == gate.NOT_RUN and "slider_crank/natcoord: unsupported " \
+        "(relabelled), but the baseline holds its errors" in p.stderr, p.stderr
+    write_json(base, {"errors": {CELL: {"x": 1.0}}})
+    p = _cli("gate", "--results", out, "--baseline", base)
+    assert p.returncode == 0, p.stderr
+
+
+def test_propose_keeps_an_existing_out_file(tmp_path):
+    """`propose --out` onto an existing file: exit 2 before any run, the file unchanged;
+    a folder in its place is never replaced, even with --force."""
+    mine = tmp_path / "mine.toml"
+    mine.write_text("# my notes\n")
+    p = _cli("propose", "pendulum", "--engines", "natcoord", "--out", mine)
+    _clean(p)
+    assert p.returncode == 2 and "exists; give --force" in p.stderr
+    assert mine.read_text() == "# my notes\n"
+    p = _cli("propose", "pendulum", "--engines", "natcoord", "--out", tmp_path, "--force")
+    _clean(p)
+    assert p.returncode == 2 and "not a regular file" in p.stderr and tmp_path.is_dir()

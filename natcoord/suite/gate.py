@@ -10,7 +10,8 @@ Exit codes: 0 all hold; 1 an accuracy regression (a gated channel over its toler
 non-finite, an error grown past the stored baseline, a result file missing, altered since
 the run or unreadable); 2 bad input (no or malformed summary or baseline, a case file or
 reference missing or damaged, a case without tolerances for an engine that ran); 3 nothing
-ran, or a required engine failed or was skipped.
+ran, or a required engine failed or was skipped, or a cell the baseline holds did not run
+(a record that says ``unsupported`` or ``skipped`` cannot hide a cell that passed before).
 """
 
 from __future__ import annotations
@@ -162,6 +163,10 @@ def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
         elif r["status"] == "ok":
             _judge_cell(v, r, key, Path(results), cases, Path(references),
                         (baseline or {}).get(key) or {}, baseline_factor, floor)
+        elif (baseline or {}).get(key):
+            v.worse(NOT_RUN, f"{key}: {r['status']} ({r.get('reason', '')[:200]}), but the "
+                    "baseline holds its errors from a judged run: a cell that passed "
+                    "before must run and be judged again")
     return v
 
 

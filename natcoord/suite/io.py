@@ -23,9 +23,11 @@ def _umask() -> int:
     return mask
 
 
-def write_atomic(path: Path, text: str) -> None:
+def write_atomic(path: Path, text: str, *, replace: bool = True) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder and a rename.
-    The file gets ordinary permissions (0666 less the umask), not the temporary's 0600."""
+    The file gets ordinary permissions (0666 less the umask), not the temporary's 0600.
+    With ``replace=False`` an existing ``path`` is kept (FileExistsError): the temporary is
+    linked into place, which fails when the name exists, so no reader ever sees part of it."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
@@ -35,10 +37,41 @@ def write_atomic(path: Path, text: str) -> None:
             f.write(text)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
+        if replace:
+            os.replace(tmp, path)
+        else:
+            os.link(tmp, path)
+    finally:
         Path(tmp).unlink(missing_ok=True)
-        raise
+
+
+def check_user_file(path: Path, *, force: bool = False) -> None:
+    """What :func:`write_user_file` refuses, checked before the work that makes the text:
+    NatcoordError when ``path`` is a folder, symlink or special file, or exists without
+    ``force``."""
+    from ..errors import NatcoordError
+
+    path = Path(path)
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        raise NatcoordError(f"{path}: exists and is not a regular file; not replaced")
+    if path.exists() and not force:
+        raise NatcoordError(f"{path}: exists; give --force to replace it")
+
+
+def write_user_file(path: Path, text: str, *, force: bool = False) -> None:
+    """Write a file a user named on the command line (a case file, a proposal): an existing
+    file is kept unless ``force``, and a folder, symlink or special file in its place is
+    never replaced; NatcoordError naming the path otherwise."""
+    from ..errors import NatcoordError
+
+    path = Path(path)
+    check_user_file(path, force=force)
+    try:
+        write_atomic(path, text, replace=force)
+    except FileExistsError:
+        raise NatcoordError(f"{path}: exists; give --force to replace it") from None
+    except OSError as e:
+        raise NatcoordError(f"{path}: cannot be written ({e.strerror or e})") from None
 
 
 def _clean(x):
