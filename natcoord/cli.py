@@ -28,8 +28,10 @@ from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
 from .project import resolve
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  rich_markup_mode=None,  # help texts are plain: [default: ...] stays visible
                   help="Natural-coordinate multibody solver and cross-engine validation suite.")
-reference_app = typer.Typer(no_args_is_help=True, help="Stored reference solutions.")
+reference_app = typer.Typer(no_args_is_help=True, rich_markup_mode=None,
+                            help="Stored reference solutions.")
 app.add_typer(reference_app, name="reference")
 out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
