@@ -3,8 +3,9 @@
 Every command works from any directory: cases, references and reports are found in the
 project folder (:mod:`natcoord.project`) unless an option names them. Results go to a fresh
 folder per command (``reports/runs/<time>-<command>``) and are published whole when the
-command completes; ``reports/latest`` points at the last complete ``suite``, which
-``report`` and ``gate`` read by default. Ctrl-C ends every engine process and exits 130,
+command completes; ``reports/latest`` points at the last complete ``run`` or ``suite``
+written there (until one completes, at the one before), which ``report`` and ``gate`` read
+by default. Ctrl-C ends every engine process and exits 130,
 SIGTERM (a cancelled CI job) 143; bad input (a case file, a stored file) exits 2 with one
 line naming the problem, a fault of the environment (a full disk, a read-only folder) 5.
 """
@@ -48,7 +49,8 @@ OutDir = Annotated[Path | None, typer.Option(
     "--out", help="Results folder [default: a fresh <project>/reports/runs/<time>-<command>].",
     show_default=False)]
 ResultsDir = Annotated[Path | None, typer.Option(
-    "--results", help="Results folder [default: <project>/reports/latest, the last suite].",
+    "--results", help="Results folder [default: <project>/reports/latest, the last complete "
+    "run or suite].",
     show_default=False)]
 Timeout = Annotated[float, typer.Option(
     min=0.001, help="Seconds per engine run (a case file's own `timeout`, when stricter, "
@@ -143,6 +145,17 @@ def _engines(spec: str | None) -> list[str]:
     if bad:
         _fail(f"--engines: unknown engine {bad[0]!r}; engines are {', '.join(ENGINES)}")
     return list(dict.fromkeys(names))
+
+
+def _point_latest(target: Path) -> None:
+    """Point reports/latest at ``target``, a results folder just published (until then it
+    keeps pointing at the previous complete one, which gate and report read meanwhile)."""
+    from .suite.outdir import point_latest
+
+    latest = resolve(None, "reports/latest")
+    if not point_latest(latest, target):
+        err.print(f"warning: {escape(str(latest))} is not a link natcoord made; left as it "
+                  "is (not pointed at these results)", highlight=False)
 
 
 def _out_dir(given: Path | None, kind: str) -> Path:
@@ -272,7 +285,11 @@ def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = N
                             timeout_s=timeout, progress=_progress_printer(total, where),
                             jobs=n, scheduler=scheduler)
     out.print(f"{counts_line(summary['records'])}; summary: {target / 'summary.json'}")
-    out.print(f"judge it with: natcoord gate --results {target}")
+    if out_dir is None:
+        _point_latest(target)
+        out.print("judge it with: natcoord gate (it reads reports/latest, this run)")
+    else:
+        out.print(f"judge it with: natcoord gate --results {target}")
     if any(r["status"] == "failed" for r in summary["records"]):
         err.print(f"[bold red]some runs failed[/] (exit {RUN_FAILED}): see the reasons above")
         raise typer.Exit(RUN_FAILED)
@@ -536,7 +553,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     from .report.html import write_report
     from .suite import bench, diff, gate
     from .suite import history as hist
-    from .suite.outdir import point_latest, publishing
+    from .suite.outdir import publishing
     from .suite.runner import run_suite
 
     names = _engines(engines)
@@ -546,9 +563,6 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     hist.import_jsonl(history, history.with_suffix(".jsonl"))
     target = _out_dir(out_dir, "suite")
     nightly = out_dir is None and not cases and engines is None  # a subset is not nightly
-    latest = resolve(None, "reports/latest") if nightly else None
-    if nightly and latest.is_symlink():  # until this suite completes, no suite is
-        latest.unlink()                  # "the latest": a gate finds no summary
     with publishing(target, "suite") as staging:
         selected = _cases(cases, cases_dir)
         _check_references(selected, references)
@@ -586,9 +600,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         write_report(staging, references, history)
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
                                         target / "index.html")
-    if nightly and not point_latest(latest, target):
-        err.print(f"warning: {escape(str(latest))} is not a link natcoord made; left as it "
-                  "is (not pointed at this suite)", highlight=False)
+    if out_dir is None:
+        _point_latest(target)
     for line in verdict.lines:
         err.print(escape(line), highlight=False)
     code, faults = verdict.code, []

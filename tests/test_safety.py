@@ -357,7 +357,7 @@ def _cli_with_fault(code: int, *args, env=None):
     prog = textwrap.dedent(f"""
         import os, sys
         import natcoord.suite.io as io
-        def write_atomic(path, text):
+        def write_atomic(path, text, **kw):
             raise OSError({code}, os.strerror({code}), str(path))
         io.write_atomic = write_atomic
         sys.argv = ["natcoord", *sys.argv[1:]]
@@ -489,3 +489,20 @@ def test_generate_keeps_an_existing_case_file_unless_forced(tmp_path):
     new = tmp_path / "a02_four_bar_n4.toml"
     _clean(_cli("generate", "n_four_bar", "--n", "4", "--out", new), 0)
     assert json.dumps(load_case(new).name) == '"a02_four_bar_n4"'
+
+
+def test_gate_and_report_read_the_last_run_by_default(tmp_path):
+    """After `run` (default folder), `gate` and `report` without --results read that run
+    (they used to ask for a run that had just been made); a later run refused for bad
+    input leaves reports/latest at the complete one."""
+    home = project_copy(tmp_path, "pendulum")
+    env = {"NATCOORD_HOME": str(home)}
+    _clean(_cli("run", "pendulum", "--engines", "natcoord", env=env), 0)
+    first = (home / "reports" / "latest").resolve()
+    assert (first / "summary.json").is_file()
+    p = _cli("gate", env=env)
+    _clean(p, 0)
+    _clean(_cli("report", env=env), 0)
+    assert (first / "index.html").is_file()
+    _clean(_cli("run", "no_such_case", "--engines", "natcoord", env=env), 2)
+    assert (home / "reports" / "latest").resolve() == first
