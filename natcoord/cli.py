@@ -767,6 +767,37 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
     out.print(f"{family} N = {n}: {out_file}")
 
 
+@app.command("import")
+def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .xml).")],
+               out_file: Annotated[Path, typer.Option(
+                   "--out", help="Case file to write (its stem is the case name), or a "
+                   "folder to write <name>.toml in.")],
+               name: Annotated[str | None, typer.Option(
+                   help="Case name [default: the file's stem, or the model's].")] = None,
+               duration: Annotated[float, typer.Option(min=1e-3, help="s.")] = 2.0,
+               force: Annotated[bool, typer.Option(
+                   "--force", help="Replace an existing case file.")] = False):
+    """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,
+    slide and ball joints, connect (and weld) equalities closing loops, gravity and the
+    initial state; what it does not carry is listed in the file and here."""
+    from .generate import write_case
+    from .mjcf import import_mjcf
+
+    if out_file.is_dir():
+        out_file = out_file / f"{name or model.stem}.toml"
+    if name is not None and name != out_file.stem:
+        _fail(f"--name {name!r} must equal the case file's stem {out_file.stem!r}")
+    try:
+        imported = import_mjcf(model, out_file.stem, duration=duration)
+        write_case(out_file, imported.text, force=force)
+    except NatcoordError as e:
+        _fail(str(e))
+    for note in imported.notes:
+        out.print(f"not carried: {escape(note)}", highlight=False)
+    out.print(f"{model} -> {out_file} ({imported.dimension}-D, "
+              f"{len(imported.loops)} loop(s))", highlight=False)
+
+
 def _stop(signum, frame):
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the clean-up
     signal.signal(signal.SIGTERM, signal.SIG_IGN)

@@ -1,0 +1,178 @@
+"""MJCF import (`natcoord import`): the round trip through MuJoCo, the shipped imported
+cases, and bad models refused with exit 2 naming the file and the element.
+
+Round trip (measured, mujoco 4.0.0): the planar four-bar imported from cases/mjcf_four_bar.xml
+and run in MuJoCo through the adapter (RK4, dt 1e-4, connect solref 1e-3 s, as the XML
+asks) follows the same XML stepped directly (mj_step) to 6.5e-14 m at the loop point over
+2 s; natcoord on the imported case follows the direct run to 5.2e-9 m (MuJoCo's soft
+loop: its connect's error, which falls with the time constant). Bounds ~10x.
+"""
+
+from __future__ import annotations
+
+import mujoco  # noqa: F401 - a real dependency: missing fails, never skips
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from natcoord.casefile import load_case
+from natcoord.cli import app
+from natcoord.engines import adapter
+from natcoord.engines.base import initial_body_states
+from natcoord.generate import write_case
+from natcoord.mjcf import import_mjcf
+from natcoord.result import evaluate_channels
+
+from .conftest import CASES
+
+pytestmark = pytest.mark.engines
+
+SHIPPED = ("mjcf_four_bar", "mjcf_rssr")
+
+
+def _direct(xml, imp, case) -> np.ndarray:
+    """The loop point at the case's times, (T, d) in the case's axes: the XML stepped by
+    mj_step with its own options, from the importer's (assembled) initial state."""
+    m = mujoco.MjModel.from_xml_path(str(xml))
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = imp.qpos, imp.qvel
+    k = int(round(case.output_dt / m.opt.timestep))
+    (body, anchor), = imp.loops.values()
+    out = []
+    for i in range(len(case.times)):
+        for _ in range(k if i else 0):
+            mujoco.mj_step(m, d)
+        mujoco.mj_kinematics(m, d)
+        out.append(d.xpos[body] + d.xmat[body].reshape(3, 3) @ anchor)
+    p = np.array(out)
+    return p if imp.frame is None else p @ imp.frame[:2].T
+
+
+def test_round_trip_four_bar(tmp_path):
+    xml = CASES / "mjcf_four_bar.xml"
+    imp = import_mjcf(xml, "rt_four_bar")
+    write_case(tmp_path / "rt_four_bar.toml", imp.text)
+    case = load_case(tmp_path / "rt_four_bar.toml")
+    assert case.dimension == 2 and imp.frame is not None
+    direct = _direct(xml, imp, case)
+    (loop,) = imp.loops
+    got = {}
+    for engine in ("mujoco", "natcoord"):
+        run = adapter(engine).run(case, initial_body_states(case), {})
+        table = evaluate_channels(case, run.motion)
+        got[engine] = np.column_stack([table[f"{a}_{loop}"] for a in "xy"])
+    assert np.abs(direct - direct[0]).max() > 0.5  # it moves: the comparison means something
+    assert np.abs(got["mujoco"] - direct).max() < 1e-12
+    assert np.abs(got["natcoord"] - direct).max() < 5e-8
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_shipped_case_is_its_import(name, tmp_path):
+    """The committed case's mechanism is what importing its XML writes now."""
+    shipped = load_case(CASES / f"{name}.toml")
+    imp = import_mjcf(CASES / f"{name}.xml", name, duration=shipped.duration)
+    write_case(tmp_path / f"{name}.toml", imp.text)
+    fresh = load_case(tmp_path / f"{name}.toml")
+    assert [b.name for b in fresh.bodies] == [b.name for b in shipped.bodies]
+    for a, b in zip(fresh.bodies, shipped.bodies, strict=True):
+        assert a.mass == b.mass
+        np.testing.assert_allclose(a.com, b.com, atol=1e-15)
+        np.testing.assert_allclose(a.inertia, b.inertia, atol=1e-15)
+    assert [(j.name, j.type, j.bodies) for j in fresh.joints] == [
+        (j.name, j.type, j.bodies) for j in shipped.joints]
+    assert {c.name for c in fresh.channels} <= {c.name for c in shipped.channels}
+
+
+def test_rssr_is_3d_with_two_dof():
+    case = load_case(CASES / "mjcf_rssr.toml")
+    assert case.dimension == 3
+    assert {j.type for j in case.joints} == {"revolute", "spherical"}
+
+
+def test_masses_are_mujocos():
+    imp = import_mjcf(CASES / "mjcf_four_bar.xml", "x")
+    m = mujoco.MjModel.from_xml_path(str(CASES / "mjcf_four_bar.xml"))
+    assert "mass = 2.0" in imp.text  # coupler 1.6 kg rod + 0.4 kg lump, compiled
+    assert abs(m.body_mass.sum() - (0.8 + 2.0 + 1.2)) < 1e-12
+
+
+def _invoke(args):
+    return CliRunner().invoke(app, args)
+
+
+MODEL = """<mujoco>
+  <worldbody>
+    <body name="a"><joint name="ja" type="hinge" axis="0 1 0"/>
+      <geom type="capsule" fromto="0 0 0 1 0 0" size="0.05" contype="0" conaffinity="0"/>
+    </body>
+    {extra_body}
+  </worldbody>
+  {extra}
+</mujoco>"""
+
+
+@pytest.mark.parametrize(("extra_body", "extra", "named"), [
+    ("", '<equality><connect body1="a" body2="nosuch" anchor="1 0 0"/></equality>',
+     "nosuch"),
+    ('<body name="f"><freejoint name="float"/><geom size="0.1"/></body>', "", "float"),
+    ("", '<tendon><fixed name="tt" stiffness="10"><joint joint="ja" coef="1"/></fixed>'
+     "</tendon>", "tt"),
+    ("", '<equality><joint name="jeq" joint1="ja"/></equality>', "jeq"),
+])
+def test_bad_mjcf_exit_2_names_element(tmp_path, extra_body, extra, named):
+    xml = tmp_path / "bad.xml"
+    xml.write_text(MODEL.format(extra_body=extra_body, extra=extra))
+    r = _invoke(["import", str(xml), "--out", str(tmp_path / "bad.toml")])
+    assert r.exit_code == 2, r.output
+    assert str(xml) in r.output and named in r.output
+    assert "Traceback" not in r.output and not (tmp_path / "bad.toml").exists()
+
+
+def test_malformed_xml_exit_2(tmp_path):
+    xml = tmp_path / "broken.xml"
+    xml.write_text("<mujoco><worldbody><body name='a'></worldbody>")
+    r = _invoke(["import", str(xml), "--out", str(tmp_path / "broken.toml")])
+    assert r.exit_code == 2 and str(xml) in r.output and "XML" in r.output
+    assert "Traceback" not in r.output
+
+
+def test_existing_file_kept_without_force(tmp_path):
+    out = tmp_path / "fb.toml"
+    out.write_text("mine")
+    r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out", str(out)])
+    assert r.exit_code == 2 and out.read_text() == "mine"
+    r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out", str(out), "--force"])
+    assert r.exit_code == 0, r.output
+    assert "not carried: actuator 'crank_motor'" in r.output
+    text = out.read_text()
+    assert "#   sensor 'crank_angle'" in text and "solref" in text
+    assert load_case(out).dimension == 2
+
+
+def test_weld_closes_a_loop_and_velocity_is_carried(tmp_path):
+    """A weld closing a loop makes its two bodies one; a keyframe velocity is projected onto
+    the loops and given through point channels that fix it (natcoord then starts with it)."""
+    xml = tmp_path / "w.xml"
+    xml.write_text("""<mujoco><option gravity="0 0 -9.81"/>
+      <default><geom contype="0" conaffinity="0"/><joint type="hinge" axis="0 1 0"/></default>
+      <worldbody>
+        <body name="l"><joint name="O"/><geom type="capsule" fromto="0 0 0 0 0 1" size=".02"
+            mass="1"/>
+          <body name="c1" pos="0 0 1"><joint name="A"/><geom type="capsule"
+            fromto="0 0 0 0.5 0 0" size=".02" mass="1"/></body></body>
+        <body name="r" pos="1 0 0"><joint name="D"/><geom type="capsule" fromto="0 0 0 0 0 1"
+            size=".02" mass="1"/>
+          <body name="c2" pos="0 0 1"><joint name="B"/><geom type="capsule"
+            fromto="0 0 0 -0.5 0 0" size=".02" mass="1"/></body></body>
+      </worldbody>
+      <equality><weld name="W" body1="c1" body2="c2"/></equality>
+      <keyframe><key qvel="1 -1 1 -1"/></keyframe></mujoco>""")
+    imp = import_mjcf(xml, "w")
+    write_case(tmp_path / "w.toml", imp.text)
+    case = load_case(tmp_path / "w.toml")
+    assert [b.name for b in case.bodies] == ["l", "c1", "r"]  # c2 welded into c1
+    assert case.body("c1").mass == 2.0
+    assert len(case.velocity) == 1  # one degree of freedom: the cranks turn at 1 rad/s
+    run = adapter("natcoord").run(case, initial_body_states(case), {})
+    assert abs(abs(run.motion.omega["l"][0]) - 1.0) < 1e-9
+    assert abs(run.motion.omega["c1"][0]) < 1e-9  # the coupler translates
