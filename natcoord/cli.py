@@ -599,7 +599,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         verdict.lines += [s.line() for s in slower] + diff.speed_notes(speed, history)
         write_report(staging, references, history)
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
-                                        target / "index.html")
+                                        target / "index.html", verdict.lines)
     if out_dir is None:
         _point_latest(target)
     for line in verdict.lines:

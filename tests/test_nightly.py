@@ -235,6 +235,22 @@ def test_ci_summary_is_markdown_with_verdicts():
     assert "`c/e`: 1 of 2 gated channels over tolerance" in text
 
 
+def test_ci_summary_of_a_skipped_required_engine_is_not_nothing_ran():
+    """82 cells passed and one required engine was skipped: the heading says a required
+    cell did not run (not "not run"), and the gate's line says which."""
+    records = [{"case": f"c{i}", "engine": "e", "status": "ok", "verdict": "pass"}
+               for i in range(82)]
+    records.append({"case": "c0", "engine": "dart", "status": "skipped",
+                    "reason": "dartpy is not installed"})
+    line = "c0/dart: required engine skipped: dartpy is not installed"
+    text = diff.markdown({"records": records}, 3, [], "index.html", [line])
+    assert text.startswith("## natcoord suite: incomplete: a required cell did not run "
+                           "(exit 3)")
+    assert "| pass | 82 |" in text and f"- {line}" in text
+    none = diff.markdown({"records": records[-1:]}, 3, [], "index.html", [])
+    assert none.startswith("## natcoord suite: nothing ran (exit 3)")
+
+
 def _tables(out: Path) -> dict:
     import pandas as pd
     return {p.relative_to(out).as_posix(): pd.read_csv(p)

@@ -194,10 +194,10 @@ def slower_rechecked(result: dict, jobs, repeats: int, timeout_s: float, db: Pat
 
 
 def write_ci_summary(folder: Path, summary: dict, code: int, slower: list,
-                     report: Path) -> str:
+                     report: Path, found: list[str] | None = None) -> str:
     """summary.md in the results folder; returns its text (for
     :func:`append_step_summary`, once the results are published)."""
-    text = markdown(summary, code, slower, str(report))
+    text = markdown(summary, code, slower, str(report), found)
     write_atomic(Path(folder) / "summary.md", text)
     return text
 
@@ -216,14 +216,22 @@ def append_step_summary(text: str) -> None:
                                f"({e.strerror or e})") from None
 
 
-def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: str) -> str:
-    """A short CI summary: verdict counts, regressions and slowdowns, where the report is."""
+HEADINGS = {0: "passed", 1: "accuracy regression", 2: "bad input",
+            3: "incomplete: a required cell did not run", 4: "significant slowdown"}
+
+
+def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: str,
+             found: list[str] | None = None) -> str:
+    """A short CI summary: the gate's verdict, outcome counts, failing cells, what the gate
+    found (``found``, its lines), slowdowns, where the report is."""
     counts: dict[str, int] = {}
     for r in summary["records"]:
         key = r["verdict"] if r["status"] == "ok" else r["status"]
         counts[key] = counts.get(key, 0) + 1
-    word = {0: "passed", 1: "accuracy regression", 2: "bad input", 3: "not run",
-            4: "significant slowdown"}.get(code, str(code))
+    if code == 3 and not any(r["status"] == "ok" for r in summary["records"]):
+        word = "nothing ran"
+    else:
+        word = HEADINGS.get(code, str(code))
     lines = [f"## natcoord suite: {word} (exit {code})", "",
              "| outcome | cells |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in sorted(counts.items())]
@@ -233,6 +241,12 @@ def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: 
         lines += ["", "### Failing cells", ""]
         lines += [f"- `{r['case']}/{r['engine']}`: {r.get('reason') or r.get('verdict_reason')}"
                   for r in bad]
+    shown = set(lines)
+    found = [f"- {x}" for x in found or [] if f"- {x}" not in shown]
+    if found:
+        lines += ["", "### What the gate found", ""] + found[:50]
+        if len(found) > 50:
+            lines.append(f"- ... and {len(found) - 50} more (see the report)")
     if slower:
         lines += ["", "### Significant slowdowns", ""] + [f"- {s.line()}" for s in slower]
     lines += ["", f"Report: `{report}`", ""]
