@@ -227,6 +227,27 @@ def test_gate_judges_speed_against_history(tmp_path, pendulum_folder):
     assert p.returncode == 0 and "cannot judge speed: 1 vs 7 samples" in p.stderr, p.stderr
 
 
+
+def test_compare_two_benchmark_folders_compares_speed_and_says_accuracy_was_not(
+        tmp_path, pendulum_folder):
+    """`compare` on two folders that hold only bench.json (what `natcoord bench --out`
+    writes) used to exit 2 for want of a summary: the speed is compared (a tripled copy
+    exits 4) and the output says why there is no accuracy."""
+    a, *_ = pendulum_folder
+    def bench_only(dst: Path, edit) -> Path:
+        _doctored(a, dst, edit)
+        for p in list(dst.iterdir()):
+            if p.name != "bench.json":
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+        return dst
+    same = bench_only(tmp_path / "same", lambda r: None)
+    slow = bench_only(tmp_path / "slow", _scaled(3))
+    base = bench_only(tmp_path / "base", lambda r: None)
+    p = _cli("compare", base, same)
+    assert p.returncode == 0 and "accuracy not compared" in p.stderr, p.stderr
+    p = _cli("compare", base, slow)
+    assert p.returncode == 4 and "SLOWER" in p.stderr, p.stderr
+
 def test_ci_summary_is_markdown_with_verdicts():
     summary = {"records": [{"case": "c", "engine": "e", "status": "ok", "verdict": "fail",
                             "verdict_reason": "1 of 2 gated channels over tolerance"}]}

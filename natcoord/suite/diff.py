@@ -95,7 +95,12 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
                  references: Path) -> Comparison:
     """Judge results folder ``new`` against ``base``, both from their result files with the
     case files of ``cases`` and the references in ``references``; raises ValueError on
-    bad input."""
+    bad input. Two benchmark folders (``bench.json``, no summary) are compared for speed
+    only, and say so."""
+    if not any((Path(f) / "summary.json").exists() for f in (base, new)):
+        bb, nb = read_bench(base), read_bench(new)
+        if bb and nb:
+            return _speed_only(bb, nb)
     b, n = gate.load_summary(base), gate.load_summary(new)
     out = Comparison()
     before = gate.judge(b, base, cases=cases, references=references)
@@ -134,6 +139,30 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
                          "slower": bool(s and s.slower)})
     if out.code == 0 and out.slower:
         out.code = SLOWER
+    return out
+
+
+def _speed_only(bb: dict, nb: dict) -> Comparison:
+    """Two benchmark folders: their cells' speed compared, accuracy not (a benchmark keeps
+    timings, not result files)."""
+    out = Comparison(speed=speed.compare_bench(bb, nb))
+    out.accuracy = ["accuracy not compared: benchmark folders hold timings, not result "
+                    "files (compare two `run` or `suite` folders for accuracy)"]
+    judged = {(s.case, s.engine): s for s in out.speed}
+    old = {(r.get("case"), r.get("engine")): r for r in bb.get("records", [])}
+    for r in nb.get("records", []):
+        key = (r.get("case"), r.get("engine"))
+        s = judged.get(key)
+        if key in old:
+            out.changes += [f"{key[0]}/{key[1]}: {c}" for c in changes(old[key], r)]
+        out.rows.append({"case": key[0], "engine": key[1], "status": r.get("status", "ok"),
+                         "verdict": "", "worst_of_tolerance_base": None,
+                         "worst_of_tolerance_new": None,
+                         "speed_ratio": None if s is None else s.ratio,
+                         "speed_p": None if s is None else s.p,
+                         "speed_judged": None if s is None else s.judged,
+                         "slower": bool(s and s.slower)})
+    out.code = SLOWER if out.slower else 0
     return out
 
 
