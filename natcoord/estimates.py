@@ -14,7 +14,12 @@ def estimated_error(best: np.ndarray, check: np.ndarray, steps: int) -> float:
     b, c = np.asarray(best, float), np.asarray(check, float)
     diff = float(np.nanmax(np.abs(b - c))) if len(b) else 0.0
     scale = float(np.nanmax(np.abs(b))) if len(b) else 0.0
-    floor = 8 * np.finfo(float).eps * max(scale, np.finfo(float).tiny) * np.sqrt(max(steps, 1))
-    return max(diff, floor)
+    return max(diff, roundoff(scale, steps))
+
+
+def roundoff(scale: float, steps: int) -> float:
+    """The round-off a run of ``steps`` steps accumulates on values of size ``scale``:
+    8 eps scale sqrt(steps) (a random walk of a few ulps per step)."""
+    return 8 * np.finfo(float).eps * max(scale, np.finfo(float).tiny) * np.sqrt(max(steps, 1))
 
 

@@ -12,10 +12,11 @@ import threading
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from natcoord import load_case
-from natcoord.suite import bench, diff, history, speed
+from natcoord.suite import bench, diff, history, propose, speed
 from natcoord.suite.io import read_json, write_json
 from natcoord.suite.runner import run_suite
 
@@ -272,8 +273,21 @@ def test_ci_summary_of_a_skipped_required_engine_is_not_nothing_ran():
     assert none.startswith("## natcoord suite: nothing ran (exit 3)")
 
 
+def test_platform_floors_scale_a_zero_channel_by_its_unit():
+    """A channel that is zero throughout (a point held in a plane) takes the size of the
+    case's largest channel of the same unit; the floor grows as sqrt(steps)."""
+    case = load_case(CASES / "four_bar.toml")
+    ref = pd.read_csv(REFERENCES / "four_bar.csv")
+    metres = [c.name for c in case.channels if c.unit == "m"]
+    zero = ref.copy()
+    zero[metres[0]] = 0.0
+    f1, f100 = (propose.platform_floors(case, zero, n) for n in (1, 100))
+    biggest = max(np.abs(zero[m]).max() for m in metres)
+    assert f1[metres[0]] == pytest.approx(100 * 8 * np.finfo(float).eps * biggest)
+    assert f100[metres[0]] == pytest.approx(10 * f1[metres[0]])
+
+
 def _tables(out: Path) -> dict:
-    import pandas as pd
     return {p.relative_to(out).as_posix(): pd.read_csv(p)
             for p in sorted((out / "results").rglob("*.csv"))}
 
@@ -359,6 +373,12 @@ def test_propose_measures_and_writes_tolerances_that_then_pass(tmp_path):
     assert set(blocks) == {"natcoord", "exudyn"}
     assert "first angle over its sweep" in blocks["exudyn"]["reason"]
     assert blocks["exudyn"]["tolerance"]["theta"] > 1e-6  # a second-order engine
+    ref = pd.read_csv(refs / "new_bar.csv")  # never below the platform margin
+    case = load_case(cases / "new_bar.toml")
+    least = propose.platform_floors(case, ref, 1)
+    for k, tol in blocks["natcoord"]["tolerance"].items():
+        assert tol >= least[k] >= 100 * 8 * np.finfo(float).eps * np.abs(ref[k]).max(), k
+    assert "x the run's round-off for" in blocks["natcoord"]["reason"]
     (cases / "new_bar.toml").write_text(text + "\n" + (tmp_path / "p.toml").read_text())
     run = _cli("run", "new_bar", "--engines", "natcoord,exudyn", "--out", tmp_path / "r", *args)
     assert run.returncode == 0 and "2 within tolerance" in run.stdout, run.stdout

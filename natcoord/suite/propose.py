@@ -3,9 +3,14 @@
 :func:`propose` runs a case in each engine at the case's settings (and, to show how the
 error converges, at the engine's work-precision sweep), measures every channel's error
 against the case's reference, and proposes each determined channel's tolerance as the
-measured error times a margin, rounded up to one significant digit. The result is TOML to
-paste into the case file, with a reason that says what was measured; an engine that cannot
-run the case gets ``unsupported`` with its reason instead.
+measured error times a margin, rounded up to one significant digit, and never below the
+**platform margin**: ``PLATFORM_MARGIN`` times the round-off a run of that many steps
+accumulates on the channel's values (:func:`natcoord.estimates.roundoff`; a channel that is
+zero throughout takes the size of the reference's channels of its unit). An error measured at
+round-off on this machine is no bound on another CPU or BLAS kernel: the stock cases leave
+100-1000x for machine differences. The result is TOML to paste into the case file, with a
+reason that says what was measured (and which tolerances the platform margin set); an
+engine that cannot run the case gets ``unsupported`` with its reason instead.
 """
 
 from __future__ import annotations
@@ -18,12 +23,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..estimates import roundoff
 from .bench import SWEEPS
 from .compare import channel_errors
 from .references import load_provenance, load_reference
 from .runner import as_job, run_subprocess
 
 FLOOR = 1e-14  # no tolerance below round-off
+PLATFORM_MARGIN = 100.0  # x the round-off of the run: room for other CPUs and BLAS kernels
 
 
 def round_up(x: float) -> float:
@@ -31,6 +38,25 @@ def round_up(x: float) -> float:
     x = max(float(x), FLOOR)
     e = math.floor(math.log10(x))
     return math.ceil(x / 10**e - 1e-9) * 10**e
+
+
+def platform_floors(case, reference: pd.DataFrame, steps: int) -> dict[str, float]:
+    """Per channel of ``case`` in ``reference``: the smallest tolerance a proposal may
+    give, PLATFORM_MARGIN x the round-off of ``steps`` steps on the channel's values (a
+    channel zero throughout: on the largest channel of its unit, else on 1)."""
+    peak = {c.name: float(np.nanmax(np.abs(reference[c.name].to_numpy(float))))
+            for c in case.channels if c.name in reference and len(reference)}
+    by_unit: dict[str, float] = {}
+    for c in case.channels:
+        if np.isfinite(peak.get(c.name, np.nan)):
+            by_unit[c.unit] = max(by_unit.get(c.unit, 0.0), peak[c.name])
+    out = {}
+    for c in case.channels:
+        scale = peak.get(c.name, 0.0)
+        if not (np.isfinite(scale) and scale > 0):
+            scale = by_unit.get(c.unit) or 1.0
+        out[c.name] = PLATFORM_MARGIN * roundoff(scale, steps)
+    return out
 
 
 def _errors(case, engine, folder: Path, reference, undetermined) -> dict[str, float]:
@@ -61,7 +87,12 @@ def propose(case, engines, references: Path, *, margin: float = 3.0,
                    "tolerance": {}}
             if rec["status"] == "ok":
                 row["errors"] = _errors(case, engine, Path(tmp), reference, undetermined)
-                row["tolerance"] = {k: round_up(margin * v) for k, v in row["errors"].items()}
+                floors = platform_floors(case, reference,
+                                         int(rec.get("n_steps") or len(reference)))
+                row["tolerance"] = {k: round_up(max(margin * v, floors.get(k, 0.0)))
+                                    for k, v in row["errors"].items()}
+                row["floored"] = [k for k, v in row["errors"].items()
+                                  if floors.get(k, 0.0) > margin * v]
                 for setting in SWEEPS.get(engine, [])[:sweep] if angle else []:
                     r = run_subprocess(job, engine, Path(tmp), timeout_s, setting)
                     err = (_errors(case, engine, Path(tmp), reference, undetermined).get(angle)
@@ -91,9 +122,12 @@ def as_toml(case, rows: list[dict], margin: float) -> str:
                              for k, v in row["errors"].items())
         conv = "; ".join(f"{_setting(s['setting'])}: {s['error']:.2g}"
                          for s in row["sweep"] if s["error"] is not None)
+        floored = row.get("floored") or []
         reason = (f"measured at {_setting(row['settings']) or 'its defaults'}: {measured}"
                   f"{'; first angle over its sweep: ' + conv if conv else ''}; bounds "
-                  f"{margin:g}x the measured errors")
+                  f"{margin:g}x the measured errors"
+                  + (f", {PLATFORM_MARGIN:g}x the run's round-off for {', '.join(floored)} "
+                     "(room for other machines)" if floored else ""))
         lines += [f"reason = {_q(reason)}", f"[engines.{e}.tolerance]"]
         lines += [f"{k} = {v:.0e}" for k, v in row["tolerance"].items()]
         lines.append("")
