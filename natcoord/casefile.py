@@ -713,6 +713,9 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
+        if kind == "acceleration" and dim == 3:
+            r.fail(f"{p}.kind", "acceleration channels are planar only: no engine adapter "
+                   "computes 3-D point accelerations yet (use velocity channels)")
         body = point = joint = axis = driver = rod = points = relative_to = None
         plane, of, work = "xy", (), False
         if kind == "energy":  # work = true: the energy balance (minus non-conservative work)
