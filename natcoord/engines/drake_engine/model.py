@@ -186,7 +186,7 @@ def set_initial_state(built: Built, context, frames: dict[str, Frame], planar: b
             continue
         f = frames[name]
         plant.SetFreeBodyPose(context, body, RigidTransform(RotationMatrix(f.R), f.origin))
-        plant.SetFreeBodySpatialVelocity(body, SpatialVelocity(f.omega, f.velocity), context)
+        plant.SetFreeBodySpatialVelocity(context, body, SpatialVelocity(f.omega, f.velocity))
 
 
 def _child_point(built: Built, j, k: int, frames, child) -> np.ndarray:

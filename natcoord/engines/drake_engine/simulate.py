@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from ...mechanism import Case
+from ..planar import node_point
 from .model import Built
 
 
@@ -39,9 +40,11 @@ class Readout:
             for n in j.bodies:
                 self.loop_on.setdefault(n, []).append(j)
 
-    def _point(self, ctx, node: str, p):
-        """World position and velocity (3,) of body point ``p`` (body frame)."""
+    def _point(self, ctx, node: str, name: str):
+        """World position and velocity (3,) of the named point of ``node`` (a body or the
+        ground)."""
         plant, body = self.b.plant, self.b.bodies[node]
+        p = node_point(self.case, node, name)
         X = plant.EvalBodyPoseInWorld(ctx, body)
         V = plant.EvalBodySpatialVelocityInWorld(ctx, body)
         r = X.rotation().matrix() @ np.asarray(p, float)
@@ -91,8 +94,8 @@ class Readout:
         """Newton-Euler on the loop joint's second body (or its first, negated)."""
         plant = self.b.plant
         (a, c), (pa, pc) = j.bodies, j.points
-        ra, _ = self._point(ctx, a, self.case.body(a).points[pa])
-        rc, _ = self._point(ctx, c, self.case.body(c).points[pc])
+        ra, _ = self._point(ctx, a, pa)
+        rc, _ = self._point(ctx, c, pc)
         self.gap = max(self.gap, float(np.linalg.norm(rc - ra)))
         for node, sign in ((c, 1.0), (a, -1.0)):
             if len(self.loop_on[node]) != 1:
