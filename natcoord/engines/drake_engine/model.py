@@ -85,9 +85,15 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
     merged settings. A discrete plant (SAP) when ``s["dt"] > 0`` else a continuous one."""
     from pydrake.math import RigidTransform, RotationMatrix
     from pydrake.multibody.plant import DiscreteContactApproximation, MultibodyPlant
-    from pydrake.multibody.tree import (BallRpyJoint, LinearSpringDamper, PlanarJoint,
-                                        PrismaticJoint, RevoluteJoint, RotationalInertia,
-                                        SpatialInertia)
+    from pydrake.multibody.tree import (
+        BallRpyJoint,
+        LinearSpringDamper,
+        PlanarJoint,
+        PrismaticJoint,
+        RevoluteJoint,
+        RotationalInertia,
+        SpatialInertia,
+    )
 
     for j in case.joints:
         if j.type not in JOINT_TYPES:
