@@ -44,6 +44,24 @@ def split_tree(case: Case) -> tuple[list, list, list[str]]:
     return tree, loops, notes
 
 
+def _check_loop_axes(case: Case, frames: dict[str, Frame], tree, loops) -> None:
+    """A ball constraint holds a 3-D loop revolute's point, not its axis: accepted only when
+    every tree joint is a revolute parallel to it (the tree then keeps the alignment, as in
+    four_bar_3d); else Unsupported."""
+    for j in loops:
+        if j.type != "revolute":
+            continue
+        u = frame_of(frames, j.bodies[0]).R @ np.asarray(j.axis, float)
+        u = u / np.linalg.norm(u)
+        for t in tree:
+            w = None if t.type != "revolute" else frame_of(frames, t.bodies[0]).R @ t.axis
+            if w is None or np.linalg.norm(np.cross(u, w / np.linalg.norm(w))) > 1e-9:
+                raise Unsupported(
+                    f"loop-closing 3-D revolute {j.name}: the tree does not keep its axis "
+                    f"(tree joint {t.name}), and a Drake ball constraint holds only the "
+                    "point: the loop would gain a degree of freedom")
+
+
 @dataclasses.dataclass
 class Built:
     """The finalized plant and what the readout needs."""
@@ -99,6 +117,8 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
         if j.type not in JOINT_TYPES:
             raise Unsupported(f"joint {j.name}: type {j.type!r} is not modelled by this adapter")
     tree, loops, notes = split_tree(case)
+    if not planar:
+        _check_loop_axes(case, frames, tree, loops)
     discrete = s["plant"] == "discrete"
     if loops and not discrete:
         raise Unsupported("closed loops need the discrete plant: Drake's continuous "
