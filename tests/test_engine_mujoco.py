@@ -425,3 +425,26 @@ def test_step_must_divide_the_output_interval():
 def test_version_and_lazy_import():
     ec.assert_version_and_lazy_import("mujoco", "mujoco", "mujoco_engine", "m.NAME, m.PACKAGE",
                                       ["mujoco", "mujoco"])
+
+
+def test_an_acceleration_channel_mujoco_does_not_compute_leaves_the_run_ok(case_variant):
+    """MuJoCo's adapter reports no point accelerations: the column is NaN throughout. That
+    is "not reported" for that channel (ungated, noted), not a divergence that used to
+    discard the whole run. natcoord computes the channel: the point mass released at rest
+    from the horizontal falls freely at t = 0 (the massless link carries no force yet),
+    a_y = -g."""
+    from natcoord.engines.base import initial_body_states as init
+    from natcoord.suite.worker import Job, run_job
+
+    path = case_variant("pendulum", [(r'^(y = \{ kind = "position", body = "link", '
+                                      r'point = "P", axis = "y" \})',
+                                      r'\1\nay = { kind = "acceleration", body = "link", '
+                                      r'point = "P", axis = "y" }')])
+    case = load_case(path)
+    res, _ = run_job(Job(case, init(case), "mujoco"))
+    assert res.status.value == "ok", res.reason
+    assert np.all(np.isnan(res.table["ay"])) and np.all(np.isfinite(res.table["theta"]))
+    assert any("not computed by mujoco: ay" in n for n in res.notes)
+    nat, _ = run_job(Job(case, init(case), "natcoord"))
+    assert nat.status.value == "ok" and np.all(np.isfinite(nat.table["ay"]))
+    assert nat.table["ay"].iloc[0] == pytest.approx(-9.81, rel=1e-9)
