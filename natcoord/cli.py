@@ -730,6 +730,56 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
         out.print(f"written: {escape(str(out_file))}")
 
 
+@app.command("check-engine")
+def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (built-in or "
+                                                                "plug-in).")],
+                     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")
+                                        ] = False,
+                     cases_dir: CasesDir = None, references: RefDir = None):
+    """A conformance scorecard: reaction sign and frame (a hanging rod, and with the joint
+    reversed), energy on a conservative pendulum, convergence order under the engine's step
+    setting, agreement with the stored references on every case it can run (first 1 s),
+    determined and undetermined reactions. Exit 0 all pass, 1 a check failed, 2 an unknown
+    engine, 3 the engine's package is not installed."""
+    import json
+
+    from .engines import adapter
+    from .suite.conformance import check_engine
+
+    _engines(engine)  # an unknown name: exit 2, naming the engines
+    mod = adapter(engine)
+    try:
+        mod.version()
+    except ImportError as e:
+        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({e}); pip install "
+              f"{mod.PACKAGE}", RUN_FAILED)
+    say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
+                                                                     style="dim")))
+    try:
+        card = check_engine(engine, resolve(cases_dir, "cases"),
+                            resolve(references, "references"), say)
+    except NatcoordError as e:
+        _fail(str(e))
+    failed = [r for r in card["rows"] if r["result"] == "fail"]
+    if as_json:
+        print(json.dumps(card, indent=1))
+    else:
+        table = Table(title=f"check-engine {escape(engine)} {escape(card['version'])} "
+                            f"({card['seconds']:g} s)")
+        for col in ("check", "result", "figure", "capability touched", "detail"):
+            table.add_column(col)
+        style = {"pass": "green", "fail": "bold red", "skipped": "yellow", "info": "dim"}
+        for r in card["rows"]:
+            table.add_row(escape(r["check"]), Text(r["result"], style=style[r["result"]]),
+                          escape(r["figure"]), escape(r["capability"]),
+                          escape(_short(r["detail"], 160)))
+        out.print(table)
+        out.print(f"{len(card['rows'])} checks: "
+                  + ", ".join(f"{sum(r['result'] == k for r in card['rows'])} {k}"
+                              for k in ("pass", "fail", "info", "skipped")))
+    raise typer.Exit(1 if failed else 0)
+
+
 @reference_app.command("update")
 def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = None,
                      references: RefDir = None):
