@@ -738,7 +738,7 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
                      cases_dir: CasesDir = None, references: RefDir = None):
     """A conformance scorecard: reaction sign and frame (a hanging rod, and with the joint
     reversed), energy on a conservative pendulum, convergence order under the engine's step
-    setting, agreement with the stored references on every case it can run (first 1 s),
+    setting, agreement with the stored references on every case it can run (first 0.5 s),
     determined and undetermined reactions. Exit 0 all pass, 1 a check failed, 2 an unknown
     engine, 3 the engine's package is not installed."""
     import json

@@ -128,3 +128,23 @@ def test_without_the_plugin_the_engine_is_unknown(tmp_path):
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "unknown engine 'rk4'" in r.stderr
     assert "natcoord, mujoco, pinocchio, exudyn, dart, simbody" in r.stderr
+
+
+def test_check_engine_scores_a_plugin(tmp_path, plugins):
+    """The battery on the plug-in: conventions and energy pass, RK4's order is measured
+    near 4, and a reference check over a tolerance below its error fails the command."""
+    home = project_copy(tmp_path, "pendulum")
+    with open(home / "cases" / "pendulum.toml", "a", encoding="utf-8") as f:
+        f.write(RK4_BLOCK.replace("angle = 1e-9", "angle = 1e-13"))
+    r = _natcoord(["check-engine", "rk4", "--json"], home, plugins)
+    assert r.returncode == 1, r.stdout + r.stderr
+    card = json.loads(r.stdout)
+    rows = {x["check"]: x for x in card["rows"]}
+    assert card["version"] == "0.1.0"
+    for check in ("reaction sign", "reaction, joint reversed", "energy"):
+        assert rows[check]["result"] == "pass", rows[check]
+    order = rows["convergence order"]
+    assert order["result"] == "pass" and order["capability"] == "settings: dt"
+    assert 3.5 < float(order["figure"].split()[0]) < 4.5, order  # RK4
+    ref = rows["reference pendulum"]
+    assert ref["result"] == "fail" and "theta" in ref["detail"], ref

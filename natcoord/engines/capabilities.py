@@ -43,6 +43,9 @@ class Capabilities:
     forces : applied forces: "any" point, "com" only at a body's centre of mass, "none"
     particles : dimensions in which particles (no rotational inertia) are modelled
     reactions : it reports joint reactions (reaction, axial, driver channels)
+    step : the setting that fixes its time step (s), "" when it has none (``check-engine``
+        then takes ``dt`` or ``h`` from its settings when it declares one)
+    step_with : settings that go with a fixed step (natcoord: a fixed-step method)
     why : capability field -> the engine's explanation, appended to a refusal
     rules : ``rules(case, settings) -> list[str]``: the adapter's further refusals (only
         asked when the fields above find none), ``settings`` over the adapter's defaults
@@ -60,6 +63,8 @@ class Capabilities:
     forces: str = "any"
     particles: frozenset = frozenset({2, 3})
     reactions: bool = True
+    step: str = ""
+    step_with: Mapping[str, object] = field(default_factory=dict, compare=False)
     why: Mapping[str, str] = field(default_factory=dict, compare=False)
     rules: Callable[[Case, dict], list[str]] | None = field(default=None, compare=False)
 
@@ -74,8 +79,8 @@ class Capabilities:
     def summary(self) -> dict:
         """JSON-friendly fields (``rules`` as the adapter function's name)."""
         out = {k: (sorted(v) if isinstance(v, frozenset) else v)
-               for k, v in self.__dict__.items() if k not in ("rules", "why")}
-        out["why"] = dict(self.why)
+               for k, v in self.__dict__.items() if k not in ("rules", "why", "step_with")}
+        out["why"], out["step_with"] = dict(self.why), dict(self.step_with)
         out["rules"] = getattr(self.rules, "__qualname__", None)
         return out
 
