@@ -23,7 +23,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .casefile import load_case
-from .engines import registry
+from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
 from .project import resolve
 
@@ -134,7 +134,7 @@ def _prepared(case):
 def _known_engines() -> tuple[str, ...]:
     """Every engine that loads, in the registry's order; a plug-in that does not load is
     named on stderr (once per command) and left out."""
-    reg = registry()
+    reg = discover()
     if not getattr(_known_engines, "warned", False):
         _known_engines.warned = True
         for p in reg.problems:
@@ -248,7 +248,7 @@ def cases_cmd(cases_dir: CasesDir = None,
 
         from .engines.schema import describe
 
-        reg = registry()
+        reg = discover()
         print(json.dumps({
             "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
                        "engines": {e: (why[c.name, e] or None) for e in names}}

@@ -3,6 +3,6 @@ every plug-in registered in the ``natcoord.engines`` entry-point group)."""
 
 from __future__ import annotations
 
-from .registry import adapter, engine_names, registry
+from .registry import adapter, discover, engine_names
 
-__all__ = ["adapter", "engine_names", "registry"]
+__all__ = ["adapter", "discover", "engine_names"]

@@ -80,7 +80,7 @@ def _contract_error(name: str, module: ModuleType) -> str:
 
 
 @cache
-def registry() -> Registry:
+def discover() -> Registry:
     """Discover the engines once per process (importing an adapter module does not import
     its engine)."""
     found: dict[str, str] = {}
@@ -112,12 +112,12 @@ def registry() -> Registry:
 
 def engine_names() -> tuple[str, ...]:
     """Every engine that loads: built-ins first in their order, then plug-ins by name."""
-    return registry().names
+    return discover().names
 
 
 def adapter(name: str) -> ModuleType:
     """The adapter module of engine ``name``; KeyError naming the engines for another."""
-    reg = registry()
+    reg = discover()
     if name not in reg.modules:
         raise KeyError(f"unknown engine {name!r}; engines are {', '.join(reg.names)}")
     return importlib.import_module(reg.modules[name])
