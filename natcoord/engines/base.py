@@ -3,10 +3,10 @@ what it returns.
 
 An adapter is a module (or a small subpackage; a plug-in's is in its own package) that
 follows :class:`Adapter`, registered in the ``natcoord.engines`` entry-point group
-(:mod:`natcoord.engines.registry`). ``init`` is the state natcoord assembled once per run (the same for every
-engine), ``settings`` the case's ``[engines.<name>].settings`` over the adapter's own
-defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines.schema`; importing the
-adapter must not import its engine, so that a case loads without it). Every body of a
+(:mod:`natcoord.engines.registry`). ``init`` is the state natcoord assembled once per run
+(the same for every engine), ``settings`` the case's ``[engines.<name>].settings`` over
+the adapter's own defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines.schema`;
+importing the adapter must not import its engine, so that a case loads without it). Every body of a
 case has its points in its own frame; ``init[body]`` gives that frame's pose and rates at
 t = 0. All conventions of an engine (frames, signs, units, quaternion order) stay inside
 its adapter; what it returns is a :class:`~natcoord.result.Motion` in natcoord's neutral
