@@ -15,7 +15,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..errors import Unsupported
 from ..mechanism import DRIVER_TYPES, GROUND, JOINT_TYPES, Case, Joint
 
 LOOPS = ("rigid", "soft", "none")
@@ -42,7 +41,9 @@ class Capabilities:
     torques : applied torques on bodies
     forces : applied forces: "any" point, "com" only at a body's centre of mass, "none"
     particles : dimensions in which particles (no rotational inertia) are modelled
-    reactions : it reports joint reactions (reaction, axial, driver channels)
+    reactions : it reports joint reactions (reaction, axial, driver channels); not a
+        refusal (a case's motion channels run without them); without, check-engine skips
+        its reaction checks
     step : the setting that fixes its time step (s), "" when it has none (``check-engine``
         then takes ``dt`` or ``h`` from its settings when it declares one)
     step_with : settings that go with a fixed step (natcoord: a fixed-step method)
@@ -150,20 +151,6 @@ def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> lis
     if caps.rules is not None and not out:
         out += caps.rules(case, settings if settings is not None else {})
     return out
-
-
-def refusal(check: Callable[[Case], None]) -> Callable[[Case, dict], list[str]]:
-    """A rule from an adapter's check that raises Unsupported (and imports no engine)."""
-
-    def rule(case: Case, settings: dict) -> list[str]:
-        try:
-            check(case)
-        except Unsupported as e:
-            return [str(e)]
-        return []
-
-    rule.__qualname__ = getattr(check, "__qualname__", "rule")
-    return rule
 
 
 def misaligned_loop_revolutes(case: Case, caps: Capabilities) -> list[str]:

@@ -142,9 +142,14 @@ class Battery:
 
     # ------------------------------------------------------------------- the checks
     def reactions(self) -> None:
+        from ..engines import adapter
+
+        cap = "reactions: force on the second body named, world axes"
         for rev, want in ((False, 2 * G), (True, -2 * G)):
             check = "reaction, joint reversed" if rev else "reaction sign"
-            cap = "reactions: force on the second body named, world axes"
+            if not adapter(self.engine).CAPABILITIES.reactions:
+                self.add(check, "skipped", "no reactions declared", cap)
+                continue
             rec, t = self.run(rod(self.tmp, reversed_joint=rev))
             if t is None:
                 self.not_run(check, rec, cap)
