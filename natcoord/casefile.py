@@ -30,7 +30,6 @@ from .mechanism import (
     BODY_KINDS,
     CHANNEL_KINDS,
     DRIVER_TYPES,
-    ENGINES,
     GROUND,
     JOINT_TYPES,
     PLANAR_JOINTS,
@@ -332,8 +331,10 @@ def load_case(path: str | Path) -> Case:
     engines = {}
     for ename, spec in r.table(data, "engines", "", required=False).items():
         p = f"engines.{ename}"
-        if ename not in ENGINES:
-            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(ENGINES)}")
+        known = _engine_names()
+        if ename not in known:
+            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(known)} (a "
+                   "plug-in engine must be installed: see natcoord cases)")
         tol = {}
         for key, value in r.table(spec, "tolerance", p, required=False).items():
             if key not in CHANNEL_KINDS and key not in {c.name for c in channels}:
@@ -383,6 +384,12 @@ def _model_checks(r: _Reader, case: Case) -> None:
         check(case)
     except ModelError as e:
         r.fail(e.field, e.reason)
+
+
+def _engine_names() -> tuple[str, ...]:
+    from .engines import engine_names
+
+    return engine_names()
 
 
 def _engine_settings(engine: str, settings: dict) -> list[tuple[str, str]]:

@@ -24,7 +24,7 @@ from rich.table import Table
 from rich.text import Text
 
 from .casefile import load_case
-from .engines import ENGINES
+from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
 from .project import resolve
 
@@ -135,15 +135,27 @@ def _prepared(case):
     return job
 
 
+def _known_engines() -> tuple[str, ...]:
+    """Every engine that loads, in the registry's order; a plug-in that does not load is
+    named on stderr (once per command) and left out."""
+    reg = discover()
+    if not getattr(_known_engines, "warned", False):
+        _known_engines.warned = True
+        for p in reg.problems:
+            err.print(f"[yellow]warning:[/] {escape(p.line())}", highlight=False)
+    return reg.names
+
+
 def _engines(spec: str | None) -> list[str]:
+    known = _known_engines()
     if spec is None:
-        return list(ENGINES)
+        return list(known)
     names = [s.strip() for s in spec.split(",") if s.strip()]
     if not names:
-        _fail(f"--engines: no engine named in {spec!r}; engines are {', '.join(ENGINES)}")
-    bad = [n for n in names if n not in ENGINES]
+        _fail(f"--engines: no engine named in {spec!r}; engines are {', '.join(known)}")
+    bad = [n for n in names if n not in known]
     if bad:
-        _fail(f"--engines: unknown engine {bad[0]!r}; engines are {', '.join(ENGINES)}")
+        _fail(f"--engines: unknown engine {bad[0]!r}; engines are {', '.join(known)}")
     return list(dict.fromkeys(names))
 
 
@@ -234,33 +246,52 @@ def counts_line(records: list[dict]) -> str:
 def cases_cmd(cases_dir: CasesDir = None,
               as_json: Annotated[bool, typer.Option(
                   "--json", help="Print JSON: cases (per case its name, description, file "
-                                 "and, per engine, null (supported) or the reason it is not) "
-                                 "and engines (per engine its package and settings schema).")
-              ] = False):
-    """List the cases with a one-line description and the engines that support each."""
+                                 "and, per engine, null (it can run it) or the reason it "
+                                 "cannot), engines (per engine its package, adapter module, "
+                                 "built-in or plug-in, capabilities and settings schema) and "
+                                 "engine_problems (plug-ins that do not load).")] = False):
+    """List the cases with a one-line description, the engines that can run each and, for
+    the others, why not (the case file's reason, else the engine's declared capabilities)."""
+    from .engines import adapter
+    from .suite.worker import cannot_run
+
     jobs = _cases(None, cases_dir)
+    names = _known_engines()
+    why = {(c.name, e): cannot_run(c, e) for c in (j.case for j in jobs) for e in names}
     if as_json:
         import json
 
-        from .engines import adapter
         from .engines.schema import describe
 
+        reg = discover()
         print(json.dumps({
             "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
-                       "engines": {e: (c.engine(e).unsupported or None) for e in ENGINES}}
+                       "engines": {e: (why[c.name, e] or None) for e in names}}
                       for c in (job.case for job in jobs)],
-            "engines": {e: {"package": adapter(e).PACKAGE,
-                            "settings": describe(adapter(e).SETTINGS)} for e in ENGINES}},
+            "engines": {e: {"package": adapter(e).PACKAGE, "module": reg.modules[e],
+                            "origin": "built-in" if reg.builtin(e) else "plug-in",
+                            "capabilities": adapter(e).CAPABILITIES.summary(),
+                            "settings": describe(adapter(e).SETTINGS)} for e in names},
+            "engine_problems": [{"name": p.name, "entry_point": p.value, "error": p.error}
+                                for p in reg.problems]},
             indent=1))
         return
     table = Table(title=f"cases in {escape(str(resolve(cases_dir, 'cases')))}")
     table.add_column("case")
     table.add_column("description")
     table.add_column("engines")
+    table.add_column("cannot run it")
     for c in (job.case for job in jobs):
-        eng = [e if not c.engine(e).unsupported else f"[dim strike]{e}[/]" for e in ENGINES]
-        table.add_row(escape(c.name), escape(c.description), " ".join(eng))
+        can = [e for e in names if not why[c.name, e]]
+        cannot = [f"{e}: {_short(why[c.name, e])}" for e in names if why[c.name, e]]
+        table.add_row(escape(c.name), escape(c.description), " ".join(can),
+                      escape("\n".join(cannot)))
     out.print(table)
+
+
+def _short(reason: str, width: int = 100) -> str:
+    """A reason cut to ``width`` characters (``cases --json`` has it whole)."""
+    return reason if len(reason) <= width else reason[:width - 3].rstrip() + "..."
 
 
 @app.command("run")
@@ -724,6 +755,56 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
         except NatcoordError as e:
             _fail(str(e))
         out.print(f"written: {escape(str(out_file))}")
+
+
+@app.command("check-engine")
+def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (built-in or "
+                                                                "plug-in).")],
+                     as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")
+                                        ] = False,
+                     cases_dir: CasesDir = None, references: RefDir = None):
+    """A conformance scorecard: reaction sign and frame (a hanging rod, and with the joint
+    reversed), energy on a conservative pendulum, convergence order under the engine's step
+    setting, agreement with the stored references on every case it can run (first 0.5 s),
+    determined and undetermined reactions. Exit 0 all pass, 1 a check failed, 2 an unknown
+    engine, 3 the engine's package is not installed."""
+    import json
+
+    from .engines import adapter
+    from .suite.conformance import check_engine
+
+    _engines(engine)  # an unknown name: exit 2, naming the engines
+    mod = adapter(engine)
+    try:
+        mod.version()
+    except ImportError as e:
+        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({e}); pip install "
+              f"{mod.PACKAGE}", RUN_FAILED)
+    say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
+                                                                     style="dim")))
+    try:
+        card = check_engine(engine, resolve(cases_dir, "cases"),
+                            resolve(references, "references"), say)
+    except NatcoordError as e:
+        _fail(str(e))
+    failed = [r for r in card["rows"] if r["result"] == "fail"]
+    if as_json:
+        print(json.dumps(card, indent=1))
+    else:
+        table = Table(title=f"check-engine {escape(engine)} {escape(card['version'])} "
+                            f"({card['seconds']:g} s)")
+        for col in ("check", "result", "figure", "capability touched", "detail"):
+            table.add_column(col)
+        style = {"pass": "green", "fail": "bold red", "skipped": "yellow", "info": "dim"}
+        for r in card["rows"]:
+            table.add_row(escape(r["check"]), Text(r["result"], style=style[r["result"]]),
+                          escape(r["figure"]), escape(r["capability"]),
+                          escape(_short(r["detail"], 160)))
+        out.print(table)
+        out.print(f"{len(card['rows'])} checks: "
+                  + ", ".join(f"{sum(r['result'] == k for r in card['rows'])} {k}"
+                              for k in ("pass", "fail", "info", "skipped")))
+    raise typer.Exit(1 if failed else 0)
 
 
 @reference_app.command("update")

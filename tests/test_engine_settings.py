@@ -15,11 +15,12 @@ import pytest
 
 from natcoord import CaseError, load_case
 from natcoord.casefile import load_cases
-from natcoord.engines import adapter
+from natcoord.engines import adapter, engine_names
 from natcoord.engines.schema import Setting, check, defaults, problems
-from natcoord.mechanism import ENGINES
 
 from .conftest import CASES, ROOT
+
+ENGINES = engine_names()  # the built-ins and any plug-in installed here
 
 ENGINE_DIRS = {"mujoco": "mujoco_engine", "pinocchio": "pinocchio_engine",
                "exudyn": "exudyn_engine", "dart": "dart_engine", "simbody": "simbody_engine"}

@@ -21,11 +21,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from natcoord import CaseError, load_case
-from natcoord.engines import adapter
+from natcoord.engines import adapter, engine_names
 from natcoord.engines.schema import problems, shown
-from natcoord.mechanism import ENGINES
 
 from .conftest import CASES
+
+ENGINES = engine_names()  # the built-ins and any plug-in installed here
 
 FILES = sorted(CASES.glob("*.toml")) + sorted((Path(__file__).parent / "data").glob(
     "[!p]*.toml"))  # tests/data/pivoted_3d.toml is a template, not a case file

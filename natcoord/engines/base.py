@@ -1,11 +1,12 @@
 """What every engine adapter shares: the contract, the initial state it starts from and
 what it returns.
 
-An adapter is a module (or a small subpackage) of this package that follows
-:class:`Adapter`. ``init`` is the state natcoord assembled once per run (the same for every
-engine), ``settings`` the case's ``[engines.<name>].settings`` over the adapter's own
-defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines.schema`; importing the
-adapter must not import its engine, so that a case loads without it). Every body of a
+An adapter is a module (or a small subpackage; a plug-in's is in its own package) that
+follows :class:`Adapter`, registered in the ``natcoord.engines`` entry-point group
+(:mod:`natcoord.engines.registry`). ``init`` is the state natcoord assembled once per run
+(the same for every engine), ``settings`` the case's ``[engines.<name>].settings`` over
+the adapter's own defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines.schema`;
+importing the adapter must not import its engine, so that a case loads without it). Every body of a
 case has its points in its own frame; ``init[body]`` gives that frame's pose and rates at
 t = 0. All conventions of an engine (frames, signs, units, quaternion order) stay inside
 its adapter; what it returns is a :class:`~natcoord.result.Motion` in natcoord's neutral
@@ -49,6 +50,8 @@ class Adapter(Protocol):
     SETTINGS: tuple  # the settings it reads, as natcoord.engines.schema.Setting: the loader
     # refuses any other key or an invalid value; optional check_settings(settings) -> list
     # of (field, reason) adds rules between settings
+    CAPABILITIES: object  # natcoord.engines.capabilities.Capabilities: what it can model;
+    # a case it cannot run is unsupported (with the reason) before any run
 
     def version(self) -> str:
         """The engine's version; raises ImportError when its package is missing."""

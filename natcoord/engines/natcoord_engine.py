@@ -37,6 +37,7 @@ from ..solver import (
     case_solver,
 )
 from .base import EngineRun, InitialState
+from .capabilities import Capabilities
 from .schema import Setting
 
 NAME = "natcoord"
@@ -77,6 +78,8 @@ SOLVER_SETTINGS = (
     Setting("penalty", "number", Index3.penalty, "index3: penalty alpha h^2/4 relative to "
             "max|M|", **_POSITIVE),
 )
+CAPABILITIES = Capabilities(loops="rigid",  # every element of a case file
+                            step="h", step_with={"method": "rk4"})
 SETTINGS = (
     Setting("coordinates", "choice", "joints", "joints: every body its own points, joints "
             "as rows; shared: point joints as shared points (the paper's way)",

@@ -32,14 +32,14 @@ import plotly.offline
 from markupsafe import Markup, escape
 from plotly.subplots import make_subplots
 
+from ..engines import engine_names
 from ..mechanism import FORCE_KINDS
 from . import balance, redundant, speed, trends
 from .lazy import FigureStore
 from .look import style
 from .sampling import MAX_POINTS, envelope, f32, stride  # noqa: F401 (MAX_POINTS: tests)
 
-ENGINE_ORDER = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
-ENGINE_COLORS = {
+ENGINE_COLORS = {  # the first engines' colours stay as they were; the rest by the palette
     "natcoord": "#1f77b4",
     "mujoco": "#e07b00",
     "pinocchio": "#2ca02c",
@@ -161,16 +161,21 @@ def _read_csv(path: Path) -> pd.DataFrame | None:
 
 
 def _engine_order(names: Iterable[str]) -> list[str]:
+    """The engines of a report in the registry's order (built-ins, then plug-ins by name),
+    then any other name a results folder holds (an engine not installed here), sorted."""
     names = list(dict.fromkeys(names))
-    known = [e for e in ENGINE_ORDER if e in names]
-    return known + sorted(n for n in names if n not in ENGINE_ORDER)
+    known = [e for e in engine_names() if e in names]
+    return known + sorted(n for n in names if n not in known)
 
 
 def _engine_colors(engines: list[str]) -> dict[str, str]:
+    """A colour per engine, the same in every report of this installation: fixed ones for
+    the first engines, then the palette in registry order, then the names it lacks."""
     colors = dict(ENGINE_COLORS)
     extra = iter(_EXTRA_COLORS * 10)
-    for e in engines:
-        colors.setdefault(e, next(extra))
+    for e in [*engine_names(), *engines]:
+        if e not in colors:
+            colors[e] = next(extra)
     return colors
 
 

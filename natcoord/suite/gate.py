@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..casefile import NAME_PATTERN, load_case
-from ..engines import ENGINES
+from ..engines import engine_names
 from ..errors import CaseError, StoredFileError
 from ..mechanism import Case
 from . import evidence
@@ -174,7 +174,7 @@ def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
                 references: Path, base: dict, baseline_factor: float, floor: float) -> None:
     """One cell that ran, judged from its files, against its tolerances and its baseline."""
     v.outcome[key] = "cannot judge"
-    if r["engine"] not in ENGINES:
+    if r["engine"] not in engine_names():
         v.worse(BAD_INPUT, f"{key}: {r['engine'][:40]!r} is not an engine", fault=True)
         return
     try:

@@ -29,7 +29,7 @@ from ..mechanism import Case
 from ..outputs import initial_body_states
 from . import evidence
 from .io import read_json, write_json
-from .worker import Job
+from .worker import Job, cannot_run
 
 DEFAULT_TIMEOUT_S = 600.0
 
@@ -93,6 +93,9 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     once for all its engines). ``cpu``: pin the engine process to that core (timing)."""
     job = as_job(case)
     case = job.case
+    why = cannot_run(case, engine, settings)
+    if why:  # from the case file or the engine's capabilities: no engine process
+        return {**_failed(case, engine, why), "status": "unsupported"}
     folder = out / "results" / case.name
     for suffix in (".csv", ".json"):
         (folder / f"{engine}{suffix}").unlink(missing_ok=True)

@@ -38,6 +38,7 @@ import numpy as np  # noqa: E402
 
 from ..engines import adapter  # noqa: E402
 from ..engines.base import InitialState  # noqa: E402
+from ..engines.capabilities import why_not  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
 from ..mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..result import Result, Status, evaluate_channels, methods_table  # noqa: E402
@@ -86,6 +87,16 @@ def truncated(case: Case, fraction: float) -> Case:
     return dataclasses.replace(case, duration=k * case.output_dt)
 
 
+def cannot_run(case: Case, engine: str, settings: dict | None = None) -> str:
+    """Why ``engine`` does not run ``case`` before it runs (the case file's ``unsupported``,
+    else the engine's declared capabilities, :mod:`natcoord.engines.capabilities`); "" when
+    it can. A plug-in whose capability rules raise gets that as its reason."""
+    try:
+        return why_not(case, engine, settings)
+    except Exception as e:  # a plug-in's bug must not take the suite down
+        return f"the engine's capability rules raised {type(e).__name__}: {e}"
+
+
 def run_one(job: Job) -> Result:
     """Run a job in this process and return its Result (never raises for engine trouble:
     that becomes the status)."""
@@ -101,8 +112,9 @@ def run_job(job: Job) -> tuple[Result, dict]:
     spec = case.engine(engine)
     res = Result(case.name, engine)
     mod = adapter(engine)
-    if spec.unsupported:
-        res.status, res.reason = Status.UNSUPPORTED, spec.unsupported
+    why = cannot_run(case, engine, job.settings)
+    if why:
+        res.status, res.reason = Status.UNSUPPORTED, why
         return res, {}
     try:
         res.engine_version = mod.version()

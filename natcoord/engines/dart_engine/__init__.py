@@ -75,6 +75,7 @@ import numpy as np
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
+from ..capabilities import Capabilities, misaligned_loop_revolutes, tree
 from ..schema import Setting, defaults
 
 NAME = "dart"
@@ -102,6 +103,35 @@ SETTINGS = (
 )
 DEFAULTS = defaults(SETTINGS)
 
+
+
+def _rules(case: Case, s: dict) -> list[str]:
+    """Drivers on a tree joint from the ground (drivers.py; the joint's direction is
+    checked when the skeleton is built), loop revolutes with other axes (skeleton.py)."""
+    out = []
+    joints = tree(case, CAPABILITIES)[0]
+    for d in case.drivers:
+        want = "revolute" if d.type == "angle" else "prismatic"
+        j = next((j for j in joints if d.body in j.bodies and "ground" in j.bodies), None)
+        if j is None or j.type != want:
+            out.append(f"driver {d.name!r}: DART can prescribe a tree-joint coordinate only; "
+                       f"{d.body!r} is not on a {want} joint from the ground")
+    bad = misaligned_loop_revolutes(case, CAPABILITIES)
+    if bad and s.get("loop_constraint") != "revolute":
+        out.append(f"loop joint(s) {', '.join(bad)}: revolute joints with different axes "
+                   "close the loop, a BallJointConstraint would drop their rotation rows "
+                   "(setting loop_constraint = 'revolute' uses DART's "
+                   "RevoluteJointConstraint)")
+    return out
+
+
+CAPABILITIES = Capabilities(
+    loops="soft",  # constraint impulses with error reduction (erp): the loop drifts back
+    joints={"revolute", "prismatic", "spherical", "universal"},
+    loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
+    why={"joints": "DART has no cylindrical joint",
+         "loop_joints": "DART has joint constraints for ball and revolute joints only"},
+    rules=_rules)
 
 def version() -> str:
     import dartpy

@@ -34,6 +34,7 @@ import numpy as np
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
+from ..capabilities import Capabilities
 from ..schema import Setting, defaults
 
 NAME = "drake"
@@ -68,6 +69,42 @@ RODS_UNSUPPORTED = (
     "massless rods: Drake's AddDistanceConstraint holds the length (SAP, soft) but Drake "
     "reports no constraint force, so the rod's tension (an axial channel) cannot be read, and "
     "a rod ending on the ground would attach a constraint to the world body")
+
+
+def _rules(case: Case, s: dict) -> list[str]:
+    """The refusals of :func:`_refuse` and of the tree (:func:`.model.split_tree`: no loop
+    closed at the ground, point-closable loop joints only; loops on the discrete plant
+    only; a 3-D loop revolute needs every tree joint a revolute along its axis)."""
+    from .model import split_tree
+
+    try:
+        _refuse(case)
+        tree, loops, _ = split_tree(case)
+    except Unsupported as e:
+        return [str(e)]
+    if loops and s.get("plant") != "discrete":
+        return ["closed loops need the discrete plant: Drake's continuous plant refuses "
+                "constraints"]
+    if case.dimension == 3:
+        for j in (j for j in loops if j.type == "revolute"):
+            u = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
+            off = [t.name for t in tree if t.type != "revolute" or np.linalg.norm(
+                np.cross(u, np.asarray(t.axis, float) / np.linalg.norm(t.axis))) > 1e-9]
+            if off:
+                return [f"loop-closing 3-D revolute {j.name}: the tree does not keep its "
+                        f"axis (tree joint {off[0]}), and a Drake ball constraint holds only "
+                        "the point"]
+    return []
+
+
+CAPABILITIES = Capabilities(
+    loops="soft",  # SAP's ball constraints are compliant: the loop opens by a small gap
+    joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
+    recut={"prismatic"}, drivers=(), rods=False, step="dt",
+    why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "joints": "this adapter builds revolute, prismatic and ball joints only",
+         "loop_joints": "a Drake ball constraint pins a point and cannot slide"},
+    rules=_rules)
 
 
 def version() -> str:

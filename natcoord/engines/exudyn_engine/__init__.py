@@ -39,6 +39,7 @@ from ...errors import Unsupported
 from ...mechanism import GROUND, Case
 from ...result import Motion
 from ..base import EngineRun, merged
+from ..capabilities import Capabilities
 from ..schema import Setting, defaults
 from .bodies import AXIAL_INERTIA
 
@@ -74,6 +75,25 @@ COORDINATES = {2: "redundant absolute coordinates: one NodeRigidBody2D + ObjectR
                   "ObjectRigidBody per body at its centre of mass; every joint is a "
                   "constraint"}
 
+
+
+def _rules(case: Case, s: dict) -> list[str]:
+    """The pre-build checks (:func:`_check`) that are not settings errors."""
+    try:
+        _check(case, {**DEFAULTS, **s})
+    except Unsupported as e:
+        return [str(e)]
+    except ValueError:  # a bad setting is the loader's to report, not a capability
+        pass
+    return []
+
+
+CAPABILITIES = Capabilities(
+    loops="rigid",  # every joint a constraint, index-3 generalized-alpha: no tree, no cut
+    joints={"revolute", "prismatic", "spherical", "cylindrical", "universal"},
+    particles={2},
+    why={"particles": "3-D particles are not modelled by the Exudyn adapter"},
+    rules=_rules)
 
 def version() -> str:
     import exudyn

@@ -55,6 +55,7 @@ from __future__ import annotations
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
+from ..capabilities import Capabilities
 from ..schema import Setting, defaults
 
 NAME = "mujoco"
@@ -114,6 +115,17 @@ DRIVERS_UNSUPPORTED = (
     "1.0e-3 N with a 1e6 kg clock (the clock lags as it feeds the driver torque); a 1e10 kg "
     "clock holds the angle to 1.5e-9 rad but ill-conditions the solver (torque 0.57 N off), "
     "and a body point's coordinate cannot be a joint equality at all")
+
+CAPABILITIES = Capabilities(
+    loops="soft",  # connect equalities: solref/solimp let a loop open by a small gap
+    loop_joints={"revolute", "spherical"},  # a connect holds a point only
+    recut={"prismatic", "cylindrical", "universal"},  # mjcf.split_tree
+    drivers=(), forces="com",
+    why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "loop_joints": "MuJoCo has no point-on-line equality (a connect equality holds a "
+                        "point only)",
+         "forces": "MuJoCo's xfrc_applied acts at the centre of mass and is held over a "
+                   "step, so the moment of a force elsewhere would lag the body's rotation"})
 
 
 def version() -> str:

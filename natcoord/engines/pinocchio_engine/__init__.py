@@ -63,6 +63,7 @@ from __future__ import annotations
 import time
 
 from ..base import EngineRun, merged, steps_per_sample
+from ..capabilities import Capabilities, misaligned_loop_revolutes
 from ..schema import Setting, defaults
 
 NAME = "pinocchio"
@@ -92,6 +93,31 @@ SETTINGS = (
 )
 DEFAULTS = defaults(SETTINGS)
 
+
+
+def _rules(case, s: dict) -> list[str]:
+    """Loop revolutes whose axis the tree does not keep (loops.py), Radau's limits."""
+    out = [f"loop-closing 3-D revolute {n!r}: the tree does not enforce its axis alignment, "
+           "and CONTACT_6D would lock its rotation"
+           for n in misaligned_loop_revolutes(case, CAPABILITIES)]
+    if str(s.get("method", "")).lower() == "radau":
+        from ..capabilities import tree
+        if tree(case, CAPABILITIES)[1] or case.rods:
+            out.append("method radau: the constrained (constraintDynamics) model uses RK4")
+        elif any(j.type == "spherical" for j in case.joints):
+            out.append("Radau needs a vector configuration (a spherical joint has a "
+                       "quaternion)")
+    return out
+
+
+CAPABILITIES = Capabilities(
+    loops="rigid",  # constraintDynamics: exact constraint accelerations (mu 1e-8)
+    loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
+    drivers=(),
+    why={"drivers": "Pinocchio's constraintDynamics has contact constraints only, no "
+                    "rheonomic constraint on a joint coordinate",
+         "loop_joints": "a point contact (CONTACT_3D) cannot model it"},
+    rules=_rules)
 
 def version() -> str:
     import pinocchio

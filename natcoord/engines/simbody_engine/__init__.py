@@ -76,6 +76,7 @@ from __future__ import annotations
 import time
 
 from ..base import EngineRun, merged
+from ..capabilities import Capabilities, misaligned_loop_revolutes, tree
 from ..schema import Setting, defaults
 from .simulate import INTEGRATORS
 
@@ -104,6 +105,35 @@ SETTINGS = (
 )
 DEFAULTS = defaults(SETTINGS)
 
+
+
+def _rules(case, s: dict) -> list[str]:
+    """Drivers as prescribed coordinates of a pin or slider to the ground, loop revolutes
+    whose axis the tree does not keep (model.py)."""
+    out = []
+    joints = tree(case, CAPABILITIES)[0]
+    for d in case.drivers:
+        want = "revolute" if d.type == "angle" else "prismatic"
+        j = next((j for j in joints if d.body in j.bodies and "ground" in j.bodies), None)
+        if j is None or j.type != want:
+            out.append(f"driver {d.name!r}: a prescribed coordinate needs the driven body "
+                       "on a pin (angle) or slider (coordinate) to the ground")
+    if not s.get("loop_axis_offset", 0.0) > 0:
+        out += [f"loop-closing 3-D revolute {n!r}: the tree does not keep its axis aligned, "
+                "and a WeldConstraint would lock its rotation (setting loop_axis_offset > 0: "
+                "a second PointConstraint along the axis)"
+                for n in misaligned_loop_revolutes(case, CAPABILITIES)]
+    return out
+
+
+CAPABILITIES = Capabilities(
+    loops="rigid",  # PointConstraints, projected at every step
+    joints={"revolute", "prismatic", "spherical", "universal"},
+    loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
+    why={"joints": "no OpenSim joint is wired up for it",
+         "loop_joints": "Simbody's loop constraints here pin a point (PointConstraint); a "
+                        "sliding loop joint would need PointOnLine plus an orientation lock"},
+    rules=_rules)
 
 def version() -> str:
     import opensim

@@ -119,6 +119,10 @@ def _joint_speeds(j: Joint, J: np.ndarray, P: Frame, C: Frame, at: np.ndarray) -
 
 
 def _add_joint(osim, b: Built, j: Joint, parent: str, child: str):
+    cls = {"revolute": osim.PinJoint, "prismatic": osim.SliderJoint,
+           "spherical": osim.BallJoint, "universal": osim.UniversalJoint}.get(j.type)
+    if cls is None:  # before the geometry: a joint type it lacks is a refusal, not an error
+        raise Unsupported(f"{j.type} joint {j.name!r}: no OpenSim joint is wired up for it")
     frames = b.frames
     P, C = frame_of(frames, parent), frame_of(frames, child)
     pi = j.bodies.index(parent) if j.bodies[0] != j.bodies[1] else 0
@@ -132,10 +136,6 @@ def _add_joint(osim, b: Built, j: Joint, parent: str, child: str):
         pp = P.R.T @ (at - P.origin)
     if np.linalg.norm(gap) > 1e-9:
         raise ValueError(f"joint {j.name!r} is open at t = 0 by {np.linalg.norm(gap):.3g} m")
-    cls = {"revolute": osim.PinJoint, "prismatic": osim.SliderJoint,
-           "spherical": osim.BallJoint, "universal": osim.UniversalJoint}.get(j.type)
-    if cls is None:
-        raise Unsupported(f"{j.type} joint {j.name!r}: no OpenSim joint is wired up for it")
     oj = cls(j.name, _phys(b, parent), vec3(osim, pp), vec3(osim, body_fixed_xyz(P.R.T @ J)),
              b.bodies[child], vec3(osim, pc), vec3(osim, body_fixed_xyz(C.R.T @ J)))
     b.model.addJoint(oj)

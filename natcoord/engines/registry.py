@@ -1,0 +1,124 @@
+"""Which engines there are: every adapter registered in the ``natcoord.engines`` entry-point
+group, natcoord's own six first.
+
+An entry point's name is the engine's name (in case files, ``--engines``, results) and its
+value the adapter module (``natcoord.engines.mujoco_engine``; see
+:class:`natcoord.engines.base.Adapter`). natcoord registers its built-in adapters the same
+way in its ``pyproject.toml``; when natcoord's own metadata is missing (a source checkout on
+``PYTHONPATH``, never installed), :data:`BUILTIN` registers them all the same. Order is
+stable: the built-ins in :data:`BUILTIN`'s order, then the plug-ins by name.
+
+A plug-in whose module fails to import or breaks the contract (no ``NAME``, ``PACKAGE``,
+``SETTINGS``, ``CAPABILITIES``, ``version`` or ``run``; a ``NAME`` other than its entry
+point's) is left out and listed in :attr:`Registry.problems` with the reason, and so is one
+that takes a built-in's name: one broken plug-in never takes the suite down.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata as md
+from dataclasses import dataclass, field
+from functools import cache
+from types import ModuleType
+
+GROUP = "natcoord.engines"
+
+# name -> adapter module of natcoord's own engines, in the order tables list them
+BUILTIN: dict[str, str] = {
+    "natcoord": "natcoord.engines.natcoord_engine",
+    "mujoco": "natcoord.engines.mujoco_engine",
+    "pinocchio": "natcoord.engines.pinocchio_engine",
+    "exudyn": "natcoord.engines.exudyn_engine",
+    "dart": "natcoord.engines.dart_engine",
+    "simbody": "natcoord.engines.simbody_engine",
+    "drake": "natcoord.engines.drake_engine",
+}
+REQUIRED = ("NAME", "PACKAGE", "SETTINGS", "CAPABILITIES", "version", "run")
+
+
+@dataclass(frozen=True)
+class Problem:
+    """A registered engine that is left out: its name, entry point value and why."""
+
+    name: str
+    value: str
+    error: str
+
+    def line(self) -> str:
+        return (f"engine plug-in {self.name!r} (entry point {GROUP}: {self.name} = "
+                f"{self.value}) skipped: {self.error}")
+
+
+@dataclass(frozen=True)
+class Registry:
+    """The engines that load (name -> adapter module path, in order) and the problems."""
+
+    modules: dict[str, str]
+    problems: tuple[Problem, ...] = field(default=())
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(self.modules)
+
+    def builtin(self, name: str) -> bool:
+        return BUILTIN.get(name) == self.modules.get(name)
+
+
+def _entries() -> list[tuple[str, str]]:
+    """(name, value) of every entry point in the group, duplicates (the same distribution
+    seen twice on the path) once."""
+    return list(dict.fromkeys((ep.name, ep.value) for ep in md.entry_points(group=GROUP)))
+
+
+def _contract_error(name: str, module: ModuleType) -> str:
+    missing = [a for a in REQUIRED if not hasattr(module, a)]
+    if missing:
+        return f"the adapter module lacks {', '.join(missing)} (see natcoord.engines.base)"
+    if module.NAME != name:
+        return f"its NAME is {module.NAME!r}, not the entry point's name {name!r}"
+    return ""
+
+
+@cache
+def discover() -> Registry:
+    """Discover the engines once per process (importing an adapter module does not import
+    its engine)."""
+    found: dict[str, str] = {}
+    problems: list[Problem] = []
+    for name, value in _entries():
+        if name in BUILTIN and value != BUILTIN[name]:
+            problems.append(Problem(name, value, f"{name!r} is a built-in engine's name; "
+                                    "a plug-in must take another name"))
+        elif name in found and found[name] != value:
+            problems.append(Problem(name, value, f"another entry point already registers "
+                                    f"{name!r} (= {found[name]})"))
+        elif name not in BUILTIN:
+            found[name] = value
+    plugins = {}
+    for name in sorted(found):
+        try:
+            module = importlib.import_module(found[name].split(":")[0])
+        except Exception as e:  # any failure of a plug-in is its own
+            problems.append(Problem(name, found[name], f"import failed: "
+                                    f"{type(e).__name__}: {e}"))
+            continue
+        why = _contract_error(name, module)
+        if why:
+            problems.append(Problem(name, found[name], why))
+        else:
+            plugins[name] = found[name].split(":")[0]
+    return Registry({**BUILTIN, **plugins}, tuple(problems))
+
+
+def engine_names() -> tuple[str, ...]:
+    """Every engine that loads: built-ins first in their order, then plug-ins by name."""
+    return discover().names
+
+
+def adapter(name: str) -> ModuleType:
+    """The adapter module of engine ``name``; KeyError naming the engines for another."""
+    reg = discover()
+    if name not in reg.modules:
+        raise KeyError(f"unknown engine {name!r}; engines are {', '.join(reg.names)}")
+    return importlib.import_module(reg.modules[name])
