@@ -46,7 +46,8 @@ ENGINE_COLORS = {  # the first engines' colours stay as they were; the rest by t
     "exudyn": "#d62728",
     "dart": "#9467bd",
 }
-_EXTRA_COLORS = ["#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f"]
+# simbody takes the first: cyan, far from Exudyn's red (a brown was hard to tell from it)
+_EXTRA_COLORS = ["#17becf", "#e377c2", "#bcbd22", "#8c564b", "#7f7f7f"]
 REFERENCE_COLOR = "#222222"
 FIG_HEIGHT = 480  # px, every channel figure (grid rows line up)
 KIND_ORDER = {"angle": 0, "position": 1, "velocity": 2, "energy": 3, "reaction": 4}
