@@ -37,7 +37,7 @@ CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceler
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
-ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart", "simbody")
+ENGINES = ("natcoord", "mujoco", "pinocchio", "exudyn", "dart", "simbody", "pybullet")
 
 
 @dataclass(frozen=True)

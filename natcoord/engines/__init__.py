@@ -9,7 +9,7 @@ from ..mechanism import ENGINES
 
 _MODULES = {"natcoord": "natcoord_engine", "mujoco": "mujoco_engine",
             "pinocchio": "pinocchio_engine", "exudyn": "exudyn_engine", "dart": "dart_engine",
-            "simbody": "simbody_engine"}
+            "simbody": "simbody_engine", "pybullet": "pybullet_engine"}
 
 
 def adapter(name: str) -> ModuleType:
