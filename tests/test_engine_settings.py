@@ -22,7 +22,8 @@ from natcoord.mechanism import ENGINES
 from .conftest import CASES, ROOT
 
 ENGINE_DIRS = {"mujoco": "mujoco_engine", "pinocchio": "pinocchio_engine",
-               "exudyn": "exudyn_engine", "dart": "dart_engine", "simbody": "simbody_engine"}
+               "exudyn": "exudyn_engine", "dart": "dart_engine", "simbody": "simbody_engine",
+               "pybullet": "pybullet_engine"}
 
 
 def _cli(*args, cwd=None):
