@@ -203,7 +203,7 @@ def test_link_damping_is_removed_so_energy_is_kept():
 
 
 def test_default_motors_are_disabled_so_a_joint_turns_freely():
-    """PyBullet drives every joint with a velocity motor (target 0, up to 1000 N m): the
+    """PyBullet drives every joint with a velocity motor (target 0): the
     rod started at 2 rad/s is stopped dead under it; without it, it swings up."""
     case = _rod(0.1, 2.0)
     held = _table(case, keep=("motors",))["theta"] + np.pi / 2

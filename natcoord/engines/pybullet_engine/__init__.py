@@ -18,7 +18,9 @@ Modelling choices (repeated in ``EngineRun.notes``):
   2e-3 rad at dt 1e-3, 2e-4 at 1e-4.
 * PyBullet's own defaults that change the physics are overridden, each one tested
   (:data:`.multibody.TRAPS`): link damping, velocity motors, inertia from shapes,
-  constraint pivots relative to the centre of mass.
+  constraint pivots relative to the centre of mass, the 100 rad/s joint speed cap.
+* A 3-D loop-closing revolute whose axis the tree does not keep (Bricard) needs
+  ``loop_axis_offset``: a second point-to-point constraint along the axis.
 * Loads: constant torques (``applyExternalTorque``, world axes), forces at body points and
   spring-dampers (``applyExternalForce`` at the points' world positions), all evaluated at
   the start of every step: explicit, first order like the step itself.

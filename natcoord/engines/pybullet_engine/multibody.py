@@ -9,13 +9,18 @@ overridden here (``TRAPS``), each checked in ``tests/test_engine_pybullet.py``:
 
 * link damping: every link gets ``linearDamping`` and ``angularDamping`` 0.04 s^-1 by
   default, applied to the velocities each step: set to 0, and so is the joint damping;
-* joint motors: every revolute and prismatic joint gets a velocity motor (target 0, max
-  force 1000): disabled with ``VELOCITY_CONTROL`` at ``force`` 0;
+* joint motors: every revolute and prismatic joint gets a velocity motor (target 0) that
+  holds it still: disabled with ``VELOCITY_CONTROL`` at ``force`` 0;
 * inertia: without a collision shape PyBullet invents one; every link gets its mass,
   ``localInertiaDiagonal`` (the principal moments) and its inertial frame (centre of mass
   and principal axes) explicitly;
 * constraint pivots: ``createConstraint`` takes the pivot relative to each link's centre of
-  mass, in its inertial (principal) axes, not relative to the link frame.
+  mass, in its inertial (principal) axes, not relative to the link frame;
+* joint speed: every joint's rate is capped at 100 rad/s (m/s), silently: raised to
+  :data:`MAX_JOINT_VELOCITY` (a03_andrews' crank turns at 1.4e3 rad/s).
+
+PyBullet renumbers the links depth first (:func:`depth_first`) and reports a joint's axis
+in its link's principal axes, so both are kept here rather than read back.
 """
 
 from __future__ import annotations
