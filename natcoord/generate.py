@@ -33,6 +33,7 @@ N_FOUR_BAR_ENGINES: dict[str, dict[str, str]] = {
     "exudyn": {"settings": "{ dt = 1e-3 }"},
     "dart": {"settings": "{ dt = 1e-4, erp = 1.0, loop_constraint = \"ball\" }"},
     "simbody": {"settings": "{}"},
+    "pybullet": {"settings": "{ dt = 1e-4 }"},
 }
 N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
     "natcoord": {
@@ -86,6 +87,15 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "wrong branch (B0 2 m off, energy 14-36 J), 1e-8 happens to pass "
                   "(3.4e-7 m); PointOnLineConstraint (the two in-plane rows) instead stalls "
                   "the same at 1e-9 and 1e-10, CPodes fails at t = 0.71 s. Bounds ~3x",
+    },
+    "pybullet": {
+        "tolerance": "{ position = 2.6e-4, velocity = 1.8e-3, energy = 1.4e-2 }",
+        "reason": "PyBullet 3.2.7 multibody, loops B1c0 and B2c1 closed by point-to-point "
+                  "constraints (erp 0.5), semi-implicit Euler: over 10 s (10 singular "
+                  "passes) measured at dt 1e-3 3.3e-5 m, 5.8e-3 m/s, energy 9.1e-2 J; at "
+                  "dt 1e-4 1.8e-4 m, 1.2e-3 m/s, 9.2e-3 J (~12 s); at dt 5e-5 3.8e-5 m, "
+                  "3.6e-4 m/s, 4.6e-3 J: velocity and energy first order, the position "
+                  "error a phase error that changes sign with dt; bounds ~1.5x",
     },
 }, 40: {  # 20 s, 20 singular passes (t = 0.72, 1.24, 2.69, 3.21, 4.65, ... s)
     "natcoord": {
@@ -152,6 +162,14 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "2.5e-5 m (2003 steps); N = 2's 5e-8 and 3e-8, 1e-8 stall at the fifth "
                   "singular position (t = 4.65 s, no progress in 45 s), 1e-9 at the first "
                   "(0.72 s). Bounds ~3x",
+    },
+    "pybullet": {
+        "unsupported": "not within the run budget: 40 point-to-point loops on an 81-link "
+                       "multibody cost 1.7-5 ms a step (the solver's rows, not its "
+                       "iterations: 10 or 100 cost the same), so dt 1e-4 took 596 s for "
+                       "the 20 s (2.8 ms a step) and ended 5.9e-2 m, 0.40 m/s, energy "
+                       "0.38 J off the exact solution (20 singular passes); dt 1e-3 "
+                       "(252 s) took the wrong branch at a pass, B0 1.87 m off",
     },
 }}
 

@@ -23,7 +23,8 @@ from .conftest import CASES, ROOT
 ENGINES = engine_names()  # the built-ins and any plug-in installed here
 
 ENGINE_DIRS = {"mujoco": "mujoco_engine", "pinocchio": "pinocchio_engine",
-               "exudyn": "exudyn_engine", "dart": "dart_engine", "simbody": "simbody_engine"}
+               "exudyn": "exudyn_engine", "dart": "dart_engine", "simbody": "simbody_engine",
+               "pybullet": "pybullet_engine"}
 
 
 def _cli(*args, cwd=None):

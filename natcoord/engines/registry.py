@@ -33,6 +33,7 @@ BUILTIN: dict[str, str] = {
     "dart": "natcoord.engines.dart_engine",
     "simbody": "natcoord.engines.simbody_engine",
     "drake": "natcoord.engines.drake_engine",
+    "pybullet": "natcoord.engines.pybullet_engine",
 }
 REQUIRED = ("NAME", "PACKAGE", "SETTINGS", "CAPABILITIES", "version", "run")
 

@@ -70,6 +70,7 @@ SWEEPS: dict[str, list[dict]] = {
     "exudyn": [{"dt": d} for d in (5e-3, 2e-3, 1e-3, 5e-4, 2e-4)],
     "dart": [{"dt": d} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
     "simbody": [{"accuracy": a} for a in (1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11)],
+    "pybullet": [{"dt": d} for d in (1e-3, 5e-4, 2e-4, 1e-4, 5e-5)],
 }
 TARGETS = (1e-6, 1e-9)
 MIN_BATCH_S = 0.1  # a timing sample: the stepping repeated for at least this long
