@@ -132,12 +132,18 @@ def test_tree_of_depth_first_order_starts_at_the_assembled_state():
     assert max(err.values()) < 1e-4, err  # measured 1.2e-6
 
 
-def test_bricard_loop_revolute_needs_its_axis_held():
-    """One point-to-point constraint makes the loop-closing J6 a ball joint (a 2-DOF loop);
-    a second one 1 m along its axis restores Bricard's motion (measured over 0.5 s: P3
-    3.1e-5 m off with it, 8.1e-2 m without)."""
+def test_bricard_loop_revolute_needs_its_axis_held(monkeypatch):
+    """One point-to-point constraint makes the loop-closing J6 a ball joint (a 2-DOF loop):
+    the adapter refuses that (as its capabilities say); with the refusal lifted the motion
+    is wrong (P3 8.1e-2 m off over 0.5 s), and a second constraint 1 m along the axis
+    restores Bricard's motion (3.1e-5 m)."""
+    import natcoord.engines.pybullet_engine as pyb
+
     case = dataclasses.replace(ec.case("a04_bricard"), duration=0.5)
     held = _errors(case, _table(case, {"loop_axis_offset": 1.0}))
+    with pytest.raises(Unsupported, match="revolute 'J6'.*loop_axis_offset"):
+        _table(case)
+    monkeypatch.setattr(pyb, "_rules", lambda case, s: [])
     ball = _errors(case, _table(case))
     pos = ("xP3", "yP3", "zP3")
     assert max(held[k] for k in pos) < 1e-4, held

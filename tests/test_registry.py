@@ -26,7 +26,8 @@ def entries(monkeypatch):
 
 def test_without_metadata_the_builtins_are_there_in_order(entries):
     r = entries([])
-    assert r.names == ("natcoord", "mujoco", "pinocchio", "exudyn", "dart", "simbody")
+    assert r.names == ("natcoord", "mujoco", "pinocchio", "exudyn", "dart", "simbody", "drake",
+                       "pybullet")
     assert r.problems == ()
 
 

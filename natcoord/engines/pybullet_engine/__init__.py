@@ -153,7 +153,9 @@ def simulate(case: Case, init, settings: dict, keep: tuple[str, ...] = ()) -> En
     s = merged(DEFAULTS, settings)
     dt = float(s["dt"])
     k = steps_per_sample(case, dt)
-    _refuse(case)
+    refused = _rules(case, s)  # the declared capabilities are what the engine refuses
+    if refused:
+        raise Unsupported(refused[0])
     space = lift_case(case)
     multibody.split(space)  # an unsupported loop is refused before the state is read
     frames = lift_init(case, init)
