@@ -130,9 +130,11 @@ def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> lis
                         "motions " + (f"of type {', '.join(sorted(caps.drivers))} only"
                                       if caps.drivers else "are not modelled")))
     if case.springs and not caps.springs:
-        out.append(f"spring-damper {case.springs[0].name!r}: spring-dampers are not modelled")
+        out.append(_say(caps, "springs", f"spring-damper {case.springs[0].name!r}: "
+                        "spring-dampers are not modelled"))
     if case.rods and not caps.rods:
-        out.append(f"rod {case.rods[0].name!r}: massless rods are not modelled")
+        out.append(_say(caps, "rods", f"rod {case.rods[0].name!r}: massless rods are not "
+                        "modelled"))
     particles = {b.name for b in case.bodies if b.kind == "particle"}
     if particles and dim not in caps.particles:
         out.append(f"body {sorted(particles)[0]!r}: {dim}-D particles are not modelled")
@@ -184,6 +186,22 @@ def misaligned_loop_revolutes(case: Case, caps: Capabilities) -> list[str]:
                 out.append(j.name)
                 break
     return out
+
+
+def refuse(caps: Capabilities, case: Case, settings: dict) -> None:
+    """Raise Unsupported with the first of :func:`reasons`: an adapter's run starts here,
+    so that what it declares and what it refuses are one."""
+    from ..errors import Unsupported
+
+    why = reasons(caps, case, settings)
+    if why:
+        raise Unsupported(why[0])
+
+
+def massless(case: Case, what: str) -> list[str]:
+    """A rule for engines whose bodies need mass: the first massless body, else []."""
+    return [f"body {b.name} is massless; {what} need mass"
+            for b in case.bodies if b.mass <= 0][:1]
 
 
 def why_not(case: Case, engine: str, settings: dict | None = None) -> str:

@@ -80,6 +80,47 @@ def plane_normal(case: Case) -> np.ndarray | None:
     plane), None for a 3-D case."""
     return Z if case.dimension == 2 else None
 
+@dataclasses.dataclass
+class Samples:
+    """What an engine that simulates in 3-D, world axes, sampled: body -> origin (T, 3) m,
+    rotation (T, 3, 3), velocity (T, 3) m/s, omega (T, 3) rad/s; joint -> force on its
+    second body (T, 3) N; rod or spring -> tension (T,) N."""
+
+    origin: dict
+    rotation: dict
+    velocity: dict
+    omega: dict
+    forces: dict
+    rod_force: dict
+
+    @classmethod
+    def empty(cls, case: Case, T: int) -> Samples:
+        names = [b.name for b in case.bodies]
+
+        def vectors():
+            return {n: np.zeros((T, 3)) for n in names}
+
+        return cls(vectors(), {n: np.zeros((T, 3, 3)) for n in names}, vectors(), vectors(),
+                   {j.name: np.zeros((T, 3)) for j in case.joints},
+                   {r.name: np.zeros(T) for r in (*case.rods, *case.springs)})
+
+
+def check_start(case: Case, frames: dict[str, Frame], out: Samples, engine: str,
+                tol: float = 1e-9) -> None:
+    """The engine's first sample must be natcoord's assembled state ``frames`` (to ``tol``
+    relative; a particle's rotation and angular velocity are not states)."""
+    for b in case.bodies:
+        f, n = frames[b.name], b.name
+        errs = [np.max(np.abs(out.origin[n][0] - f.origin)),
+                np.max(np.abs(out.velocity[n][0] - f.velocity))]
+        if b.kind != "particle":
+            errs += [np.max(np.abs(out.rotation[n][0] - f.R)),
+                     np.max(np.abs(out.omega[n][0] - f.omega))]
+        if max(errs) > tol * (1.0 + max(np.max(np.abs(f.origin)), np.max(np.abs(f.velocity)))):
+            raise RuntimeError(f"internal: {engine}'s initial state of body {n} differs "
+                               f"from the assembled one by {max(errs):.3g}")
+
+
 
 # ---- 2-D -> 3-D ---------------------------------------------------------------------------
 def _inertia3(inertia) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
-from ..capabilities import Capabilities
+from ..capabilities import Capabilities, massless, refuse
 from ..schema import Setting, defaults
 
 NAME = "drake"
@@ -72,19 +72,20 @@ RODS_UNSUPPORTED = (
 
 
 def _rules(case: Case, s: dict) -> list[str]:
-    """The refusals of :func:`_refuse` and of the tree (:func:`.model.split_tree`: no loop
-    closed at the ground, point-closable loop joints only; loops on the discrete plant
-    only; a 3-D loop revolute needs every tree joint a revolute along its axis)."""
-    from .model import split_tree
+    """Bodies with mass, and the tree's refusals (:func:`.model.split_tree`: no loop closed
+    at the ground, point-closable loop joints only; loops on the discrete plant only; a 3-D
+    loop revolute needs every tree joint a revolute along its axis)."""
+    from .model import CONTINUOUS_LOOPS, split_tree
 
+    out = massless(case, "Drake's rigid bodies")
+    if out:
+        return out
     try:
-        _refuse(case)
         tree, loops, _ = split_tree(case)
     except Unsupported as e:
         return [str(e)]
     if loops and s.get("plant") != "discrete":
-        return ["closed loops need the discrete plant: Drake's continuous plant refuses "
-                "constraints"]
+        return [CONTINUOUS_LOOPS]
     if case.dimension == 3:
         for j in (j for j in loops if j.type == "revolute"):
             u = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
@@ -102,6 +103,7 @@ CAPABILITIES = Capabilities(
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",
     why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "rods": RODS_UNSUPPORTED.split(": ", 1)[1],
          "joints": "this adapter builds revolute, prismatic and ball joints only",
          "loop_joints": "a Drake ball constraint pins a point and cannot slide"},
     rules=_rules)
@@ -120,17 +122,6 @@ def _version(pydrake) -> str:
     from importlib.metadata import version as dist_version
 
     return dist_version("drake")
-
-
-def _refuse(case: Case) -> None:
-    """What this adapter cannot model, before anything is built."""
-    if case.drivers:
-        raise Unsupported(DRIVERS_UNSUPPORTED)
-    if case.rods:
-        raise Unsupported(RODS_UNSUPPORTED)
-    for b in case.bodies:
-        if b.mass <= 0:
-            raise Unsupported(f"body {b.name} is massless; Drake's rigid bodies need mass")
 
 
 def _loads(case: Case, built):
@@ -163,7 +154,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     discrete = s["plant"] == "discrete"
     if discrete:
         steps_per_sample(case, float(s["dt"]))
-    _refuse(case)
+    refuse(CAPABILITIES, case, s)
     space = lift_case(case)
     model.split_tree(space)  # an unsupported loop is refused before anything is built
     frames = lift_init(case, init)

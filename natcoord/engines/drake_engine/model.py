@@ -20,6 +20,8 @@ from ..tree import point_loop_tree, tree_orientation, tree_parents
 
 JOINT_TYPES = ("revolute", "prismatic", "spherical")  # as tree joints
 WHY_POINT_LOOP = "a Drake ball constraint pins a point and cannot slide"
+CONTINUOUS_LOOPS = ("closed loops need the discrete plant: Drake's continuous MultibodyPlant "
+                    "refuses constraints ('Continuous time does not support constraints')")
 
 
 def split_tree(case: Case) -> tuple[list, list, list[str]]:
@@ -121,9 +123,7 @@ def build(case: Case, frames: dict[str, Frame], s: dict, planar: bool) -> Built:
         _check_loop_axes(case, frames, tree, loops)
     discrete = s["plant"] == "discrete"
     if loops and not discrete:
-        raise Unsupported("closed loops need the discrete plant: Drake's continuous "
-                          "MultibodyPlant refuses constraints ('Continuous time does not "
-                          "support constraints')")
+        raise Unsupported(CONTINUOUS_LOOPS)
     plant = MultibodyPlant(float(s["dt"]) if discrete else 0.0)
     if discrete:
         plant.set_discrete_contact_approximation(DiscreteContactApproximation.kSap)

@@ -150,7 +150,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     """Simulate ``case`` from ``init`` at the case's sample times (see the module)."""
     import mujoco
 
-    from ..planar import drop, lift_case, lift_init
+    from ..planar import check_start, drop, lift_case, lift_init
     from . import mjcf, stepping
 
     s = merged(DEFAULTS, settings)
@@ -169,7 +169,7 @@ def run(case: Case, init, settings: dict) -> EngineRun:
     sampler = stepping.Sampler(mujoco, m, d, space, built)
     sampler.sample(0)
     stepping.check_state(mujoco, d, 0.0)
-    stepping.check_start(space, frames, sampler.out)
+    check_start(space, frames, sampler.out, "MuJoCo")
     times = case.times
 
     def at_sample(i):

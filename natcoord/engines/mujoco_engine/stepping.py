@@ -3,38 +3,13 @@ whose soft constraints let go."""
 
 from __future__ import annotations
 
-import dataclasses
 import time
 
 import numpy as np
 
 from ...mechanism import Case
-from ..planar import Frame
+from ..planar import Samples
 from .forces import Reactions, applied_loads
-
-
-@dataclasses.dataclass
-class Samples:
-    """MuJoCo's samples in 3-D, world axes: body -> origin (T, 3) m, rotation (T, 3, 3),
-    velocity (T, 3) m/s, omega (T, 3) rad/s; joint -> force on its second body (T, 3) N;
-    rod or spring -> tension (T,) N."""
-
-    origin: dict
-    rotation: dict
-    velocity: dict
-    omega: dict
-    forces: dict
-    rod_force: dict
-
-    @classmethod
-    def empty(cls, case: Case, T: int) -> Samples:
-        names = [b.name for b in case.bodies]
-        return cls({n: np.zeros((T, 3)) for n in names},
-                   {n: np.zeros((T, 3, 3)) for n in names},
-                   {n: np.zeros((T, 3)) for n in names},
-                   {n: np.zeros((T, 3)) for n in names},
-                   {j.name: np.zeros((T, 3)) for j in case.joints},
-                   {r.name: np.zeros(T) for r in (*case.rods, *case.springs)})
 
 
 def load_model(mujoco, case: Case, build):
@@ -113,20 +88,6 @@ class Sampler:
                 out.omega[b.name][i] = w
         self.drift = max(self.drift, self.reactions.read(d, out.forces, out.rod_force, i))
 
-
-def check_start(case: Case, frames: dict[str, Frame], out: Samples, tol: float = 1e-9) -> None:
-    """The MuJoCo model must start exactly at natcoord's assembled state (a particle's
-    rotation and angular velocity are not states)."""
-    for b in case.bodies:
-        f, n = frames[b.name], b.name
-        errs = [np.max(np.abs(out.origin[n][0] - f.origin)),
-                np.max(np.abs(out.velocity[n][0] - f.velocity))]
-        if b.kind != "particle":
-            errs += [np.max(np.abs(out.rotation[n][0] - f.R)),
-                     np.max(np.abs(out.omega[n][0] - f.omega))]
-        if max(errs) > tol * (1.0 + max(np.max(np.abs(f.origin)), np.max(np.abs(f.velocity)))):
-            raise RuntimeError(f"internal: MuJoCo's initial state of body {n} differs "
-                               f"from the assembled one by {max(errs):.3g}")
 
 
 def step_samples(mujoco, m, d, T: int, k: int, at_sample) -> tuple[float, int]:

@@ -37,7 +37,7 @@ from __future__ import annotations
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
-from ..capabilities import Capabilities, misaligned_loop_revolutes
+from ..capabilities import Capabilities, massless, misaligned_loop_revolutes, refuse
 from ..schema import Setting, defaults
 
 NAME = "pybullet"
@@ -87,19 +87,8 @@ def version() -> str:
     return dist_version("pybullet")
 
 
-def _refuse(case: Case) -> None:
-    """What this adapter cannot model, before anything is built."""
-    if case.drivers:
-        raise Unsupported(DRIVERS_UNSUPPORTED)
-    if case.rods:
-        raise Unsupported(RODS_UNSUPPORTED)
-    for b in case.bodies:
-        if b.mass <= 0:
-            raise Unsupported(f"body {b.name} is massless; PyBullet links need mass")
-
-
 def _rules(case: Case, s: dict) -> list[str]:
-    """What :func:`_refuse` and the multibody refuse (:func:`.multibody.split`: loop joints
+    """Bodies with mass, and what the multibody refuses (:func:`.multibody.split`: loop joints
     that hold a point; every body joined to the ground, one fixed-base multibody), and a 3-D
     loop revolute whose axis the tree does not keep when ``loop_axis_offset`` is 0 (one
     point-to-point constraint would leave the loop a degree of freedom too many)."""
@@ -107,8 +96,10 @@ def _rules(case: Case, s: dict) -> list[str]:
     from ..tree import tree_parents
     from .multibody import GROUND, split
 
+    out = massless(case, "PyBullet links")
+    if out:
+        return out
     try:
-        _refuse(case)
         tree_joints, _, _ = split(lift_case(case))
     except Unsupported as e:
         return [str(e)]
@@ -130,6 +121,7 @@ CAPABILITIES = Capabilities(
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",
     why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "rods": RODS_UNSUPPORTED.split(": ", 1)[1],
          "joints": "a PyBullet multibody joint is revolute, prismatic, spherical or fixed",
          "loop_joints": "a point-to-point constraint holds a point and cannot slide"},
     rules=_rules)
@@ -153,9 +145,7 @@ def simulate(case: Case, init, settings: dict, keep: tuple[str, ...] = ()) -> En
     s = merged(DEFAULTS, settings)
     dt = float(s["dt"])
     k = steps_per_sample(case, dt)
-    refused = _rules(case, s)  # the declared capabilities are what the engine refuses
-    if refused:
-        raise Unsupported(refused[0])
+    refuse(CAPABILITIES, case, s)
     space = lift_case(case)
     multibody.split(space)  # an unsupported loop is refused before the state is read
     frames = lift_init(case, init)

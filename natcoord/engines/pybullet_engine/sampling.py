@@ -8,11 +8,11 @@ import time
 import numpy as np
 
 from ...mechanism import GROUND, Case
-from ..planar import Frame
+from ..planar import Frame, Samples, check_start
 from . import START_TOLERANCE
 from .multibody import Built
 from .reactions import Reactions
-from .stepping import Loads, Samples, State, check_start
+from .stepping import Loads, State
 
 
 class Sampler:
@@ -66,7 +66,7 @@ def simulate(pb, cid: int, built: Built, case: Case, frames: dict[str, Frame], s
     for i in range(T):
         sampler.sample(i)
         if i == 0:
-            check_start(case, frames, out, START_TOLERANCE)
+            check_start(case, frames, out, "PyBullet", START_TOLERANCE)
             start_gap = sampler.drift
         if sampler.drift > float(s["max_loop_drift"]):
             raise RuntimeError(f"a loop opened by {sampler.drift:.3g} m by t = "

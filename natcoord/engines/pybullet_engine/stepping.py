@@ -4,37 +4,11 @@ PyBullet clears external forces after each ``stepSimulation``) and the samples."
 
 from __future__ import annotations
 
-import dataclasses
-
 import numpy as np
 
 from ...mechanism import GROUND, Case
-from ..planar import Frame, cross, node_point
+from ..planar import cross, node_point
 from .multibody import Built
-
-
-@dataclasses.dataclass
-class Samples:
-    """body -> origin (T, 3) m, rotation (T, 3, 3), velocity (T, 3) m/s, omega (T, 3)
-    rad/s; joint -> force on its second body (T, 3) N; spring -> tension (T,) N."""
-
-    origin: dict
-    rotation: dict
-    velocity: dict
-    omega: dict
-    forces: dict
-    rod_force: dict
-
-    @classmethod
-    def empty(cls, case: Case, T: int) -> Samples:
-        names = [b.name for b in case.bodies]
-
-        def vectors():
-            return {n: np.zeros((T, 3)) for n in names}
-
-        return cls(vectors(), {n: np.zeros((T, 3, 3)) for n in names}, vectors(), vectors(),
-                   {j.name: np.zeros((T, 3)) for j in case.joints},
-                   {r.name: np.zeros(T) for r in case.springs})
 
 
 class State:
@@ -128,17 +102,3 @@ class Loads:
                     pb.applyExternalForce(uid, self.link[b], (sign * t * u).tolist(),
                                           x.tolist(), pb.WORLD_FRAME, physicsClientId=cid)
 
-
-def check_start(case: Case, frames: dict[str, Frame], out: Samples, tol: float = 1e-9) -> None:
-    """The multibody must start at natcoord's assembled state (a particle's rotation and
-    angular velocity are not states)."""
-    for b in case.bodies:
-        f, n = frames[b.name], b.name
-        errs = [np.max(np.abs(out.origin[n][0] - f.origin)),
-                np.max(np.abs(out.velocity[n][0] - f.velocity))]
-        if b.kind != "particle":
-            errs += [np.max(np.abs(out.rotation[n][0] - f.R)),
-                     np.max(np.abs(out.omega[n][0] - f.omega))]
-        if max(errs) > tol * (1.0 + max(np.max(np.abs(f.origin)), np.max(np.abs(f.velocity)))):
-            raise RuntimeError(f"internal: PyBullet's initial state of body {n} differs "
-                               f"from the assembled one by {max(errs):.3g}")
