@@ -141,7 +141,7 @@ def test_check_engine_scores_a_plugin(tmp_path, plugins):
     card = json.loads(r.stdout)
     rows = {x["check"]: x for x in card["rows"]}
     assert card["version"] == "0.1.0"
-    for check in ("reaction sign", "reaction, joint reversed", "energy"):
+    for check in ("reaction sign", "reaction, joint reversed", "energy", "momentum"):
         assert rows[check]["result"] == "pass", rows[check]
     order = rows["convergence order"]
     assert order["result"] == "pass" and order["capability"] == "settings: dt"

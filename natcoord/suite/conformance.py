@@ -9,6 +9,9 @@ pendulum's :data:`SWING_S` s):
   with the joint's bodies listed the other way round it is the force on the ground, -m g;
 * **energy**: the same rod released horizontal at rest (conservative): the drift of its
   energy over 1 s on the energy scale (m g L), at the engine's default settings;
+* **momentum**: the rod spinning about its pin without gravity (2 rad/s): its angular
+  momentum about the pin is conserved, so theta = 2 t exactly (error on 2 rad), and the
+  pin's reaction is the centripetal force m w^2 L / 2 = 4 N (when reactions are declared);
 * **convergence order**: when the engine declares a step setting (``dt`` or ``h``), the rod's
   angle error against natcoord at rtol 1e-12 at steps 0.01 s and 0.005 s: log2 of their
   ratio (info when both are at round-off);
@@ -48,7 +51,7 @@ G = 9.81
 ROD = """name = "check_rod"
 description = "a uniform rod (2 kg, 1 m) on a pin: check-engine's conformance case"
 dimension = 2
-gravity = [0.0, -9.81]
+gravity = [0.0, {gravity}]
 duration = {duration}
 output_dt = 0.01
 [ground]
@@ -65,7 +68,7 @@ bodies = {bodies}
 points = ["O", "O"]
 [initial]
 fix = {{ theta = "{angle} deg" }}
-velocity = {{ theta = 0.0 }}
+velocity = {{ theta = {rate} }}
 [initial.pose]
 rod = {{ origin = [0.0, 0.0], angle = "{angle} deg" }}
 [channels]
@@ -76,6 +79,9 @@ energy = {{ kind = "energy" }}
 """
 REACTION_RTOL = 1e-3  # of m g: a sign or frame error is 100 %, an engine's own error far less
 ENERGY_RTOL = 1e-3  # of m g L over 1 s: a damping default or a dissipative step shows
+MOMENTUM_RTOL = 1e-3  # of w T: damping or a dissipative step shows
+PULL_RTOL = 1e-2  # of m w^2 L / 2: a missing centripetal term is 100 %, a first-order
+# engine's own error at its default step 1e-4..1e-3 (PyBullet at dt 1e-4: 1.4e-3 at worst)
 MIN_ORDER = 0.8  # an error that does not fall at least about linearly with the step
 
 
@@ -89,13 +95,15 @@ class Row:
 
 
 def rod(folder: Path, *, reversed_joint: bool = False, angle: float = -90.0,
-        duration: float = 0.1) -> Case:
-    """The conformance rod as a loaded case (written to ``folder``)."""
+        duration: float = 0.1, rate: float = 0.0, gravity: float = -G) -> Case:
+    """The conformance rod as a loaded case (written to ``folder``): ``rate`` rad/s at
+    t = 0, ``gravity`` m/s^2 along y."""
     bodies = '["rod", "ground"]' if reversed_joint else '["ground", "rod"]'
-    path = folder / f"{'rev' if reversed_joint else 'fwd'}{angle:g}" / "check_rod.toml"
+    path = (folder / f"{'rev' if reversed_joint else 'fwd'}{angle:g}w{rate:g}g{gravity:g}"
+            / "check_rod.toml")
     path.parent.mkdir(exist_ok=True)
-    path.write_text(ROD.format(bodies=bodies, angle=angle, duration=duration),
-                    encoding="utf-8")
+    path.write_text(ROD.format(bodies=bodies, angle=angle, duration=duration, rate=rate,
+                               gravity=gravity), encoding="utf-8")
     return load_case(path)
 
 
@@ -161,6 +169,28 @@ class Battery:
                      f"O_y {np.median(y):+.6g} N (want {want:+.4g}), max error {err:.2g} N",
                      cap, "" if ok else "the pin's reaction must be the force it applies "
                      "to the joint's second body, in world axes (+y up)")
+
+    def momentum(self) -> None:
+        from ..engines import adapter
+
+        w, T = 2.0, SWING_S
+        rec, t = self.run(rod(self.tmp, angle=0.0, duration=T, rate=w, gravity=0.0))
+        cap = "integration: angular momentum about a pin, no gravity"
+        if t is None:
+            self.not_run("momentum", rec, cap)
+            return
+        err = float(np.max(np.abs(np.unwrap(t["theta"].to_numpy()) - w * t["t"].to_numpy())))
+        ok = err <= MOMENTUM_RTOL * w * T
+        figure = f"angle off w t by {err:.2g} rad over {T:g} s"
+        if adapter(self.engine).CAPABILITIES.reactions:
+            pull = np.hypot(t["O_x"].to_numpy(), t["O_y"].to_numpy())
+            want = 2.0 * w**2 * 0.5  # m w^2 (L / 2)
+            rerr = float(np.max(np.abs(pull - want)))
+            ok = ok and rerr <= PULL_RTOL * want
+            figure += f"; pin pull {np.median(pull):.6g} N (want {want:g}), error {rerr:.2g} N"
+        self.add("momentum", "pass" if ok else "fail", figure, cap,
+                 "" if ok else "a spinning rod must keep its angular momentum (no damping, no "
+                 "dissipative step) and its pin must pull it inward by m w^2 L / 2")
 
     def energy_and_order(self) -> None:
         swing = rod(self.tmp, angle=0.0, duration=SWING_S)
@@ -270,6 +300,7 @@ def check_engine(engine: str, cases_dir: Path, references: Path,
     b = Battery(engine, cases_dir, references, say)
     try:
         b.reactions()
+        b.momentum()
         b.energy_and_order()
         b.references_()
     finally:
