@@ -159,6 +159,18 @@ def _engines(spec: str | None) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def _results_dir(given: Path | None) -> Path:
+    """The results folder a reading command uses; the default (reports/latest) is named on
+    stderr with where it points and how to name another."""
+    if given is not None:
+        return given
+    latest = resolve(None, "reports/latest")
+    where = f" -> {latest.resolve()}" if latest.is_symlink() else ""
+    err.print(f"reading {escape(str(latest))}{escape(where)} (the last complete run or suite; "
+              "name another with --results)", highlight=False, style="dim")
+    return latest
+
+
 def _point_latest(target: Path) -> None:
     """Point reports/latest at ``target``, a results folder just published (until then it
     keeps pointing at the previous complete one, which gate and report read meanwhile)."""
@@ -333,7 +345,7 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     from .report.html import write_report
     from .suite import diff, gate
 
-    results = resolve(results, "reports/latest")
+    results = _results_dir(results)
     if not (results / "summary.json").exists():
         _fail(f"{results}: no summary.json; run `natcoord run` or `natcoord suite` first")
     from .suite import history as hist
@@ -375,7 +387,7 @@ def gate_cmd(results: ResultsDir = None,
     """
     from .suite import diff, gate
 
-    results = resolve(results, "reports/latest")
+    results = _results_dir(results)
     baseline = resolve(baseline, "references/baseline.json")
     try:
         summary = gate.load_summary(results)

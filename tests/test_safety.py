@@ -502,6 +502,7 @@ def test_gate_and_report_read_the_last_run_by_default(tmp_path):
     assert (first / "summary.json").is_file()
     p = _cli("gate", env=env)
     _clean(p, 0)
+    assert f"-> {first}" in p.stderr and "name another with --results" in p.stderr
     _clean(_cli("report", env=env), 0)
     assert (first / "index.html").is_file()
     _clean(_cli("run", "no_such_case", "--engines", "natcoord", env=env), 2)
