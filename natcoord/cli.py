@@ -669,6 +669,74 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     raise typer.Exit(code)
 
 
+@app.command("history")
+def history_cmd(cell: Annotated[str | None, typer.Option(
+                    help="One cell's series, CASE/ENGINE: accuracy and speed per run.")] = None,
+                since_green: Annotated[bool, typer.Option(
+                    "--since-green", help="What regressed in the newest suite since the last "
+                    "suite whose gate passed.")] = False,
+                flaky_: Annotated[bool, typer.Option(
+                    "--flaky", help="Cells whose verdict flips, with a score (flips per "
+                    "run).")] = False,
+                last: Annotated[int, typer.Option(min=1, help="Runs to read.")] = 20,
+                as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
+                history: HistoryDb = None):
+    """Ask the history database: the recent runs (commit, machine, gate verdict), one
+    cell's accuracy and speed, what regressed since the last green suite, flaky cells.
+    Read-only; exit 1 when --since-green finds a regression, else 0."""
+    import json as _json
+
+    from .suite import history as hist
+    from .suite import history_views as views
+
+    db = resolve(history, "reports/history.db")
+    try:
+        hist.check(db)
+        if cell is not None:
+            case, sep, engine = cell.partition("/")
+            if not sep or not case or not engine:
+                _fail(f"--cell {cell!r}: CASE/ENGINE expected")
+            data = views.cell(db, case, engine, last)
+        elif since_green:
+            data = views.since_green(db)
+        elif flaky_:
+            data = views.flaky(db, last)
+        else:
+            data = views.runs(db, last)
+    except NatcoordError as e:
+        _fail(str(e))
+    code = 1 if since_green and data["regressed"] else 0
+    if as_json:
+        print(_json.dumps(data, indent=1, default=str))
+        raise typer.Exit(code)
+    if since_green:
+        g, n = data["green"], data["latest"]
+        if n is None or g is None:
+            out.print(f"no {'suite' if n is None else 'green suite before the newest'} in "
+                      f"{escape(str(db))}: nothing to compare")
+            raise typer.Exit(0)
+        out.print(f"newest suite #{n['id']} ({n['generated']}, {n['commit'][:10] or '?'}, "
+                  f"gate {n['gate']}) against the last green #{g['id']} ({g['generated']}, "
+                  f"{g['commit'][:10] or '?'})")
+        for r in data["regressed"]:
+            out.print(f"  {escape(r['cell'])}: {escape('; '.join(r['why']))}")
+        if not data["regressed"]:
+            out.print("  nothing regressed")
+        raise typer.Exit(code)
+    rows = data if isinstance(data, list) else []
+    if not rows:
+        out.print(f"nothing recorded in {escape(str(db))}")
+        raise typer.Exit(0)
+    table = Table()
+    for col in rows[0]:
+        table.add_column(col)
+    for r in rows:
+        table.add_row(*(escape(f"{v:.3g}" if isinstance(v, float) else str(v if v is not
+                                                                             None else ""))
+                        for v in r.values()))
+    out.print(table)
+
+
 @app.command("compare")
 def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results folder.")],
                 new: Annotated[Path, typer.Argument(help="The later results folder.")],

@@ -1,0 +1,138 @@
+"""What ``natcoord history`` asks of the history database (read-only; see
+:mod:`natcoord.suite.history`): the recent runs, one cell's accuracy and speed series, what
+regressed since the last passing (green) suite, and which cells flip between pass and fail.
+
+A cell's **worst** figure is the largest ``max_abs / tolerance`` over its gated, determined
+channels in a run (over 1 fails); its speed the median of its benchmark samples (s).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+from .history import reading
+
+GROWTH = 10.0  # a worst figure grown this much (and past 0.1) counts as regressed
+SLOWER = 1.5  # a median time grown this much is listed (the gate's rule judges it)
+
+
+def _worst(db, run_id: int) -> dict[tuple[str, str], dict]:
+    out: dict[tuple[str, str], dict] = {}
+    for case, engine, status, verdict, max_abs, tol in db.execute(
+            "SELECT case_name, engine, status, verdict, max_abs, tolerance FROM results "
+            "WHERE run_id = ? AND determined IS NOT 0", (run_id,)):
+        c = out.setdefault((case, engine), {"status": status, "verdict": verdict,
+                                            "worst": None})
+        if max_abs is not None and tol:
+            c["worst"] = max(c["worst"] or 0.0, max_abs / tol)
+    return out
+
+
+def _median_s(db, run_id: int) -> dict[tuple[str, str], float]:
+    return {(c, e): statistics.median(json.loads(raw)) for c, e, raw in db.execute(
+        "SELECT case_name, engine, samples FROM bench WHERE run_id = ?", (run_id,))
+        if json.loads(raw)}
+
+
+def runs(path: Path, last: int = 20) -> list[dict]:
+    """The last ``last`` runs, newest first: id, time, kind, commit, machine, gate exit
+    code and the cells that passed and failed."""
+    with reading(path) as db:
+        if db is None:
+            return []
+        rows = db.execute("SELECT id, generated, kind, git_commit, machine, gate FROM runs "
+                          "ORDER BY id DESC LIMIT ?", (last,)).fetchall()
+        out = []
+        for run_id, generated, kind, commit, machine, gate in rows:
+            cells = _worst(db, run_id)
+            out.append({"id": run_id, "generated": generated, "kind": kind,
+                        "commit": commit or "", "machine": machine or "", "gate": gate,
+                        "passed": sum(c["verdict"] == "pass" for c in cells.values()),
+                        "failed": sum(c["verdict"] == "fail" or c["status"] == "failed"
+                                      for c in cells.values())})
+    return out
+
+
+def cell(path: Path, case: str, engine: str, last: int = 30) -> list[dict]:
+    """One cell over the last ``last`` runs that hold it, oldest first: run, time,
+    commit, status, verdict, worst figure, median time (s, when benchmarked)."""
+    with reading(path) as db:
+        if db is None:
+            return []
+        ids = [r[0] for r in db.execute(
+            "SELECT DISTINCT run_id FROM results WHERE case_name = ? AND engine = ? UNION "
+            "SELECT DISTINCT run_id FROM bench WHERE case_name = ? AND engine = ? "
+            "ORDER BY 1 DESC LIMIT ?", (case, engine, case, engine, last))][::-1]
+        out = []
+        for run_id in ids:
+            generated, commit = db.execute("SELECT generated, git_commit FROM runs WHERE "
+                                           "id = ?", (run_id,)).fetchone()
+            c = _worst(db, run_id).get((case, engine), {})
+            out.append({"id": run_id, "generated": generated, "commit": commit or "",
+                        "status": c.get("status"), "verdict": c.get("verdict"),
+                        "worst": c.get("worst"),
+                        "median_s": _median_s(db, run_id).get((case, engine))})
+    return out
+
+
+def _info(r) -> dict | None:
+    return None if not r else {"id": r[0], "generated": r[1], "commit": r[2] or "",
+                               "gate": r[3]}
+
+
+def since_green(path: Path) -> dict:
+    """The newest suite against the last suite whose gate passed before it: ``{"green",
+    "latest"}`` (run summaries, None when there is none) and ``regressed``: the cells that
+    failed, whose worst figure grew past :data:`GROWTH` x (and 0.1), or whose median time
+    grew past :data:`SLOWER` x, each with what changed."""
+    with reading(path) as db:
+        if db is None:
+            return {"green": None, "latest": None, "regressed": []}
+        head = "SELECT id, generated, git_commit, gate FROM runs WHERE kind = 'suite'"
+        latest = db.execute(head + " ORDER BY id DESC LIMIT 1").fetchone()
+        green = latest and db.execute(head + " AND gate = 0 AND id < ? ORDER BY id DESC "
+                                      "LIMIT 1", (latest[0],)).fetchone()
+        out = {"green": _info(green), "latest": _info(latest), "regressed": []}
+        if not (latest and green):
+            return out
+        now, then = _worst(db, latest[0]), _worst(db, green[0])
+        t_now, t_then = _median_s(db, latest[0]), _median_s(db, green[0])
+    for key in sorted(set(now) | set(t_now)):
+        c, was = now.get(key, {}), then.get(key, {})
+        why = []
+        if c.get("verdict") == "fail" or c.get("status") == "failed":
+            why.append(f"{c.get('status')} / {c.get('verdict')} (was {was.get('status')} / "
+                       f"{was.get('verdict')})")
+        w, w0 = c.get("worst"), was.get("worst")
+        if w is not None and w0 is not None and w > max(GROWTH * w0, 0.1):
+            why.append(f"worst error/tolerance {w0:.3g} -> {w:.3g}")
+        s, s0 = t_now.get(key), t_then.get(key)
+        if s and s0 and s > SLOWER * s0:
+            why.append(f"median time {s0:.3g} s -> {s:.3g} s ({s / s0:.2f}x)")
+        if why:
+            out["regressed"].append({"cell": "/".join(key), "why": why})
+    return out
+
+
+def flaky(path: Path, last: int = 20) -> list[dict]:
+    """Cells whose verdict flipped between pass and fail over the last ``last`` runs that
+    judged them: score = flips / (runs - 1), highest first."""
+    with reading(path) as db:
+        if db is None:
+            return []
+        ids = [r[0] for r in db.execute("SELECT id FROM runs ORDER BY id DESC LIMIT ?",
+                                        (last,))][::-1]
+        series: dict[str, list[str]] = {}
+        for run_id in ids:
+            for key, c in _worst(db, run_id).items():
+                if c["verdict"] in ("pass", "fail"):
+                    series.setdefault("/".join(key), []).append(c["verdict"])
+    out = []
+    for name, v in series.items():
+        flips = sum(a != b for a, b in zip(v, v[1:], strict=False))
+        if flips:
+            out.append({"cell": name, "score": flips / (len(v) - 1), "runs": len(v),
+                        "flips": flips})
+    return sorted(out, key=lambda x: -x["score"])

@@ -1,0 +1,59 @@
+"""`natcoord history` reads the history back: recent runs, one cell's series, what
+regressed since the last green suite (exit 1), flaky cells. Histories written through the
+same `history.record` the suite uses."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+from natcoord.suite import history
+
+
+def _summary(err: float, verdict: str) -> dict:
+    chan = {"theta": {"kind": "angle", "max_abs": err, "max_rel": err, "tolerance": 1e-6,
+                      "determined": True}}
+    return {"generated": "2026-11-26T00:00:00", "machine": {"fingerprint": "m"},
+            "records": [{"case": "pendulum", "engine": "mujoco", "status": "ok",
+                         "verdict": verdict, "channels": chan},
+                        {"case": "pendulum", "engine": "natcoord", "status": "ok",
+                         "verdict": "pass", "channels": {**chan, "theta": {
+                             **chan["theta"], "max_abs": 1e-12}}}]}
+
+
+def _cli(*args):
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", "history", *map(str, args)],
+                          capture_output=True, text=True, timeout=120, env=dict(os.environ))
+
+
+def test_since_green_names_the_cell_and_the_commits(tmp_path):
+    db = tmp_path / "h.db"
+    history.record(db, kind="suite", summary=_summary(1e-8, "pass"), gate=0, commit="aaa111")
+    history.record(db, kind="suite", summary=_summary(1e-8, "pass"), gate=0, commit="bbb222")
+    history.record(db, kind="suite", summary=_summary(3e-6, "fail"), gate=1, commit="ccc333")
+    p = _cli("--since-green", "--history", db)
+    assert p.returncode == 1, p.stderr
+    assert "ccc333" in p.stdout and "bbb222" in p.stdout
+    assert "pendulum/mujoco: ok / fail (was ok / pass); worst error/tolerance 0.01 -> 3" \
+        in " ".join(p.stdout.split()), p.stdout
+    assert "pendulum/natcoord" not in p.stdout
+    data = json.loads(_cli("--since-green", "--json", "--history", db).stdout)
+    assert [r["cell"] for r in data["regressed"]] == ["pendulum/mujoco"]
+    assert data["green"]["commit"] == "bbb222" and data["latest"]["commit"] == "ccc333"
+
+
+def test_runs_cell_series_and_flaky(tmp_path):
+    db = tmp_path / "h.db"
+    for err, v, code in ((1e-8, "pass", 0), (3e-6, "fail", 1), (1e-8, "pass", 0)):
+        history.record(db, kind="suite", summary=_summary(err, v), gate=code)
+    runs = json.loads(_cli("--json", "--history", db).stdout)
+    assert [r["gate"] for r in runs] == [0, 1, 0] and runs[1]["failed"] == 1
+    series = json.loads(_cli("--cell", "pendulum/mujoco", "--json", "--history", db).stdout)
+    assert [round(s["worst"], 6) for s in series] == [0.01, 3.0, 0.01]
+    (f,) = json.loads(_cli("--flaky", "--json", "--history", db).stdout)
+    assert f["cell"] == "pendulum/mujoco" and f["flips"] == 2 and f["score"] == 1.0
+    p = _cli("--cell", "pendulum", "--history", db)
+    assert p.returncode == 2 and "CASE/ENGINE expected" in p.stderr
+    assert _cli("--since-green", "--history", tmp_path / "none.db").returncode == 0
