@@ -737,6 +737,39 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
     out.print(table)
 
 
+@app.command("bisect")
+def bisect_cmd(good: Annotated[str, typer.Argument(help="A commit where the gate passes.")],
+               bad: Annotated[str, typer.Argument(help="A later commit where it fails.")],
+               cases: CaseArgs = None, engines: Engines = None,
+               repo: Annotated[Path | None, typer.Option(
+                   help="The git repository [default: the project folder].",
+                   show_default=False)] = None,
+               timeout: Timeout = DEFAULT_TIMEOUT_S,
+               as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False):
+    """Find the first commit between GOOD and BAD at which the gate fails for these cases
+    and engines (git bisect in a temporary worktree: each commit's own natcoord, case files
+    and references; a crash or timeout counts as bad, a commit that cannot start is
+    skipped). Exit 0 with the commit named, 3 when bisect could not name one."""
+    import json as _json
+
+    from .suite.bisect import bisect
+
+    try:
+        found = bisect(resolve(repo, "."), good, bad, list(cases or []), list(_engines(engines)),
+                       timeout_s=timeout)
+    except NatcoordError as e:
+        _fail(str(e))
+    if as_json:
+        print(_json.dumps({k: v for k, v in found.items() if k != "log"}, indent=1))
+    elif found["first_bad"]:
+        out.print(f"first bad commit: {found['first_bad']} {escape(found['subject'])}")
+    else:
+        err.print(escape(found["log"][-2000:]), highlight=False)
+        err.print("bisect could not name a first bad commit (is GOOD good and BAD bad for "
+                  "these cases?)")
+    raise typer.Exit(0 if found["first_bad"] else 3)
+
+
 @app.command("compare")
 def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results folder.")],
                 new: Annotated[Path, typer.Argument(help="The later results folder.")],

@@ -1,0 +1,69 @@
+"""`natcoord bisect` names the commit that broke a cell: a test repository (a copy of the
+package, the pendulum case and its reference) whose third commit changes the pendulum's mass
+by 1 % in its case file (the stored reference no longer holds: the gate fails at 1e-8 rad);
+the commits around it change nothing that matters. The user's checkout is not touched."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from .conftest import CASES, REFERENCES
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _git(repo: Path, *args: str) -> str:
+    return subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                          cwd=repo, capture_output=True, text=True, check=True).stdout.strip()
+
+
+@pytest.fixture
+def repo(tmp_path) -> tuple[Path, list[str]]:
+    r = tmp_path / "repo"
+    shutil.copytree(ROOT / "natcoord", r / "natcoord",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    (r / "cases").mkdir()
+    (r / "references").mkdir()
+    shutil.copy(CASES / "pendulum.toml", r / "cases")
+    for f in REFERENCES.glob("pendulum.*"):
+        shutil.copy(f, r / "references")
+    _git(r, "init", "-q")
+    shas = []
+
+    def commit(message: str) -> None:
+        _git(r, "add", "-A")
+        _git(r, "commit", "-q", "-m", message)
+        shas.append(_git(r, "rev-parse", "HEAD"))
+
+    commit("good: the pendulum as shipped")
+    (r / "NOTES.md").write_text("a note\n")
+    commit("a note")
+    case = r / "cases" / "pendulum.toml"
+    text = case.read_text()
+    assert "mass = 1.0\n" in text
+    case.write_text(text.replace("mass = 1.0\n", "mass = 1.01\n", 1))
+    commit("mass 1 % heavier")
+    (r / "NOTES.md").write_text("another note\n")
+    commit("another note")
+    return r, shas
+
+
+def test_bisect_names_the_commit_that_changed_the_mass(repo):
+    r, shas = repo
+    before = _git(r, "status", "--porcelain")
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bisect", shas[0], shas[-1],
+                        "pendulum", "--engines", "natcoord", "--repo", str(r), "--json"],
+                       capture_output=True, text=True, timeout=1200, env=dict(os.environ))
+    assert p.returncode == 0, p.stderr[-3000:]
+    found = json.loads(p.stdout)
+    assert found["first_bad"] == shas[2] and found["subject"] == "mass 1 % heavier"
+    assert _git(r, "status", "--porcelain") == before  # the checkout untouched
+    assert _git(r, "rev-parse", "HEAD") == shas[-1]
+    assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
