@@ -25,6 +25,7 @@ import numpy as np
 
 from . import stepcontrol as sc
 from .errors import StepFailure
+from .solver import SCIPY_METHODS
 
 
 class ExplicitRK:
@@ -111,7 +112,6 @@ class DormandPrince853(ExplicitRK):
         return at
 
 
-SCIPY_METHODS = ("DOP853", "RK45", "Radau", "LSODA", "BDF")
 INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "dop853": DormandPrince853,
                "trapezoidal": None,
                **{k: None for k in SCIPY_METHODS}}

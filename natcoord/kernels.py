@@ -18,8 +18,8 @@ with the rank-revealing QR of :mod:`natcoord.kernels_general` (null-space form o
 min-norm projections), as ``Index1`` in its ``qr`` mode. Units: SI (m, s, kg, N).
 
 numba compiles once per machine (``cache=True``; about 30 s cold, both paths, 0.3 s to load
-the cache); :func:`ensure_compiled` does it and returns the time it took, so callers keep it
-out of the stepping time.
+the cache); :func:`natcoord.kernel_cache.ensure_compiled` does it and returns the time it
+took, so callers keep it out of the stepping time.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -464,9 +463,7 @@ def drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
 
 drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
 drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse, stepcontrol))
-_READY: set[str] = set()  # the paths compiled or loaded in this process
-OTHER_LOOPS = {"maggi": "natcoord.kernels_maggi", "index3": "natcoord.kernels_index3"}
-PATHS = ("sparse", "generated", "general", *OTHER_LOOPS)
+PATHS = ("sparse", "generated", "general")  # index1's compiled paths
 
 
 def warm_up_model() -> tuple:
@@ -477,43 +474,28 @@ def warm_up_model() -> tuple:
     return con, pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
 
 
-def ensure_compiled(*paths: str) -> float:
-    """Compile (or load from numba's cache) the loop of the given paths (:data:`PATHS`:
-    index1's sparse Schur path with generic or generated kernels and its general QR
-    null-space path, the maggi and index3 loops; none given: all) by tiny runs; returns the
-    seconds this call took (0 when already done in this process). A run loads only the path
-    it takes."""
-    import importlib
-
+def warm_up(path: str) -> None:
+    """Compile (or load from numba's cache) index1's loop on ``path`` (:data:`PATHS`: the
+    sparse Schur path with generic or generated kernels, the general QR null-space path)
+    by tiny runs with every method."""
     from . import codegen
-    todo = [p for p in (paths or PATHS) if p not in _READY]
-    if not todo or not HAVE_NUMBA:
-        return 0.0
-    t0 = time.perf_counter()
-    for path in [p for p in todo if p in OTHER_LOOPS]:
-        importlib.import_module(OTHER_LOOPS[path]).warm_up()
-        _READY.add(path)
-    todo = [p for p in todo if p not in OTHER_LOOPS]
     con, frc = warm_up_model()
     times = np.linspace(0.0, 0.02, 3)
-    for path in todo:
-        plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
-        args = None if plan is None else plan.kernel_args
-        kern = codegen.load(plan, frc) if path == "generated" else None
-        for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
-            Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
-                           plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
-                           ptol=1e-13, cnt=None, h=h)
-        if path == "sparse":
-            sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
-                max_phi=0.0, max_phi_dot=0.0), args)
-        # an elimination expands the samples after the loop
-        dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
-               np.zeros(1), np.arange(2, dtype=np.int64),
-               np.array([2], np.int64))  # a third coordinate equal to the first
-        expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
-        _READY.add(path)
-    return time.perf_counter() - t0
+    plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
+    args = None if plan is None else plan.kernel_args
+    kern = codegen.load(plan, frc) if path == "generated" else None
+    for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
+        Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
+                       plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
+                       ptol=1e-13, cnt=None, h=h)
+    if path == "sparse":
+        sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
+            max_phi=0.0, max_phi_dot=0.0), args)
+    # an elimination expands the samples after the loop
+    dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
+           np.zeros(1), np.arange(2, dtype=np.int64),
+           np.array([2], np.int64))  # a third coordinate equal to the first
+    expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
 
 
 def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
