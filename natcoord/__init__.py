@@ -9,4 +9,22 @@ from .result import Motion, Result, Status, evaluate_channels  # noqa: E402
 
 __all__ = ["__version__", "load_case", "load_cases", "Case", "Motion", "Result", "Status",
            "evaluate_channels", "NatcoordError", "CaseError", "AssemblyError",
-           "ExistenceError", "Unsupported"]
+           "ExistenceError", "Unsupported",
+           "Builder", "Model", "State", "integrate", "accelerations", "project", "Solution",
+           "Solver", "Index1", "Maggi", "Index3", "Adaptive", "Fixed", "reactions"]
+
+# the solver (build a model, integrate it, read its reactions), imported when first used:
+# numba and the compiled loops stay out of the bench's processes that do not integrate
+_SOLVER = {"Builder": "builder", "Model": "model", "State": "kinematics",
+           "integrate": "dynamics", "accelerations": "dynamics", "project": "dynamics",
+           "Solution": "dynamics", "Solver": "solver", "Index1": "solver", "Maggi": "solver",
+           "Index3": "solver", "Adaptive": "solver", "Fixed": "solver"}
+
+
+def __getattr__(name: str):
+    import importlib
+    if name == "reactions":
+        return importlib.import_module(".reactions", __name__)
+    if name in _SOLVER:
+        return getattr(importlib.import_module(f".{_SOLVER[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import kernels, timing
+from . import kernel_cache, kernels, timing
 from .drivers import ConstraintSystem
 from .formulations import RUNTIME, Counters, Index1Loop, check_existence, multipliers
 from .integrators import time_loop
@@ -53,7 +53,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     dopri5 or rk4, maggi with dop853 or dopri5, index3); its compile/cache-load time
     (``counters["compile_time_s"]``) and the model's sparsity plan and generated kernels
     (``counters["plan_time_s"]``) are never in ``wall_time_s``; ``counters["path"]`` names
-    the loop that ran (:data:`natcoord.kernels.PATHS`, or ``python``). ``check``: test Eq. (37)
+    the loop that ran (:data:`natcoord.kernel_cache.PATHS`, or ``python``). ``check``: test Eq. (37)
     at the initial state first.
     """
     solver = Solver() if solver is None else solver
@@ -80,11 +80,10 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
         Q[k], QD[k] = q, qd
         QDD[k] = form.accelerations(t, q, qd)
 
-    plan0 = time.perf_counter()
-    if compiled:
-        form.prepare_compiled(q0)  # model-only set-up (plan, kernels): not stepping time
+    plan0 = time.perf_counter()  # model-only set-up (plan, kernels): not stepping time
+    prep = form.prepare_compiled(q0) if compiled else None
     plan_s = time.perf_counter() - plan0
-    compile_s = kernels.ensure_compiled(form.compiled_path) if compiled else 0.0
+    compile_s = kernel_cache.ensure_compiled(prep.path) if compiled else 0.0
     start = dataclasses.replace(cnt)
 
     def stepping():  # one whole run from the start (a benchmark repeats it: natcoord.timing)
@@ -98,11 +97,10 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
 
     _, wall, batches = timing.timed(stepping)
     # outputs only: min-norm multipliers and drift at the samples
-    plan = form._plan if compiled else None  # index1's Schur path: its plan
     done = np.zeros(T, bool)
-    if plan is not None:  # sparse, linear in the model's size; unique lambda where no row
-        done[:] = ~kernels.sample_outputs(plan, form._frc, Q, QD, LAM, cnt,  # is dependent
-                                          form._out_args)
+    if prep is not None and prep.plan is not None:  # index1's Schur plan: sparse, linear in
+        done[:] = ~kernels.sample_outputs(  # the model's size; lambda unique where no row
+            prep.plan, prep.frc, Q, QD, LAM, cnt, prep.out_args)  # is dependent
     for k in np.flatnonzero(~done):
         LAM[k] = multipliers(model, cs, times[k], Q[k], QD[k], QDD[k])
         p, J, pt, _ = cs.all(Q[k], QD[k], times[k])
@@ -111,7 +109,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
                                                             initial=0.0)))
     counters = cnt.as_dict() | {"formulation": name, "method": method,
                                 "compiled": bool(compiled), "compile_time_s": compile_s,
-                                "path": form.compiled_path if compiled else "python",
+                                "path": prep.path if compiled else "python",
                                 "plan_time_s": plan_s} | batches.counters()
     return Solution(times, Q, QD, QDD, LAM, counters, wall)
 

@@ -69,6 +69,23 @@ class Counters:
         return dict(self.__dict__)
 
 
+@dataclass(frozen=True)
+class Prepared:
+    """The model-only set-up of a compiled loop (made before the stepping, never timed):
+    ``path`` the loop that runs (:data:`natcoord.kernel_cache.PATHS`), ``frc`` the packed
+    forces (:func:`compiled_forces`), ``plan`` the model's sparsity plan for the samples'
+    multipliers (index1 with a regular M; None otherwise) with its ``out_args``
+    (``plan.kernel_args``), ``kernels`` the generated kernels driving the loop (None: the
+    generic ones), ``elimination`` the coordinates the loop leaves out (None: none)."""
+
+    path: str
+    frc: tuple | None
+    plan: object | None = None
+    out_args: tuple | None = None
+    kernels: object | None = None
+    elimination: object | None = None
+
+
 # every option of every formulation with its default (:mod:`natcoord.solver` documents them)
 DEFAULT_OPTIONS = {**Index1().options(), **Maggi().options(), **Index3().options()}
 
@@ -192,8 +209,8 @@ class FormulationLoop:
     4. ``state(t, y) -> (q, qd)`` and ``accelerations(t, q, qd) -> qdd`` for the outputs.
 
     A formulation with a compiled loop says so in ``compiled_candidate(method, h)``, sets
-    itself up in ``prepare_compiled(q0)`` (model only: not stepping time), names its loop in
-    ``compiled_path`` (:data:`natcoord.kernels.PATHS`) and runs the whole integration in
+    itself up in ``prepare_compiled(q0) -> Prepared`` (model only: not stepping time; the
+    loop's path among :data:`natcoord.kernel_cache.PATHS`) and runs the whole integration in
     ``run_compiled(times, y, method, rtol, atol, h) -> (Q, QD, QDD)`` from ``init``'s y.
     """
 
@@ -215,8 +232,8 @@ class FormulationLoop:
     def compiled_candidate(self, method: str, h) -> bool:
         return False
 
-    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
-        pass
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
+        return Prepared(self.compiled_path, self._frc)
 
     @functools.cached_property
     def _frc(self) -> tuple | None:
@@ -241,8 +258,7 @@ class Index1Loop(FormulationLoop):
     """Eq. (6) as an ODE in y = [q, qd] (2n)."""
 
     name = "index1"
-    methods = ("rk4", "dopri5", "dop853", "DOP853", "RK45", "Radau", "LSODA", "BDF")
-    COMPILED_METHODS = ("dop853", "dopri5")
+    methods = Index1.methods
 
     def __init__(self, model, options, counters):
         super().__init__(model, options, counters)
@@ -295,10 +311,10 @@ class Index1Loop(FormulationLoop):
         included), a singular one (or ``linsolve = "qr"``) the null-space QR form."""
         from . import kernels
         return self._compiled_model(
-            method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP)
+            method in (kernels.ADAPTIVE if h is None else kernels.FIXED_STEP)
             and self.opt["stabilization"] == "projection")
 
-    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         """Model-only set-up of the compiled loop, kept out of the stepping time: the
         coordinates the constant linear rows fix eliminated (:attr:`elimination`), the
         sparsity plan of the Schur path on the rest (:func:`natcoord.sparsity.schur_plan`)
@@ -325,9 +341,10 @@ class Index1Loop(FormulationLoop):
             self._kern = codegen.load(plan, frc, M)
             if self._kern is not None:  # a dense plan drives the loop only: the outputs
                 self._plan_args = plan.kernel_args  # stay on the general path
-        self._out_args = None if self._plan is None else self._plan.kernel_args
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
+        return Prepared(self.compiled_path, self._frc, self._plan,
+                        None if self._plan is None else self._plan.kernel_args, self._kern, e)
 
     def _loop_model(self) -> tuple:
         """(constraints, packed forces, M) the compiled loop integrates: the model's, or
@@ -338,7 +355,7 @@ class Index1Loop(FormulationLoop):
     @property
     def compiled_path(self) -> str:
         """After :meth:`prepare_compiled`: the compiled loop's path for this model (one of
-        :data:`natcoord.kernels.PATHS`)."""
+        :data:`natcoord.kernel_cache.PATHS`)."""
         if self._kern is not None:
             return "generated"
         return "general" if self._plan_args is None else "sparse"
@@ -464,8 +481,7 @@ class MaggiLoop(FormulationLoop):
     re-partitions as this class and :func:`natcoord.integrators.time_loop`)."""
 
     name = "maggi"
-    methods = Index1Loop.methods
-    COMPILED_METHODS = ("dop853", "dopri5")
+    methods = Maggi.methods
     compiled_path = "maggi"
 
     def init(self, t, q, qd):
@@ -479,13 +495,14 @@ class MaggiLoop(FormulationLoop):
         :func:`compiled_forces` knows."""
         from . import kernels
         return self._compiled_model(
-            method in (self.COMPILED_METHODS if h is None else kernels.FIXED_STEP))
+            method in (kernels.ADAPTIVE if h is None else kernels.FIXED_STEP))
 
-    def prepare_compiled(self, q0: np.ndarray | None = None) -> None:
+    def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         """Model-only set-up: the constraint triplets and M's non-zeros packed for the
         compiled loop (:func:`natcoord.kernels_maggi.pack`)."""
         from . import kernels_maggi
         self._packed = kernels_maggi.pack(self.cs.con, self.M)
+        return Prepared(self.compiled_path, self._frc)
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.kernels_maggi.run` from ``init``'s y = [q^i,
@@ -609,7 +626,7 @@ class Index3Loop(FormulationLoop):
 
     name = "index3"
     ode = False
-    methods = ("trapezoidal",)
+    methods = Index3.methods
     compiled_path = "index3"
 
     def init(self, t, q, qd):

@@ -19,12 +19,13 @@ steps are shortened to land on every sample instead.
 
 from __future__ import annotations
 
-import functools
 import math
 
 import numpy as np
 
+from . import stepcontrol as sc
 from .errors import StepFailure
+from .solver import SCIPY_METHODS
 
 
 class ExplicitRK:
@@ -62,83 +63,58 @@ class ExplicitRK:
 
 class RK4(ExplicitRK):
     name, order = "rk4", 4
-    C = np.array([0.0, 0.5, 0.5, 1.0])
-    A = np.array([[0, 0, 0, 0], [0.5, 0, 0, 0], [0, 0.5, 0, 0], [0, 0, 1.0, 0]])
-    B = np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6])
+    C, A, B = sc.RK4_C, sc.RK4_A, sc.RK4_B
 
 
 class DormandPrince5(ExplicitRK):
     name, order = "dopri5", 5
-    C = np.array([0, 1 / 5, 3 / 10, 4 / 5, 8 / 9, 1, 1])
-    A = np.array([
-        [0, 0, 0, 0, 0, 0, 0],
-        [1 / 5, 0, 0, 0, 0, 0, 0],
-        [3 / 40, 9 / 40, 0, 0, 0, 0, 0],
-        [44 / 45, -56 / 15, 32 / 9, 0, 0, 0, 0],
-        [19372 / 6561, -25360 / 2187, 64448 / 6561, -212 / 729, 0, 0, 0],
-        [9017 / 3168, -355 / 33, 46732 / 5247, 49 / 176, -5103 / 18656, 0, 0],
-        [35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0]])
-    B = np.array([35 / 384, 0, 500 / 1113, 125 / 192, -2187 / 6784, 11 / 84, 0])
-    E = B - np.array([5179 / 57600, 0, 7571 / 16695, 393 / 640, -92097 / 339200,
-                      187 / 2100, 1 / 40])
+    C, A, B, E = sc.DOPRI5_C, sc.DOPRI5_A, sc.DOPRI5_B, sc.DOPRI5_E
 
     @classmethod
     def dense(cls, f, t, y, y_new, h, K):
-        from scipy.integrate._ivp.rk import RK45  # Hairer's order-4 dense output (stage 7
-        Q = K.T @ np.array(RK45.P, float)         # = f at y_new); imported when used
-        return lambda x: y + h * (Q @ (x ** np.arange(1, 5)))
+        """Hairer's order-4 continuous extension (stage 7 = f at y_new)."""
+        def at(x):
+            out = np.empty_like(y)
+            sc.dense_dopri5(K, sc.DOPRI5_P, y, h, x, out)
+            return out
+        return at
 
 
 class DormandPrince853(ExplicitRK):
-    """DOP853 (scipy's coefficients); the 13th stage is f(t + h, y_new) for the error."""
+    """DOP853; the 13th stage is f(t + h, y_new) for the error."""
 
     name, order = "dop853", 7  # order of the error estimate, for the step control
-
-    @staticmethod
-    @functools.cache
-    def tableau():
-        """(A, B, C, E5, E3), built when first asked (start-up time)."""
-        from scipy.integrate._ivp import dop853_coefficients as d
-        A = np.zeros((13, 13))
-        A[:12, :12] = d.A[:12, :12]
-        A[12, :12] = d.B
-        return (A, np.append(d.B, 0.0), np.append(d.C[:12], 1.0), np.array(d.E5, float),
-                np.array(d.E3, float))
+    C, A, B = sc.DOP853_C[:13], sc.DOP853_A[:13, :13], sc.DOP853_B
 
     @classmethod
     def stages(cls, f, t, y, h):
         """One step: (y_new, (h E5 K, h E3 K), K (13, N)) for Hairer's error norm."""
-        A, B, C, E5, E3 = cls.tableau()
+        A, B, C = cls.A, cls.B, cls.C
         K = np.empty((13, len(y)))
         for i in range(13):
             K[i] = f(t + C[i] * h, y + h * (A[i, :i] @ K[:i]))
-        return y + h * (B @ K), (h * (E5 @ K), h * (E3 @ K)), K
+        return y + h * (B @ K), (h * (sc.DOP853_E5 @ K), h * (sc.DOP853_E3 @ K)), K
 
     @classmethod
     def dense(cls, f, t, y, y_new, h, K):
         """Order-7 continuous extension: three more stages (Hairer's CONTD8)."""
-        from scipy.integrate._ivp import dop853_coefficients as d
+        A, C = sc.DOP853_A, sc.DOP853_C
         K = np.vstack([K, np.empty((3, len(y)))])
         for s in range(13, 16):
-            K[s] = f(t + d.C[s] * h, y + h * (d.A[s, :s] @ K[:s]))
-        dy = y_new - y
-        F = np.vstack([dy, h * K[0] - dy, 2 * dy - h * (K[12] + K[0]), h * (d.D @ K)])
+            K[s] = f(t + C[s] * h, y + h * (A[s, :s] @ K[:s]))
+        Fd = np.empty((3 + len(sc.DOP853_D), len(y)))
+        sc.dense_dop853(y, y_new, h, K, 13, sc.DOP853_D, Fd)
 
         def at(x):
-            out = np.zeros_like(y)
-            for i, Fi in enumerate(F[::-1]):
-                out += Fi
-                out *= x if i % 2 == 0 else 1 - x
-            return y + out
+            out = np.empty_like(y)
+            sc.dense_at(Fd, y, x, out)
+            return out
         return at
 
 
-
-SCIPY_METHODS = ("DOP853", "RK45", "Radau", "LSODA", "BDF")
 INTEGRATORS = {"rk4": RK4, "dopri5": DormandPrince5, "dop853": DormandPrince853,
                "trapezoidal": None,
                **{k: None for k in SCIPY_METHODS}}
-SAFETY, MIN_FACTOR, MAX_FACTOR = 0.9, 0.2, 5.0
 
 
 def _rms(x):
@@ -211,35 +187,34 @@ def _adaptive(form, rk, y, times, rtol, atol, record):
     t, t_end, k = float(times[0]), float(times[-1]), 1
     f0 = f(t, y)  # Hairer's first guess from |y| and |f|
     scale = atol + rtol * np.abs(y)
-    d0, d1 = _rms(y / scale), _rms(f0 / scale)
-    h = min(1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1, t_end - t)
-    expo = -1 / (rk.order + 1) if rk.name == "dop853" else -1 / rk.order
+    h = sc.initial_step(_rms(y / scale), _rms(f0 / scale), t_end - t)
+    expo = sc.EXPONENT[rk.name]
     while k < len(times):
         hh = min(h, t_end - t)
         try:
             y_new, err, K = rk.stages(f, t, y, hh)
         except StepFailure:
-            if hh < 1e-14 * max(1.0, abs(t)) * 1e4:
+            if sc.underflow(hh * 1e-4, t):
                 raise
             cnt.rejected += 1
-            h = 0.25 * hh
+            h = sc.STAGE_FAILURE_FACTOR * hh
             continue
         scale = atol + rtol * np.maximum(np.abs(y), np.abs(y_new))
         if isinstance(err, tuple):  # DOP853: Hairer's combination of the 5th and 3rd order
-            e5, e3 = float(np.sum((err[0] / scale) ** 2)), float(np.sum((err[1] / scale) ** 2))
-            e = 0.0 if e5 == 0.0 and e3 == 0.0 else e5 / math.sqrt((e5 + 0.01 * e3) * len(y))
+            e = sc.dop853_norm(float(np.sum((err[0] / scale) ** 2)),
+                               float(np.sum((err[1] / scale) ** 2)), len(y), 1.0)
         else:
-            e = _rms(err / scale)
+            e = sc.rms_norm(float(np.sum((err / scale) ** 2)), len(y))
         if not math.isfinite(e):
             raise RuntimeError(f"non-finite state at t = {t:.6g} s")
         if e > 1.0:
             cnt.rejected += 1
-            h = hh * max(MIN_FACTOR, SAFETY * e ** expo)
-            if h < 1e-14 * max(1.0, abs(t)):
+            h = hh * sc.reject_factor(e, expo)
+            if sc.underflow(h, t):
                 raise RuntimeError(_underflow_message(form, t, y))
             continue
         t1 = t_end if hh == t_end - t else t + hh
-        tol_t = 1e-13 * max(1.0, abs(t1))
+        tol_t = sc.SAMPLE_TOL * max(1.0, abs(t1))
         inner = None
         while k < len(times) and times[k] < t1 - tol_t:  # samples inside the step
             inner = inner or rk.dense(f, t, y, y_new, hh, K)
@@ -250,7 +225,7 @@ def _adaptive(form, rk, y, times, rtol, atol, record):
         if k < len(times) and times[k] <= t1 + tol_t:
             record(k, float(times[k]), y)
             k += 1
-        h = hh * (MAX_FACTOR if e == 0 else min(MAX_FACTOR, SAFETY * e ** expo))
+        h = hh * sc.accept_factor(e, expo)
 
 
 def _underflow_message(form, t, y) -> str:

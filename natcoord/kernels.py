@@ -18,8 +18,8 @@ with the rank-revealing QR of :mod:`natcoord.kernels_general` (null-space form o
 min-norm projections), as ``Index1`` in its ``qr`` mode. Units: SI (m, s, kg, N).
 
 numba compiles once per machine (``cache=True``; about 30 s cold, both paths, 0.3 s to load
-the cache); :func:`ensure_compiled` does it and returns the time it took, so callers keep it
-out of the stepping time.
+the cache); :func:`natcoord.kernel_cache.ensure_compiled` does it and returns the time it
+took, so callers keep it out of the stepping time.
 """
 
 from __future__ import annotations
@@ -27,7 +27,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import math
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -46,7 +45,7 @@ except ImportError:  # pragma: no cover - numba is a dependency, but stay import
             return args[0]
         return lambda f: f
 
-from . import kernels_general, kernels_sparse, sparsity
+from . import kernels_general, kernels_sparse, sparsity, stepcontrol
 from .integrators import singular_hint
 from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-exported
     C_FACT,
@@ -66,12 +65,9 @@ from .kernels_general import (  # noqa: F401 - counters, codes, pack_forces re-e
     ERR_UNDERFLOW,
     N_COUNTERS,
     OK,
-    _chol_solve,
     _gamma,
     _jac,
     _phi,
-    _schur,
-    _sub_matvec,
     acc_general,
     as_f64,
     drift,
@@ -93,37 +89,24 @@ STATUS_TEXT = {ERR_UNDERFLOW: "step size underflow",
 
 # ---- tableaux ---------------------------------------------------------------------------
 def _tableau_dop853():
-    from scipy.integrate._ivp import dop853_coefficients as d
+    from .stepcontrol import DOP853_A as A
+    from .stepcontrol import DOP853_C as C
     s = 13  # 12 stages + the stage at (t + h, y_new)
-    A = np.zeros((s, s))
-    A[:12, :12] = d.A[:12, :12]
-    A[12, :12] = d.B
-    C = np.zeros(s)
-    C[:12] = d.C[:12]
-    C[12] = 1.0
-    B = np.zeros(s)
-    B[:12] = d.B
-    Aext = np.zeros((3, 16))
-    Aext[:, :] = d.A[13:16, :16]
-    return (A, B, C, np.array(d.E5, float), np.array(d.E3, float), 7,  # order for the control
-            Aext, np.array(d.C[13:16], float), np.array(d.D, float), True)
+    return (A[:s, :s].copy(), stepcontrol.DOP853_B, C[:s].copy(), stepcontrol.DOP853_E5,
+            stepcontrol.DOP853_E3, stepcontrol.EXPONENT["dop853"], A[s:, :].copy(),
+            C[s:].copy(), stepcontrol.DOP853_D, True)
 
 
 def _tableau_dopri5():
-    from .integrators import DormandPrince5 as D
-    A = np.array(D.A, float)
-    B = np.array(D.B, float)
-    return (A, B, np.array(D.C, float), np.array(D.E, float), np.zeros(len(B)), 4,
+    B = stepcontrol.DOPRI5_B
+    return (stepcontrol.DOPRI5_A, B, stepcontrol.DOPRI5_C, stepcontrol.DOPRI5_E,
+            np.zeros(len(B)), stepcontrol.EXPONENT["dopri5"],
             np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), True)
 
 
 def _tableau_rk4():
-    A = np.zeros((4, 4))
-    A[1, 0] = A[2, 1] = 0.5
-    A[3, 2] = 1.0
-    B = np.array([1.0, 2.0, 2.0, 1.0]) / 6.0
-    return (A, B, np.array([0.0, 0.5, 0.5, 1.0]), np.zeros(4), np.zeros(4), 4,
-            np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), False)
+    return (stepcontrol.RK4_A, stepcontrol.RK4_B, stepcontrol.RK4_C, np.zeros(4), np.zeros(4),
+            0.0, np.zeros((0, 16)), np.zeros(0), np.zeros((0, 16)), False)
 
 
 TABLEAUX_OF = {"dop853": _tableau_dop853, "dopri5": _tableau_dopri5, "rk4": _tableau_rk4}
@@ -131,7 +114,7 @@ TABLEAUX_OF = {"dop853": _tableau_dop853, "dopri5": _tableau_dopri5, "rk4": _tab
 
 @functools.cache
 def tableau(name: str) -> tuple:
-    """The compiled loop's tableau of ``name`` (built when first asked: start-up time)."""
+    """The compiled loop's tableau of ``name`` (:mod:`natcoord.stepcontrol`'s arrays)."""
     return TABLEAUX_OF[name]()
 
 
@@ -199,40 +182,6 @@ def _combine(y, h, C, row, s, K, out):
         if w != 0.0:
             for a in range(N):
                 out[a] += w * K[p, a]
-
-
-@njit(cache=True)
-def dense_dop853(y, yn, h, K, s_st, D, Fd):
-    """The coefficients Fd (3 + d, N) of DOP853's continuous extension (order 7, Hairer's
-    CONTD8) on a step of h from y to yn (N,), from its stages K (s_st + 3, N): the step's
-    s_st (the last at yn) and the extension's three; D (d, s_st + 3) their weights."""
-    for a in range(y.shape[0]):
-        dy = yn[a] - y[a]
-        Fd[0, a] = dy
-        Fd[1, a] = h * K[0, a] - dy
-        Fd[2, a] = 2.0 * dy - h * (K[s_st - 1, a] + K[0, a])
-    for r in range(D.shape[0]):
-        Fd[3 + r] = 0.0
-        for p in range(D.shape[1]):
-            if D[r, p] != 0.0:
-                for a in range(y.shape[0]):
-                    Fd[3 + r, a] += D[r, p] * K[p, a]
-        for a in range(y.shape[0]):
-            Fd[3 + r, a] *= h
-
-
-@njit(cache=True)
-def dense_at(Fd, y, x, out):
-    """out (N,) = y(t + x h), x in [0, 1], from :func:`dense_dop853`'s Fd: y + the sum of
-    Fd[i] times alternating factors x, 1 - x (Horner, as the Python loop)."""
-    nF = Fd.shape[0]
-    out[:] = 0.0
-    for i in range(nF):
-        fac = x if i % 2 == 0 else 1.0 - x
-        for a in range(y.shape[0]):
-            out[a] = (out[a] + Fd[nF - 1 - i, a]) * fac
-    for a in range(y.shape[0]):
-        out[a] += y[a]
 
 
 @njit(cache=True)
@@ -312,7 +261,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     ``frc``: :func:`pack_forces`, None with generated kernels (they carry the forces). What
     a path does not use goes as None: a tuple's arrays cost time at every call, and numba
     compiles the None branches away. ``tab`` =
-    (A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal): the method's tableau
+    (A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
     no error control) and projection tolerance; ``dep``: the coordinates an elimination
@@ -320,7 +269,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     (Q, QD, QDD (T, n_r), cnt (N_COUNTERS,), tfail (1,)) filled in place (tfail: the time
     the loop had reached when it stopped). Returns a status code (0 = ok).
     """
-    A, B, C, E5, E3, order, dop853, Aext, Cext, D, fsal = tab
+    A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
     Q, QD, QDD, cnt, tfail = out
     fixed = h_fixed > 0.0
@@ -373,9 +322,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
             d1 += (f0[a] / sc) ** 2
         d0 = math.sqrt((d0 + _dep_norm(dep, y, y, y, atol, rtol, True)) / Nn)
         d1 = math.sqrt((d1 + _dep_norm(dep, f0, y, y, atol, rtol, False)) / Nn)
-        h = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
-        h = min(h, tend - t)
-    expo = -1.0 / (order + 1.0)
+        h = stepcontrol.initial_step(d0, d1, tend - t)
     nsteps = 0
     while k_out < T_out:
         tfail[0] = t
@@ -411,10 +358,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
             if Nn > N:
                 e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)
                 e3 += _dep_norm(dep, x3, y, yn, atol, rtol, False)
-            if e5 == 0.0 and e3 == 0.0:
-                err = 0.0
-            else:
-                err = hh * e5 / math.sqrt((e5 + 0.01 * e3) * Nn)
+            err = stepcontrol.dop853_norm(e5, e3, Nn, hh)  # (E5 K, E3 K without h)
         else:
             e5 = 0.0
             _combine(zero, 1.0, E52, 0, s_st, K, x5)
@@ -423,13 +367,13 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
                 e5 += (hh * x5[a] / sc) ** 2
             if Nn > N:
                 e5 += hh * hh * _dep_norm(dep, x5, y, yn, atol, rtol, False)
-            err = math.sqrt(e5 / Nn)
+            err = stepcontrol.rms_norm(e5, Nn)
         if not (err == err):
             return ERR_NONFINITE
         if err > 1.0:
             cnt[C_REJ] += 1
-            h = hh * max(0.2, 0.9 * err ** expo)
-            if h < 1e-14 * max(1.0, abs(t)):
+            h = hh * stepcontrol.reject_factor(err, expo)
+            if stepcontrol.underflow(h, t):
                 return ERR_UNDERFLOW
             continue
         # accept: dense output from the unprojected step, then project the end state
@@ -438,20 +382,21 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
             t1 = times[k_out]
         if hh == tend - t:
             t1 = tend
-        inner = k_out < T_out and times[k_out] < t1 - 1e-13 * max(1.0, abs(t1))
+        tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
+        inner = k_out < T_out and times[k_out] < t1 - tol_t
         if dop853 and inner:
             st_code = _stages(P, gk, frc, gen, wg, ws, cnt, y, hh, Aall, s_st,
                               s_st + n_ext, K, ys, qdd)
             if st_code != OK:
                 return st_code
-            dense_dop853(y, yn, hh, K, s_st, D, Fd)
+            stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
         st_code = (  # a last stage at yn (fsal) factored there: Newton from it
             kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, fsal)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
-            h = 0.5 * hh                        # reject it and try a shorter one
-            if h < 1e-14 * max(1.0, abs(t)):
+            h = stepcontrol.PROJECTION_FAILURE_FACTOR * hh  # and try a shorter one
+            if stepcontrol.underflow(h, t):
                 return ERR_UNDERFLOW
             continue
         if st_code != OK:
@@ -461,16 +406,16 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
         nsteps += 1
         cnt[C_STEPS] += 1
         # samples in (t, t1]
-        while k_out < T_out and times[k_out] <= t1 + 1e-13 * max(1.0, abs(t1)):
+        while k_out < T_out and times[k_out] <= t1 + tol_t:
             tk = times[k_out]
-            if abs(tk - t1) <= 1e-13 * max(1.0, abs(t1)):
+            if abs(tk - t1) <= tol_t:
                 Q[k_out] = yn[:n]
                 QD[k_out] = yn[n:]
                 QDD[k_out] = f1[n:]
             else:
                 x = (tk - t) / hh
                 if dop853:
-                    dense_at(Fd, y, x, yu)
+                    stepcontrol.dense_at(Fd, y, x, yu)
                     qs[:] = yu[:n]
                     qds[:] = yu[n:]
                 else:
@@ -490,8 +435,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
         y[:] = yn
         f0[:] = f1
         if not fixed:
-            fac = 10.0 if err == 0.0 else min(10.0, 0.9 * err ** expo)
-            h = hh * fac
+            h = hh * stepcontrol.accept_factor(err, expo)
     return OK
 
 
@@ -515,10 +459,8 @@ def drop_stale_cache(namespace: dict, module: str, deps: tuple) -> None:
 
 
 drop_stale_cache(vars(kernels_sparse), kernels_sparse.__name__, (kernels_general,))
-drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse))
-_READY: set[str] = set()  # the paths compiled or loaded in this process
-OTHER_LOOPS = {"maggi": "natcoord.kernels_maggi", "index3": "natcoord.kernels_index3"}
-PATHS = ("sparse", "generated", "general", *OTHER_LOOPS)
+drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse, stepcontrol))
+PATHS = ("sparse", "generated", "general")  # index1's compiled paths
 
 
 def warm_up_model() -> tuple:
@@ -529,43 +471,28 @@ def warm_up_model() -> tuple:
     return con, pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
 
 
-def ensure_compiled(*paths: str) -> float:
-    """Compile (or load from numba's cache) the loop of the given paths (:data:`PATHS`:
-    index1's sparse Schur path with generic or generated kernels and its general QR
-    null-space path, the maggi and index3 loops; none given: all) by tiny runs; returns the
-    seconds this call took (0 when already done in this process). A run loads only the path
-    it takes."""
-    import importlib
-
+def warm_up(path: str) -> None:
+    """Compile (or load from numba's cache) index1's loop on ``path`` (:data:`PATHS`: the
+    sparse Schur path with generic or generated kernels, the general QR null-space path)
+    by tiny runs with every method."""
     from . import codegen
-    todo = [p for p in (paths or PATHS) if p not in _READY]
-    if not todo or not HAVE_NUMBA:
-        return 0.0
-    t0 = time.perf_counter()
-    for path in [p for p in todo if p in OTHER_LOOPS]:
-        importlib.import_module(OTHER_LOOPS[path]).warm_up()
-        _READY.add(path)
-    todo = [p for p in todo if p not in OTHER_LOOPS]
     con, frc = warm_up_model()
     times = np.linspace(0.0, 0.02, 3)
-    for path in todo:
-        plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
-        args = None if plan is None else plan.kernel_args
-        kern = codegen.load(plan, frc) if path == "generated" else None
-        for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
-            Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
-                           plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
-                           ptol=1e-13, cnt=None, h=h)
-        if path == "sparse":
-            sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
-                max_phi=0.0, max_phi_dot=0.0), args)
-        # an elimination expands the samples after the loop
-        dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
-               np.zeros(1), np.arange(2, dtype=np.int64),
-               np.array([2], np.int64))  # a third coordinate equal to the first
-        expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
-        _READY.add(path)
-    return time.perf_counter() - t0
+    plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2))
+    args = None if plan is None else plan.kernel_args
+    kern = codegen.load(plan, frc) if path == "generated" else None
+    for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
+        Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
+                       plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
+                       ptol=1e-13, cnt=None, h=h)
+    if path == "sparse":
+        sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
+            max_phi=0.0, max_phi_dot=0.0), args)
+    # an elimination expands the samples after the loop
+    dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
+           np.zeros(1), np.arange(2, dtype=np.int64),
+           np.array([2], np.int64))  # a third coordinate equal to the first
+    expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
 
 
 def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
@@ -582,8 +509,8 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     steps at ``rtol``/``atol``. ``dep``: an elimination's coordinates
     (:attr:`natcoord.elimination.Elimination.dep_map`: the loop runs on the kept ones, its
     error norm and samples cover all), None for none."""
-    A, B, C, E5, E3, order, Aext, Cext, D, fsal = tableau(name)
-    tab = (A, B, C, E5, E3, order, name == "dop853", Aext, Cext, D, fsal)
+    A, B, C, E5, E3, expo, Aext, Cext, D, fsal = tableau(name)
+    tab = (A, B, C, E5, E3, expo, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
         raise ValueError(f"{name} (compiled): " + ("give a fixed step h" if h is None else
                                                    "adaptive only"))

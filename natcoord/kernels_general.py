@@ -77,26 +77,7 @@ def _gamma(kk, ii, jj, vv, qd, c):
             c[kk[t]] -= vv[t] * qd[ii[t]] * qd[jj[t]]
 
 
-# ---- Schur complement (regular M, full rank) ---------------------------------------------
-@njit(cache=True)
-def _schur(J, Minv, MiJt, L):
-    """MiJt = M^-1 J^T (n, m); L = Cholesky factor of W = J MiJt (m, m). False if singular."""
-    m, n = J.shape
-    for a in range(n):
-        for r in range(m):
-            s = 0.0
-            for b in range(n):
-                s += Minv[a, b] * J[r, b]
-            MiJt[a, r] = s
-    for r in range(m):
-        for c in range(r + 1):
-            s = 0.0
-            for a in range(n):
-                s += J[r, a] * MiJt[a, c]
-            L[r, c] = s
-    return _cholesky(L, m)
-
-
+# ---- drift before a projection ---------------------------------------------------------
 @njit(cache=True)
 def drift(kk, ii, jj, vv, q, qd, w, J, cnt):
     """Before a projection: w = Phi(q) (m,), J = Phi_q (m, n), and the largest |Phi| and
@@ -228,17 +209,6 @@ def _lu_solve(A, piv, b):
         b[r] = s / A[r, r]
 
 
-@njit(cache=True)
-def _sub_matvec(A, w, x):
-    """x -= A @ w (the mass-weighted correction M^-1 Phi_q^T w of a projection)."""
-    for a in range(A.shape[0]):
-        s = 0.0
-        for r in range(A.shape[1]):
-            s += A[a, r] * w[r]
-        x[a] -= s
-
-
-# ---- rank-revealing QR of Phi_q^T -------------------------------------------------------
 @njit(cache=True)
 def pqr(J, rank_tol, W, th, piv, pn, on, sup):
     """Pivoted Householder QR of J^T for J (m, n); returns the rank r (see module doc).

@@ -14,9 +14,10 @@ indep (f,), f = n - r). Every evaluation of dy/dt
 3. qdd^i from (R^T M R) qdd^i = R^T (F - M S c)  (Eq. (23)).
 
 Integrators: adaptive ``dop853`` (Hairer's error norm, dense output of order 7) and
-``dopri5`` (order-4 dense output, scipy's RK45.P), fixed-step ``rk4`` and ``dopri5`` (equal
+``dopri5`` (order-4 dense output, Hairer's P), fixed-step ``rk4`` and ``dopri5`` (equal
 steps landing on every sample); step control as the Python loop (Hairer's initial step,
-factors 0.9, 0.2..5; a failed Newton in a stage rejects the step with h/4). After every
+the functions of :mod:`natcoord.stepcontrol`; a failed Newton in a stage rejects the
+step with h/4). After every
 accepted step the partition is renewed when max|R^d| has grown by ``repartition_growth``
 over its value at the first step after the last partition (the Gaussian elimination is
 ported here, so the loop never leaves numba); a change of rank there stops the run
@@ -35,13 +36,10 @@ import math
 
 import numpy as np
 
-from . import kernels_general
-from .integrators import MAX_FACTOR, MIN_FACTOR, SAFETY
+from . import kernels_general, stepcontrol
 from .kernels import (
     add_counters,
     check,
-    dense_at,
-    dense_dop853,
     drop_stale_cache,
     njit,
     tableau,
@@ -443,17 +441,17 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
         d0 += (y[a] / sc) ** 2
         d1 += (ys[a] / sc) ** 2
     d0, d1 = math.sqrt(d0 / N), math.sqrt(d1 / N)
-    h = min(1e-6 if d0 < 1e-5 or d1 < 1e-5 else 0.01 * d0 / d1, tend - t)
+    h = stepcontrol.initial_step(d0, d1, tend - t)
     k = 1
     while k < T:
         hh = min(h, tend - t)
         tfail[0] = t
         st = _stages(con, Msp, frc, part, tol, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
         if st == ERR_NEWTON:  # the step is too long for the dependent positions
-            if hh < 1e-14 * max(1.0, abs(t)) * 1e4:
+            if stepcontrol.underflow(hh * 1e-4, t):
                 return ERR_UNDERFLOW
             cnt[C_REJ] += 1
-            h = 0.25 * hh
+            h = stepcontrol.STAGE_FAILURE_FACTOR * hh
             continue
         if st != OK:
             return st
@@ -467,22 +465,17 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
             sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
             e5 += (e5v[a] / sc) ** 2
             e3 += (e3v[a] / sc) ** 2
-        if not dop853:
-            err = math.sqrt(e5 / N)
-        elif e5 == 0.0 and e3 == 0.0:
-            err = 0.0
-        else:
-            err = e5 / math.sqrt((e5 + 0.01 * e3) * N)
+        err = stepcontrol.dop853_norm(e5, e3, N, 1.0) if dop853 else stepcontrol.rms_norm(e5, N)
         if not math.isfinite(err):
             return ERR_NONFINITE
         if err > 1.0:
             cnt[C_REJ] += 1
-            h = hh * max(MIN_FACTOR, SAFETY * err ** expo)
-            if h < 1e-14 * max(1.0, abs(t)):
+            h = hh * stepcontrol.reject_factor(err, expo)
+            if stepcontrol.underflow(h, t):
                 return ERR_UNDERFLOW
             continue
         t1 = tend if hh == tend - t else t + hh
-        tol_t = 1e-13 * max(1.0, abs(t1))
+        tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
         inner = False
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
@@ -491,20 +484,13 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
                              ys, ws, cnt)
                 if st != OK:
                     return st
-                dense_dop853(y, yn, hh, K, s_st, D, Fd)
+                stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
             inner = True
             x = (times[k] - t) / hh
             if dop853:
-                dense_at(Fd, y, x, yu)
-            else:  # y + h sum_j (K^T P)[:, j] x^(j+1)
-                for a in range(N):
-                    s = 0.0
-                    for j in range(P.shape[1]):
-                        qa = 0.0
-                        for i in range(P.shape[0]):
-                            qa += K[i, a] * P[i, j]
-                        s += qa * x ** (j + 1)
-                    yu[a] = y[a] + hh * s
+                stepcontrol.dense_at(Fd, y, x, yu)
+            else:
+                stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
             st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt)
             if st != OK:
                 return st
@@ -521,7 +507,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
             if st != OK:
                 return st
             k += 1
-        h = hh * (MAX_FACTOR if err == 0.0 else min(MAX_FACTOR, SAFETY * err ** expo))
+        h = hh * stepcontrol.accept_factor(err, expo)
     return OK
 
 
@@ -535,12 +521,9 @@ def pack(con, M) -> tuple:
 
 
 def _tab(method: str) -> tuple:
-    A, B, C, E5, E3, order, Aext, Cext, D, _ = tableau(method)
-    P = np.zeros((0, 4))
-    if method == "dopri5":
-        from scipy.integrate._ivp.rk import RK45
-        P = np.array(RK45.P, float)
-    return (A, B, C, E5, E3, -1.0 / (order + 1.0), method == "dop853", Aext, Cext, D, P)
+    A, B, C, E5, E3, expo, Aext, Cext, D, _ = tableau(method)
+    P = stepcontrol.DOPRI5_P if method == "dopri5" else np.zeros((0, 4))
+    return (A, B, C, E5, E3, expo, method == "dop853", Aext, Cext, D, P)
 
 
 def run(packed, frc, times, y, q, rows, dep, indep, *, method: str, rtol: float = 0.0,
@@ -579,4 +562,4 @@ def warm_up() -> None:
             repartition_growth=1.5)
 
 
-drop_stale_cache(globals(), __name__, (kernels_general,))
+drop_stale_cache(globals(), __name__, (kernels_general, stepcontrol))

@@ -10,7 +10,7 @@ from functools import cache
 import numpy as np
 import pytest
 
-from natcoord import casefile, casemodel, kernels
+from natcoord import casefile, casemodel, kernel_cache
 from natcoord import kernels_general as kg
 from natcoord.dynamics import integrate
 from natcoord.formulations import Counters, Index1Loop, compiled_forces
@@ -61,7 +61,7 @@ def run_compiled(model, state, times, method, rtol, atol, **options):
         times[0], np.asarray(state.q, float), np.asarray(state.qd, float))
     form = Index1Loop(model, options, cnt)
     assert form.compiled_candidate(method, None)
-    kernels.ensure_compiled()
+    kernel_cache.ensure_compiled()
     y = form.init(times[0], q0, qd0)
     assert form.compiled_ready()
     Q, QD, QDD = form.run_compiled(times, y, method, rtol, atol)
