@@ -155,6 +155,20 @@ def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> lis
     return out
 
 
+def drivers_off_ground_joints(case: Case, caps: Capabilities) -> list[tuple[str, str, str]]:
+    """For engines that prescribe a tree joint's coordinate: each driver whose body is not
+    on a tree joint from the ground of its kind, as (driver, body, joint type wanted:
+    revolute for an angle, prismatic for a coordinate)."""
+    joints = tree(case, caps)[0]
+    out = []
+    for d in case.drivers:
+        want = "revolute" if d.type == "angle" else "prismatic"
+        j = next((j for j in joints if d.body in j.bodies and GROUND in j.bodies), None)
+        if j is None or j.type != want:
+            out.append((d.name, d.body, want))
+    return out
+
+
 def misaligned_loop_revolutes(case: Case, caps: Capabilities) -> list[str]:
     """Loop-closing 3-D revolutes whose axis (world, t = 0) some joint on the tree path
     between their bodies does not share (a non-revolute joint there counts as not sharing

@@ -75,7 +75,7 @@ import numpy as np
 from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
-from ..capabilities import Capabilities, misaligned_loop_revolutes, tree
+from ..capabilities import Capabilities, drivers_off_ground_joints, misaligned_loop_revolutes
 from ..schema import Setting, defaults
 
 NAME = "dart"
@@ -108,14 +108,9 @@ DEFAULTS = defaults(SETTINGS)
 def _rules(case: Case, s: dict) -> list[str]:
     """Drivers on a tree joint from the ground (drivers.py; the joint's direction is
     checked when the skeleton is built), loop revolutes with other axes (skeleton.py)."""
-    out = []
-    joints = tree(case, CAPABILITIES)[0]
-    for d in case.drivers:
-        want = "revolute" if d.type == "angle" else "prismatic"
-        j = next((j for j in joints if d.body in j.bodies and "ground" in j.bodies), None)
-        if j is None or j.type != want:
-            out.append(f"driver {d.name!r}: DART can prescribe a tree-joint coordinate only; "
-                       f"{d.body!r} is not on a {want} joint from the ground")
+    out = [f"driver {d!r}: DART can prescribe a tree-joint coordinate only; {b!r} is not on "
+           f"a {want} joint from the ground"
+           for d, b, want in drivers_off_ground_joints(case, CAPABILITIES)]
     bad = misaligned_loop_revolutes(case, CAPABILITIES)
     if bad and s.get("loop_constraint") != "revolute":
         out.append(f"loop joint(s) {', '.join(bad)}: revolute joints with different axes "

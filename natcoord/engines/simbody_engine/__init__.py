@@ -76,7 +76,7 @@ from __future__ import annotations
 import time
 
 from ..base import EngineRun, merged
-from ..capabilities import Capabilities, misaligned_loop_revolutes, tree
+from ..capabilities import Capabilities, drivers_off_ground_joints, misaligned_loop_revolutes
 from ..schema import Setting, defaults
 from .simulate import INTEGRATORS
 
@@ -110,14 +110,9 @@ DEFAULTS = defaults(SETTINGS)
 def _rules(case, s: dict) -> list[str]:
     """Drivers as prescribed coordinates of a pin or slider to the ground, loop revolutes
     whose axis the tree does not keep (model.py)."""
-    out = []
-    joints = tree(case, CAPABILITIES)[0]
-    for d in case.drivers:
-        want = "revolute" if d.type == "angle" else "prismatic"
-        j = next((j for j in joints if d.body in j.bodies and "ground" in j.bodies), None)
-        if j is None or j.type != want:
-            out.append(f"driver {d.name!r}: a prescribed coordinate needs the driven body "
-                       "on a pin (angle) or slider (coordinate) to the ground")
+    out = [f"driver {d!r}: a prescribed coordinate needs the driven body on a pin (angle) "
+           "or slider (coordinate) to the ground"
+           for d, _, _ in drivers_off_ground_joints(case, CAPABILITIES)]
     if not s.get("loop_axis_offset", 0.0) > 0:
         out += [f"loop-closing 3-D revolute {n!r}: the tree does not keep its axis aligned, "
                 "and a WeldConstraint would lock its rotation (setting loop_axis_offset > 0: "
