@@ -33,6 +33,7 @@ N_FOUR_BAR_ENGINES: dict[str, dict[str, str]] = {
     "exudyn": {"settings": "{ dt = 1e-3 }"},
     "dart": {"settings": "{ dt = 1e-4, erp = 1.0, loop_constraint = \"ball\" }"},
     "simbody": {"settings": "{}"},
+    "drake": {"settings": "{ dt = 5e-4 }"},
     "pybullet": {"settings": "{ dt = 1e-4 }"},
 }
 N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
@@ -87,6 +88,15 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "wrong branch (B0 2 m off, energy 14-36 J), 1e-8 happens to pass "
                   "(3.4e-7 m); PointOnLineConstraint (the two in-plane rows) instead stalls "
                   "the same at 1e-9 and 1e-10, CPodes fails at t = 0.71 s. Bounds ~3x",
+    },
+    "drake": {
+        "tolerance": "{ position = 4.5e-4, velocity = 9e-3, energy = 9e-2 }",
+        "reason": "Drake 1.51.1: discrete MultibodyPlant, SAP, the 3 cranks on the ground "
+                  "in the tree, loops B1c0 and B2c1 as AddBallConstraints between coupler "
+                  "and crank; SAP's soft constraints make the error first order in dt, "
+                  "largest after the singular passes: dt 1e-3: 6.9e-4 m, 8.1e-3 m/s, "
+                  "energy 9.1e-2 J, loop gap 9.9e-8 m; dt 5e-4: 2.1e-4 m, 4.3e-3 m/s, "
+                  "4.6e-2 J, gap 4.4e-8 m (~520 us per step); bounds ~2x at dt 5e-4",
     },
     "pybullet": {
         "tolerance": "{ position = 2.6e-4, velocity = 1.8e-3, energy = 1.4e-2 }",
@@ -162,6 +172,12 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "2.5e-5 m (2003 steps); N = 2's 5e-8 and 3e-8, 1e-8 stall at the fifth "
                   "singular position (t = 4.65 s, no progress in 45 s), 1e-9 at the first "
                   "(0.72 s). Bounds ~3x",
+    },
+    "drake": {
+        "unsupported": "tolerances not measured yet: the discrete SAP plant (81 bodies, 40 "
+                  "ball constraints) costs 4.0 ms per step at dt 1e-3 (0.5 s measured: B0 "
+                  "1.2e-6 m, loop gap 3.9e-9 m, before any singular pass), so the 20 s "
+                  "run (~80 s) and its dt sweep are still to be done",
     },
     "pybullet": {
         "unsupported": "not within the run budget: 40 point-to-point loops on an 81-link "
