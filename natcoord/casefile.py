@@ -346,7 +346,7 @@ def load_case(path: str | Path) -> Case:
             r.fail(f"{p}.{shown(unknown[0])}", f"unknown field; expected some of "
                    f"{', '.join(sorted(ENGINE_KEYS))}")
         settings = r.table(spec, "settings", p, required=False)
-        for field, reason in _engine_settings(ename, settings):
+        for field, reason in _engine_settings(ename, settings, output_dt):
             r.fail(f"{p}.settings" + (f".{field}" if field else ""), reason)
         engines[ename] = EngineSpec(
             settings=settings,
@@ -392,13 +392,26 @@ def _engine_names() -> tuple[str, ...]:
     return engine_names()
 
 
-def _engine_settings(engine: str, settings: dict) -> list[tuple[str, str]]:
+def _engine_settings(engine: str, settings: dict, output_dt: float) -> list[tuple[str, str]]:
     """Problems of an engine's settings against the settings its adapter declares
-    (:mod:`natcoord.engines.schema`; importing an adapter does not import its engine)."""
+    (:mod:`natcoord.engines.schema`; importing an adapter does not import its engine), and
+    for an engine whose capabilities say its fixed step must divide the output interval
+    (``output_steps``), a step given in the case file that does not divide ``output_dt``
+    (s)."""
     from .engines import adapter
     from .engines.schema import problems
 
-    return problems(adapter(engine), settings)
+    mod = adapter(engine)
+    out = problems(mod, settings)
+    caps = getattr(mod, "CAPABILITIES", None)
+    step = (caps.step or "dt") if caps is not None and caps.output_steps else ""
+    h = settings.get(step) if step and not out else None
+    if isinstance(h, (int, float)) and not isinstance(h, bool) and h > 0:
+        k = output_dt / h
+        if abs(k - round(k)) > 1e-9 * max(1.0, k) or round(k) < 1:
+            out.append((step, f"{h:g} s must divide the output interval output_dt = "
+                       f"{output_dt:g} s (a whole number of steps per sample)"))
+    return out
 
 
 def _comparison(r: _Reader, table: dict, channels) -> dict:

@@ -47,6 +47,8 @@ class Capabilities:
     step : the setting that fixes its time step (s), "" when it has none (``check-engine``
         then takes ``dt`` or ``h`` from its settings when it declares one)
     step_with : settings that go with a fixed step (natcoord: a fixed-step method)
+    output_steps : its fixed step (``step``, else ``dt``) must divide the output interval
+        (the case loader refuses one given in a case file that does not)
     why : capability field -> the engine's explanation, appended to a refusal
     rules : ``rules(case, settings) -> list[str]``: the adapter's further refusals (only
         asked when the fields above find none), ``settings`` over the adapter's defaults
@@ -66,6 +68,7 @@ class Capabilities:
     reactions: bool = True
     step: str = ""
     step_with: Mapping[str, object] = field(default_factory=dict, compare=False)
+    output_steps: bool = False
     why: Mapping[str, str] = field(default_factory=dict, compare=False)
     rules: Callable[[Case, dict], list[str]] | None = field(default=None, compare=False)
 

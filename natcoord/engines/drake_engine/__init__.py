@@ -99,6 +99,7 @@ def _rules(case: Case, s: dict) -> list[str]:
 
 
 CAPABILITIES = Capabilities(
+    output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="soft",  # SAP's ball constraints are compliant: the loop opens by a small gap
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",

@@ -89,6 +89,7 @@ def _rules(case: Case, s: dict) -> list[str]:
 
 
 CAPABILITIES = Capabilities(
+    output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="rigid",  # every joint a constraint, index-3 generalized-alpha: no tree, no cut
     joints={"revolute", "prismatic", "spherical", "cylindrical", "universal"},
     particles={2},

@@ -117,6 +117,7 @@ DRIVERS_UNSUPPORTED = (
     "and a body point's coordinate cannot be a joint equality at all")
 
 CAPABILITIES = Capabilities(
+    output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="soft",  # connect equalities: solref/solimp let a loop open by a small gap
     loop_joints={"revolute", "spherical"},  # a connect holds a point only
     recut={"prismatic", "cylindrical", "universal"},  # mjcf.split_tree

@@ -111,6 +111,7 @@ def _rules(case, s: dict) -> list[str]:
 
 
 CAPABILITIES = Capabilities(
+    output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="rigid",  # constraintDynamics: exact constraint accelerations (mu 1e-8)
     loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
     drivers=(),

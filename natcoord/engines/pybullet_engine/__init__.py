@@ -117,6 +117,7 @@ def _rules(case: Case, s: dict) -> list[str]:
 
 
 CAPABILITIES = Capabilities(
+    output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="soft",  # point-to-point constraints with error reduction (erp): a small gap
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",
