@@ -179,6 +179,16 @@ def problems(adapter, settings) -> list[tuple[str, str]]:
     return out
 
 
+def particle_inertia(per_kg: bool, note: str = "") -> Setting:
+    """The setting every engine that needs a rotational inertia for a particle declares:
+    1e-6 per axis, per kg of the particle's mass (m^2) or absolute (kg m^2); ``note`` says
+    why the engine needs it."""
+    what = ("rotational inertia given to a particle, per kg of its mass" if per_kg else
+            "inertia about every axis given to a particle")
+    return Setting("particle_inertia", "number", 1e-6, what + (f" ({note})" if note else ""),
+                   "m^2" if per_kg else "kg m^2", exclusive_minimum=0.0)
+
+
 def defaults(schema: tuple[Setting, ...]) -> dict:
     """The declared defaults, by name (what the engine uses where a case gives none)."""
     return {s.name: s.default for s in schema}

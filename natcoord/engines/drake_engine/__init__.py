@@ -35,7 +35,7 @@ from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, massless, refuse
-from ..schema import Setting, defaults
+from ..schema import Setting, defaults, particle_inertia
 
 NAME = "drake"
 PACKAGE = "drake"
@@ -50,9 +50,7 @@ SETTINGS = (
             choices=INTEGRATORS),
     Setting("accuracy", "number", 1e-10, "the continuous integrator's target accuracy",
             exclusive_minimum=0.0),
-    Setting("particle_inertia", "number", 1e-6, "rotational inertia given to a particle, per "
-            "kg of its mass (Drake wants a body; no joint turns it about its point)", "m^2",
-            exclusive_minimum=0.0),
+    particle_inertia(True, "Drake wants a body; no joint turns it about its point"),
     Setting("sampled_ports", "boolean", False, "the discrete plant's output ports (reactions, "
             "accelerations) sampled: the step that led to the sample (t = 0: no step, no "
             "constraint force); false: the step from the sample on, computed live"),

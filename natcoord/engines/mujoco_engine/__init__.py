@@ -56,7 +56,7 @@ from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities
-from ..schema import Setting, defaults
+from ..schema import Setting, defaults, particle_inertia
 
 NAME = "mujoco"
 PACKAGE = "mujoco"
@@ -80,9 +80,7 @@ SETTINGS = (
     Setting("solimp", "numbers", (0.9999, 0.9999, 0.001, 0.5, 2.0), "impedance of the soft "
             "equalities: dmin, dmax (below 1), width (m), midpoint (below 1), power (>= 1)",
             exclusive_minimum=0.0, length=5),
-    Setting("particle_inertia", "number", 1e-6, "inertia about every axis given to a "
-            "particle on a slide or floating (MuJoCo needs one; it does not act)", "kg m^2",
-            exclusive_minimum=0.0),
+    particle_inertia(False, "on a slide or floating: MuJoCo needs one; it does not act"),
     Setting("max_loop_drift", "number", 1e-4, "a soft loop or rod opened wider than this is "
             "a failed run", "m", exclusive_minimum=0.0),
     Setting("loop_axis_offset", "number", 0.0, "> 0 holds a loop-closing 3-D revolute's axis "

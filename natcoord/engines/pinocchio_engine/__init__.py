@@ -64,7 +64,7 @@ import time
 
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, misaligned_loop_revolutes
-from ..schema import Setting, defaults
+from ..schema import Setting, defaults, particle_inertia
 
 NAME = "pinocchio"
 PACKAGE = "pin"
@@ -82,8 +82,7 @@ SETTINGS = (
             "constraints", "1/s", minimum=0.0),
     Setting("max_drift", "number", 1e-3, "a loop opening more than this is reported as "
             "divergence", "m", exclusive_minimum=0.0),
-    Setting("particle_inertia", "number", 1e-6, "rotational inertia given to a particle, "
-            "per kg of its mass", "m^2", exclusive_minimum=0.0),
+    particle_inertia(True),
     Setting("rod_mass", "number", 1e-6, "mass of the light body that stands for a massless "
             "rod", "kg", exclusive_minimum=0.0),
     Setting("method", "choice", "rk4", "rk4 (fixed step dt) or radau (scipy's Radau IIA on "

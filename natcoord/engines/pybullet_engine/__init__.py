@@ -38,7 +38,7 @@ from ...errors import Unsupported
 from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, massless, misaligned_loop_revolutes, refuse
-from ..schema import Setting, defaults
+from ..schema import Setting, defaults, particle_inertia
 
 NAME = "pybullet"
 PACKAGE = "pybullet"
@@ -61,9 +61,7 @@ SETTINGS = (
     Setting("loop_axis_offset", "number", 0.0, "> 0 holds a loop-closing 3-D revolute's "
             "axis by a second point-to-point constraint this far along it (0: one, a ball "
             "joint)", "m", minimum=0.0),
-    Setting("particle_inertia", "number", 1e-6, "inertia about every axis given to a "
-            "particle on a slide (PyBullet needs one; its joint cannot turn it)", "kg m^2",
-            exclusive_minimum=0.0),
+    particle_inertia(False, "on a slide: PyBullet needs one; its joint cannot turn it"),
     Setting("zero_inertia", "number", 1e-6, "inertia given along a zero principal axis "
             "(a slender rod's own), times the largest principal moment",
             exclusive_minimum=0.0),

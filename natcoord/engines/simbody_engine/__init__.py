@@ -77,7 +77,7 @@ import time
 
 from ..base import EngineRun, merged
 from ..capabilities import Capabilities, drivers_off_ground_joints, misaligned_loop_revolutes
-from ..schema import Setting, defaults
+from ..schema import Setting, defaults, particle_inertia
 from .simulate import INTEGRATORS
 
 NAME = "simbody"
@@ -98,8 +98,7 @@ SETTINGS = (
             "unsupported)", "m", minimum=0.0),
     Setting("min_step", "number", 1e-12, "a step Simbody would shrink below this is an "
             "error, not a stall", "s", exclusive_minimum=0.0),
-    Setting("particle_inertia", "number", 1e-6, "rotational inertia given to a particle, "
-            "per kg of its mass", "m^2", exclusive_minimum=0.0),
+    particle_inertia(True),
     Setting("velocity_check", "number", 1e-9, "the start must match natcoord's initial "
             "rates to this (m/s, rad/s)", exclusive_minimum=0.0),
 )
