@@ -1,7 +1,7 @@
 """The ``natcoord`` command line: cases, run, report, gate, bench, suite, reference update.
 
 Every command works from any directory: cases, references and reports are found in the
-project folder (:mod:`natcoord.project`) unless an option names them. Results go to a fresh
+project folder (:mod:`natcoord.case.project`) unless an option names them. Results go to a fresh
 folder per command (``reports/runs/<time>-<command>``) and are published whole when the
 command completes; ``reports/latest`` points at the last complete ``run`` or ``suite``
 written there (until one completes, at the one before), which ``report`` and ``gate`` read
@@ -23,10 +23,10 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .casefile import load_case
+from .case.casefile import load_case
+from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
-from .project import resolve
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   rich_markup_mode=None,  # help texts are plain: [default: ...] stays visible
@@ -946,7 +946,7 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                      "--force", help="Replace an existing case file.")] = False):
     """Write one member of a parametric case family as a case file (loaded back to check
     before it is written; an existing file is kept unless --force)."""
-    from .generate import FAMILIES, write_case
+    from .case.generate import FAMILIES, write_case
 
     if family not in FAMILIES:
         _fail(f"unknown family {family!r}; families are {', '.join(FAMILIES)}")
@@ -974,8 +974,8 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,
     slide and ball joints, connect (and weld) equalities closing loops, gravity and the
     initial state; what it does not carry is listed in the file and here."""
-    from .generate import write_case
-    from .mjcf import import_mjcf
+    from .case.generate import write_case
+    from .case.mjcf import import_mjcf
 
     if out_file.is_dir():
         out_file = out_file / f"{name or model.stem}.toml"

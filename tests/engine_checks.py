@@ -10,12 +10,12 @@ import sys
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.case.mechanism import Case, Channel, Joint
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.mechanism import Case, Channel, Joint
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 from .conftest import CASES, DATA, ROOT
 

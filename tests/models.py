@@ -4,16 +4,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from natcoord import casemodel, outputs
-from natcoord.kinematics import State
-from natcoord.mechanism import Case
-from natcoord.model import Model
+from natcoord.case.mechanism import Case
+from natcoord.model import casemodel
+from natcoord.model.kinematics import State
+from natcoord.model.model import Model
+from natcoord.outputs import channels as outputs
 
 _BUILT: dict[int, casemodel.CaseModel] = {}
 
 
 def build_model(case: Case, coordinates: str = "joints") -> Model:
-    """The model of a case (:func:`natcoord.casemodel.build`)."""
+    """The model of a case (:func:`natcoord.model.casemodel.build`)."""
     cm = casemodel.build(case, coordinates)
     _BUILT[id(cm.model)] = cm
     return cm.model

@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from natcoord import reactions
-from natcoord.builder import Builder
-from natcoord.dynamics import Solution, accelerations
-from natcoord.kinematics import State
-from natcoord.model import GROUND, Model, plate_second_moment, rod_second_moment
+from natcoord.dynamics.forward import Solution, accelerations
+from natcoord.model.builder import Builder
+from natcoord.model.kinematics import State
+from natcoord.model.model import GROUND, Model, plate_second_moment, rod_second_moment
+from natcoord.outputs import reactions
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ def integrate_stiff(model, state: State, times: np.ndarray, *, rtol: float = 1e-
     the flexible parallelogram (spring-dampers of 17e6 N/m and 1e5 N s/m: eigenvalues near
     -1e4 1/s), where an explicit method needs ~1e5 steps for 2 s.
 
-    Uses :func:`natcoord.dynamics.accelerations`; no projection, so keep the run short or
+    Uses :func:`natcoord.dynamics.forward.accelerations`; no projection, so keep the run short or
     the tolerances tight (the drift is reported in ``counters["max_phi"]``).
     """
     n = model.n

@@ -11,8 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord import Builder, Index3, Maggi, Solver, State, integrate, reactions
-from natcoord.solver import Adaptive, Fixed
+from natcoord import Builder, Index3, Maggi, Solver, State, integrate
+from natcoord.dynamics.solver import Adaptive, Fixed
+from natcoord.outputs import reactions
 
 G, MASS, L = 9.81, 1.0, 1.0
 
@@ -49,7 +50,7 @@ def test_reactions_from_the_solution():
     """reactions.min_norm on Phi_q and F - M qdd gives integrate's multipliers."""
     model = pendulum()
     sol = integrate(model, State(np.array([L, 0.0]), np.zeros(2)), np.linspace(0, 0.5, 6))
-    from natcoord.drivers import ConstraintSystem
+    from natcoord.model.drivers import ConstraintSystem
     cs = ConstraintSystem(model)
     for k in range(len(sol.t)):
         J = cs.jacobian(sol.q[k], sol.t[k])

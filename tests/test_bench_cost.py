@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from natcoord.errors import CaseError
 from natcoord.suite import bench
 from natcoord.suite.worker import truncated

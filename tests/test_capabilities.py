@@ -11,13 +11,13 @@ from pathlib import Path
 
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.case.mechanism import Case, Driver, EngineSpec
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
 from natcoord.engines.capabilities import Capabilities, reasons, why_not
 from natcoord.engines.registry import BUILTIN
 from natcoord.errors import NatcoordError, Unsupported
-from natcoord.mechanism import Case, Driver, EngineSpec
 from natcoord.suite.worker import Job, run_one
 
 from .conftest import CASES, DATA

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from natcoord import CaseError, load_case
-from natcoord.casefile import load_cases
+from natcoord.case.casefile import load_cases
 
 from .conftest import CASES
 

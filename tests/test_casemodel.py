@@ -1,4 +1,4 @@
-"""Reference-frame case files built as natural coordinates (natcoord.casemodel): the case
+"""Reference-frame case files built as natural coordinates (natcoord.model.casemodel): the case
 files of the paper's examples give exactly the paper's equations, the motion and reactions of
 the hand-built models, and the determined / undetermined split derived from N."""
 
@@ -8,12 +8,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord import casemodel
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.dynamics.solver import Adaptive, Fixed, Index3, Solver
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
-from natcoord.result import evaluate_channels
-from natcoord.solver import Adaptive, Fixed, Index3, Solver
+from natcoord.model import casemodel
+from natcoord.outputs.result import evaluate_channels
 from natcoord.suite.compare import channel_errors
 from natcoord.suite.references import load_provenance, load_reference
 from tests import paper_models as paper
@@ -100,7 +100,7 @@ def test_five_bar_index3_passes_the_singular_positions_by_raising_its_penalty():
     """index3's Newton fails at phi = 0 and -180 deg with the default penalty (1e4 max|M|:
     the multipliers grow without bound there); the step is retried with a stiffer one.
     Order 2 at h = 1e-3: measured 7.8e-5 rad against the exact one-DOF motion."""
-    from natcoord.dynamics import integrate
+    from natcoord.dynamics.forward import integrate
 
     case = _case("five_bar")
     cm = casemodel.build(case, "shared")
@@ -166,7 +166,7 @@ def test_parallelogram_case_file_matches_the_papers_model():
     assert sorted(run.counters["undetermined"]) == ["A1", "C2", "E3", "G4"]
     t = {k: evaluate_channels(case, m) for k, m in run.methods.items()}
     pm = paper.parallelogram_3d()
-    from natcoord.dynamics import integrate
+    from natcoord.dynamics.forward import integrate
 
     sol = integrate(pm.model, pm.state, case.times,
                     Solver(method="dopri5", step=Adaptive(1e-10, 1e-12)))

@@ -8,11 +8,14 @@ import re
 import numpy as np
 import pytest
 
-from natcoord import casemodel, evaluate_channels, exact, load_case, outputs
+from natcoord import evaluate_channels, load_case
+from natcoord.case.generate import n_four_bar
+from natcoord.derivations import exact
+from natcoord.derivations.exact import n_four_bar_coefficients
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
-from natcoord.exact import n_four_bar_coefficients
-from natcoord.generate import n_four_bar
+from natcoord.model import casemodel
+from natcoord.outputs import channels as outputs
 
 from .conftest import CASES
 

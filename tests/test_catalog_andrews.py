@@ -10,13 +10,14 @@ import tomllib
 import numpy as np
 import pytest
 
-from natcoord import casemodel, outputs
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
 from natcoord.engines.tree import spanning_tree
 from natcoord.errors import CaseError
-from natcoord.result import evaluate_channels
+from natcoord.model import casemodel
+from natcoord.outputs import channels as outputs
+from natcoord.outputs.result import evaluate_channels
 
 from .conftest import CASES, REFERENCES
 

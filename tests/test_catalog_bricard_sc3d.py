@@ -9,11 +9,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord import casemodel, outputs, reactions
-from natcoord.casefile import load_case
-from natcoord.dynamics import integrate
-from natcoord.result import evaluate_channels
-from natcoord.solver import case_solver
+from natcoord.case.casefile import load_case
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.solver import case_solver
+from natcoord.model import casemodel
+from natcoord.outputs import channels as outputs
+from natcoord.outputs import reactions
+from natcoord.outputs.result import evaluate_channels
 
 ROOT = Path(__file__).resolve().parents[1]
 

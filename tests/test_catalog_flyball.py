@@ -9,10 +9,10 @@ import tomllib
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from natcoord.engines import adapter
-from natcoord.outputs import initial_body_states
-from natcoord.result import evaluate_channels, point_position, point_velocity
+from natcoord.outputs.channels import initial_body_states
+from natcoord.outputs.result import evaluate_channels, point_position, point_velocity
 from natcoord.suite.references import load_reference
 from tests.conftest import CASES, REFERENCES
 

@@ -13,12 +13,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord import casefile, casemodel, codegen, kernels, sparsity
-from natcoord import kernels_sparse as ks
-from natcoord.drivers import ConstraintSystem
-from natcoord.dynamics import integrate
-from natcoord.formulations import Counters, Index1Loop, compiled_forces
-from natcoord.solver import Adaptive, Fixed, Index1, Index3, Solver
+from natcoord.case import casefile
+from natcoord.compiled import codegen, sparsity
+from natcoord.compiled import index1 as kernels
+from natcoord.compiled import sparse as ks
+from natcoord.dynamics.common import Counters, compiled_forces
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.index1 import Index1Loop
+from natcoord.dynamics.solver import Adaptive, Fixed, Index1, Index3, Solver
+from natcoord.model import casemodel
+from natcoord.model.drivers import ConstraintSystem
 
 from .conftest import CASES
 
@@ -129,7 +133,7 @@ def test_semidefinite_factor_solves_a_redundant_system():
 def test_envelope_of_a_chain_stays_narrow(tmp_path):
     """Reverse Cuthill-McKee keeps W's envelope linear in the size of a chain: the
     N-four-bar's envelope per row does not grow with N."""
-    from natcoord.generate import n_four_bar
+    from natcoord.case.generate import n_four_bar
 
     per_row = []
     for n_cranks in (4, 16):
@@ -172,7 +176,7 @@ REGULAR = ["slider_crank", "four_bar", "a02_four_bar_n2", "slider_crank_3d", "a0
 
 @pytest.mark.parametrize("name", REGULAR)
 def test_generated_kernels_equal_the_generic_ones(name):
-    """The straight-line kernels written for the model (natcoord.codegen) against the
+    """The straight-line kernels written for the model (natcoord.compiled.codegen) against the
     generic sparse kernels on the same plan: Phi at a perturbed pose; the accelerations
     (factor and solve), a Newton correction and J x at the initial pose (where a redundant
     system such as Bricard's is consistent) with random velocities; then a whole adaptive
@@ -220,7 +224,7 @@ def test_generated_forces_equal_the_generic_ones(name):
     those regularise M."""
     from scipy.linalg import null_space
 
-    from natcoord.kernels_general import pack_forces
+    from natcoord.compiled.general import pack_forces
 
     _, model, st = _model(name)
     n, M = model.n, np.asarray(model.M, float)
@@ -255,7 +259,7 @@ def test_generated_forces_equal_the_generic_ones(name):
         ks.accelerations(plan.kernel_args, ks.NO_GK, frc, q, qd, ref,
                          ks.workspace(plan.kernel_args), cnt, True)
     else:
-        from natcoord.kernels_general import acc_general, workspace
+        from natcoord.compiled.general import acc_general, workspace
         ref = np.zeros(n)
         acc_general(con.k, con.i, con.j, con.v, M, 1e-9, frc, q, qd, ref,
                     workspace(n, con.m), cnt)

@@ -1,10 +1,10 @@
-"""The compiled Maggi loop (natcoord.kernels_maggi) against the Python one, and its physics.
+"""The compiled Maggi loop (natcoord.compiled.maggi) against the Python one, and its physics.
 
 Both loops take the same steps with the same stages, Newton, step control and
 re-partitioning, so they agree to round-off: fixed-step RK4 on every case the compiled core
 runs, adaptive dop853/dopri5 on a few, runs that re-partition, a mechanism without degrees
 of freedom. The compiled Gaussian elimination with full pivoting picks the pivots of
-:func:`natcoord.formulations.full_pivot_partition`. Physics: the pendulum of IFToMM A01
+:func:`natcoord.dynamics.common.full_pivot_partition`. Physics: the pendulum of IFToMM A01
 against its elliptic solution, the four-bar against the compiled index-1 loop.
 """
 
@@ -15,12 +15,13 @@ import dataclasses
 import numpy as np
 import pytest
 
-from natcoord import exact, kernels_maggi
-from natcoord.constraints import QuadraticConstraints
-from natcoord.drivers import ConstraintSystem
-from natcoord.dynamics import integrate
-from natcoord.formulations import full_pivot_partition
-from natcoord.solver import Adaptive, Fixed, Index1, Maggi, Solver
+from natcoord.compiled import maggi as kernels_maggi
+from natcoord.derivations import exact
+from natcoord.dynamics.common import full_pivot_partition
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.solver import Adaptive, Fixed, Index1, Maggi, Solver
+from natcoord.model.constraints import QuadraticConstraints
+from natcoord.model.drivers import ConstraintSystem
 
 from .test_compiled_core import COMPILED, _model, rk4_window
 
@@ -57,7 +58,7 @@ def test_compiled_rk4_matches_the_python_loop(name):
 @pytest.mark.parametrize("name, method, window, rtol", [
     ("slider_crank", "dop853", 1.0, 1e-10), ("four_bar", "dop853", 1.0, 1e-10),
     # a03_andrews at 1e-9: at 1e-10 its error estimate's round-off parts the loops since
-    # steps may grow tenfold (natcoord.stepcontrol.MAX_FACTOR): 140 and 118 steps, 7e-10 m
+    # steps may grow tenfold (natcoord.compiled.stepcontrol.MAX_FACTOR): 140 and 118 steps, 7e-10 m
     ("five_bar", "dop853", 1.0, 1e-10), ("a03_andrews", "dop853", 0.03, 1e-9),
     ("four_bar", "dopri5", 0.5, 1e-10), ("slider_crank", "dopri5", 0.5, 1e-10),
     # loose: some steps too long for the Newton of the dependent positions (rejected, h / 4)
@@ -80,7 +81,7 @@ def test_compiled_adaptive_matches_the_python_loop(name, method, window, rtol):
 def test_both_loops_refuse_a_failing_run(name, method, step, t_end):
     """Fixed steps too long for the dependent positions' Newton: both loops raise. (Andrews'
     squeezer at rtol = atol = 1e-4 failed so until both loops grew steps by up to 10
-    (natcoord.stepcontrol.MAX_FACTOR): now both carry it, 34 steps, 19 rejected.)"""
+    (natcoord.compiled.stepcontrol.MAX_FACTOR): now both carry it, 34 steps, 19 rejected.)"""
     _, model, st = _model(name)
     for compiled in (True, False):
         with pytest.raises(RuntimeError, match="maggi"):

@@ -7,7 +7,7 @@ import pytest
 
 from natcoord import CaseError, load_case
 from natcoord.engines import natcoord_engine
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 CASE = "cases/slider_crank_driven.toml"
 

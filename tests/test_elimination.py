@@ -1,4 +1,4 @@
-"""The elimination of coordinates through the constant linear rows (natcoord.elimination):
+"""The elimination of coordinates through the constant linear rows (natcoord.compiled.elimination):
 the model over the coordinates it keeps is the same model, and both loops project in its
 metric."""
 
@@ -8,12 +8,16 @@ import numpy as np
 import pytest
 from scipy.linalg import null_space
 
-from natcoord import casefile, casemodel, kernels, sparsity
-from natcoord import kernels_general as kg
-from natcoord import kernels_sparse as ks
-from natcoord.drivers import ConstraintSystem
-from natcoord.elimination import eliminate, linear_rows
-from natcoord.formulations import Counters, Index1Loop, compiled_forces
+from natcoord.case import casefile
+from natcoord.compiled import general as kg
+from natcoord.compiled import index1 as kernels
+from natcoord.compiled import sparse as ks
+from natcoord.compiled import sparsity
+from natcoord.compiled.elimination import eliminate, linear_rows
+from natcoord.dynamics.common import Counters, compiled_forces
+from natcoord.dynamics.index1 import Index1Loop
+from natcoord.model import casemodel
+from natcoord.model.drivers import ConstraintSystem
 
 from .conftest import CASES
 
@@ -146,9 +150,9 @@ def test_a_chain_keeps_its_shared_points(tmp_path):
     every link in one block of M_r (M_r^-1 dense, the Schur path no longer linear in N), so
     no massive coordinate goes and, its M being regular, there is no elimination; its first
     two links alone would be eliminated (A02 N = 2)."""
-    from natcoord import elimination as el
-    from natcoord.generate import n_four_bar
-    from natcoord.sparsity import blocks
+    from natcoord.case.generate import n_four_bar
+    from natcoord.compiled import elimination as el
+    from natcoord.compiled.sparsity import blocks
 
     path = tmp_path / "a02_four_bar_n32.toml"
     path.write_text(n_four_bar(32))

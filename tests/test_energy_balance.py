@@ -1,4 +1,4 @@
-"""The energy balance channel (``kind = "energy", work = true``, natcoord.result.work):
+"""The energy balance channel (``kind = "energy", work = true``, natcoord.outputs.result.work):
 kinetic + gravitational + spring energy minus the work applied loads, dampers and drivers
 did since t = 0 stays at its value at t = 0 along natcoord's trajectories; which energy
 channels are balances; how a case file says so."""
@@ -8,11 +8,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.case.mechanism import Channel, Force
 from natcoord.engines import adapter
 from natcoord.errors import CaseError
-from natcoord.mechanism import Channel, Force
-from natcoord.result import Motion, energy, evaluate_channels, is_balance, work
+from natcoord.outputs.result import Motion, energy, evaluate_channels, is_balance, work
 from tests.conftest import CASES
 
 BALANCE = Channel("balance", "energy", work=True)

@@ -21,7 +21,7 @@ import pytest
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 from . import engine_checks as ec
 
@@ -336,8 +336,8 @@ def _dart(case, init, settings=None):
 @pytest.fixture(scope="module")
 def five_bar_ref():
     """Through the singular position phi = 0 (t ~ 1.03 s) and on to t = 1.2 s."""
-    from natcoord.dynamics import integrate
-    from natcoord.solver import Fixed, Solver
+    from natcoord.dynamics.forward import integrate
+    from natcoord.dynamics.solver import Fixed, Solver
     from tests import paper_models as paper
 
     pm = paper.five_bar()
@@ -389,7 +389,7 @@ def test_five_bar_is_first_order_and_the_light_rods_cost_little(five_bar_ref):
 
 
 def test_four_bar_3d_matches_the_paper_model():
-    from natcoord.dynamics import integrate
+    from natcoord.dynamics.forward import integrate
     from tests import paper_models as paper
 
     case = dataclasses.replace(ec.case("four_bar_3d"), duration=1.0)
@@ -414,7 +414,7 @@ def test_four_bar_3d_matches_the_paper_model():
 
 @pytest.mark.parametrize("flexible", [False, True])
 def test_parallelogram_3d(flexible):
-    from natcoord.dynamics import integrate
+    from natcoord.dynamics.forward import integrate
     from tests import paper_models as paper
 
     name = "parallelogram_3d" + ("_flexible" if flexible else "")

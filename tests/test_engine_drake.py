@@ -19,7 +19,7 @@ import pytest
 
 pytest.importorskip("pydrake", reason="pydrake (pip install drake) is not installed")
 
-from natcoord.result import evaluate_channels  # noqa: E402
+from natcoord.outputs.result import evaluate_channels  # noqa: E402
 from natcoord.suite.references import load_reference  # noqa: E402
 
 from . import engine_checks as ec  # noqa: E402
@@ -131,7 +131,7 @@ def test_missing_pydrake_is_skipped_with_its_pip_command():
     install it, without running anything."""
     code = (
         "import sys; sys.modules['pydrake'] = None\n"
-        "from natcoord.casefile import load_case\n"
+        "from natcoord.case.casefile import load_case\n"
         "from natcoord.engines.base import initial_body_states\n"
         "from natcoord.suite.worker import Job, run_one\n"
         f"c = load_case({str(ROOT / 'cases' / 'four_bar.toml')!r})\n"

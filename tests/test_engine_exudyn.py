@@ -14,11 +14,11 @@ import exudyn  # noqa: E402,F401 - an engine is a real dependency: missing fails
 import numpy as np
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 from . import engine_checks as ec
 from .conftest import CASES, DATA

@@ -21,11 +21,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from natcoord.engines import adapter
 from natcoord.engines.base import BodyState, InitialState, initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 from . import engine_checks as ec
 from .conftest import ROOT

@@ -12,11 +12,11 @@ import numpy as np
 import pinocchio  # noqa: E402,F401 - an engine is a real dependency: missing fails, never skips
 import pytest
 
+from natcoord.case.mechanism import Channel, Joint
 from natcoord.engines import adapter
 from natcoord.engines.base import BodyState, InitialState, initial_body_states
 from natcoord.errors import Unsupported
-from natcoord.mechanism import Channel, Joint
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 from natcoord.suite.references import load_reference
 
 from . import engine_checks as ec

@@ -22,12 +22,12 @@ import pytest
 
 pytest.importorskip("pybullet")  # CI installs it (the engines extra)
 
+from natcoord.case.mechanism import Channel, Force  # noqa: E402
 from natcoord.engines import adapter  # noqa: E402
 from natcoord.engines.base import initial_body_states  # noqa: E402
 from natcoord.engines.pybullet_engine import simulate  # noqa: E402
 from natcoord.errors import Unsupported  # noqa: E402
-from natcoord.mechanism import Channel, Force  # noqa: E402
-from natcoord.result import evaluate_channels  # noqa: E402
+from natcoord.outputs.result import evaluate_channels  # noqa: E402
 
 from . import engine_checks as ec  # noqa: E402
 from .conftest import REFERENCES, ROOT  # noqa: E402

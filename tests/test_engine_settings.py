@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from natcoord import CaseError, load_case
-from natcoord.casefile import load_cases
+from natcoord.case.casefile import load_cases
 from natcoord.engines import adapter, engine_names
 from natcoord.engines.schema import Setting, check, defaults, problems
 
@@ -63,7 +63,7 @@ def test_every_setting_an_adapter_reads_is_declared(engine):
 def test_natcoord_schema_covers_the_solver():
     from dataclasses import fields
 
-    from natcoord.solver import FORMULATIONS
+    from natcoord.dynamics.solver import FORMULATIONS
 
     declared = {s.name for s in adapter("natcoord").SETTINGS}
     options = {f.name for c in FORMULATIONS.values() for f in fields(c)}
@@ -81,7 +81,7 @@ def test_every_setting_of_a_stock_case_is_declared():
 
 
 def test_loading_cases_does_not_import_any_engine():
-    code = ("import sys\nfrom natcoord.casefile import load_cases\nload_cases('cases')\n"
+    code = ("import sys\nfrom natcoord.case.casefile import load_cases\nload_cases('cases')\n"
             "from natcoord.engines import adapter\n"
             f"[adapter(e).SETTINGS for e in {list(ENGINES)!r}]\n"
             "print([m for m in ('mujoco', 'pinocchio', 'exudyn', 'dartpy', 'opensim', 'numba')"
@@ -384,7 +384,7 @@ def test_driven_and_redundant_mechanisms_still_load(tmp_path):
     """One driver on the four-bar takes its one degree of freedom (0 left: the driver is
     the motion); Bricard is Grübler 0 with one redundant constraint (mobility 1);
     slider_crank_driven is driven."""
-    from natcoord.casemodel import build, initial_positions, mobility
+    from natcoord.model.casemodel import build, initial_positions, mobility
 
     one = load_case(_four_bar_3d(tmp_path, _drivers(CRANK_Z)))
     for case in (one, load_case(CASES / "a04_bricard.toml"),

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 from natcoord.suite.references import load_reference
 from natcoord.suite.runner import run_subprocess
 

@@ -1,4 +1,5 @@
-"""Formulations of natcoord.formulations: derivatives, agreement, order, energy, existence."""
+"""Formulations of natcoord.dynamics.formulations: derivatives, agreement, order, energy,
+existence."""
 
 from __future__ import annotations
 
@@ -10,12 +11,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from natcoord import ExistenceError, load_case
-from natcoord.drivers import ConstraintSystem
-from natcoord.dynamics import integrate
-from natcoord.integrators import INTEGRATORS, DormandPrince5
-from natcoord.kinematics import State
-from natcoord.mechanism import Body, Driver, Joint
-from natcoord.solver import FORMULATIONS, Adaptive, Index1, Solver
+from natcoord.case.mechanism import Body, Driver, Joint
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.integrators import INTEGRATORS, DormandPrince5
+from natcoord.dynamics.solver import FORMULATIONS, Adaptive, Index1, Solver
+from natcoord.model.drivers import ConstraintSystem
+from natcoord.model.kinematics import State
 from tests.models import body_angle, body_columns, build_model, initial_state, replace
 
 

@@ -1,6 +1,6 @@
 """The stored references against a derivation that shares nothing with natcoord's:
-joint coordinates, Kane's method (sympy), DOP853 at rtol 1e-13 (natcoord.independent);
-IFToMM A02 also against its exact one-equation reduction (natcoord.exact)."""
+joint coordinates, Kane's method (sympy), DOP853 at rtol 1e-13 (natcoord.derivations.independent);
+IFToMM A02 also against its exact one-equation reduction (natcoord.derivations.exact)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ import pandas as pd
 import pytest
 from scipy.special import ellipk
 
-from natcoord import exact, load_case
-from natcoord.independent import SETTINGS, JointModel, check, solve
+from natcoord import load_case
+from natcoord.derivations import exact
+from natcoord.derivations.independent import SETTINGS, JointModel, check, solve
 
 from .conftest import CASES, REFERENCES
 
@@ -92,7 +93,7 @@ def test_a02_reference_agrees_within_the_stated_error_estimates(independent):
 
 def test_a02_independent_solution_matches_the_exact_reduction(independent):
     """The Kane derivation (5 joint coordinates, loop constraints) against the exact
-    one-equation reduction J phi'' = -c g cos(phi) (natcoord.exact): measured 5.9e-11 m,
+    one-equation reduction J phi'' = -c g cos(phi) (natcoord.derivations.exact): measured 5.9e-11 m,
     4.0e-10 m/s, 3.6e-11 J over 10 s, so the reference's 1.3e-9 m above is its own."""
     case = load_case(CASES / f"{A02}.toml")
     ex = exact.n_four_bar(2, case.times)

@@ -1,4 +1,4 @@
-"""Compiled index-1 loop on its general path (natcoord.kernels_general): singular M,
+"""Compiled index-1 loop on its general path (natcoord.compiled.general): singular M,
 redundant constraints, Model torques and spring-dampers, against the Python loop in
 ``linsolve="qr"`` mode on the paper's reference-frame cases."""
 
@@ -10,12 +10,15 @@ from functools import cache
 import numpy as np
 import pytest
 
-from natcoord import casefile, casemodel, kernel_cache
-from natcoord import kernels_general as kg
-from natcoord.dynamics import integrate
-from natcoord.formulations import Counters, Index1Loop, compiled_forces
-from natcoord.model import Model, Spring
-from natcoord.solver import Adaptive, Index1, Solver
+from natcoord.case import casefile
+from natcoord.compiled import cache as kernel_cache
+from natcoord.compiled import general as kg
+from natcoord.dynamics.common import Counters, compiled_forces
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.index1 import Index1Loop
+from natcoord.dynamics.solver import Adaptive, Index1, Solver
+from natcoord.model import casemodel
+from natcoord.model.model import Model, Spring
 from tests.models import build_model, initial_state
 
 from .conftest import CASES

@@ -7,15 +7,15 @@ import dataclasses
 import numpy as np
 
 from natcoord import load_case
-from natcoord.drivers import ConstraintSystem
-from natcoord.formulations import full_pivot_partition
-from natcoord.kinematics import (
+from natcoord.case.mechanism import Joint
+from natcoord.dynamics.common import full_pivot_partition
+from natcoord.model.drivers import ConstraintSystem
+from natcoord.model.kinematics import (
     kinematic_analysis,
     mobility,
     solve_acceleration,
     solve_position,
 )
-from natcoord.mechanism import Joint
 from tests.models import build_model, coordinate, initial_state
 
 

@@ -1,7 +1,7 @@
 """Every compiled loop against its Python loop, step for step, on every case both run.
 
 The compiled loops and the Python time loop share one step control
-(:mod:`natcoord.stepcontrol`): the same initial step, error norm, accept/reject factors
+(:mod:`natcoord.compiled.stepcontrol`): the same initial step, error norm, accept/reject factors
 and continuous extension, so on the same model and tolerances they take the same number
 of steps and reject the same ones. This is what the fixed-step parity tests of
 test_compiled_core.py cannot see: a step factor that differs between the loops (the
@@ -19,8 +19,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord.dynamics import integrate
-from natcoord.solver import Adaptive, Index1, Maggi, Solver
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.solver import Adaptive, Index1, Maggi, Solver
 
 from .test_compiled_core import COMPILED, _model
 

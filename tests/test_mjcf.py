@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.case.generate import write_case
+from natcoord.case.mjcf import import_mjcf
 from natcoord.cli import app
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
-from natcoord.generate import write_case
-from natcoord.mjcf import import_mjcf
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 
 from .conftest import CASES
 

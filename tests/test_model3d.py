@@ -6,8 +6,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from natcoord.builder import Builder
-from natcoord.model import (
+from natcoord.model.builder import Builder
+from natcoord.model.model import (
     GROUND,
     plate_second_moment,
     rod_second_moment,

@@ -10,12 +10,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from natcoord import casemodel, load_case
+from natcoord import load_case
+from natcoord.case.mechanism import Pose
 from natcoord.engines import natcoord_engine
 from natcoord.engines.base import initial_body_states
 from natcoord.errors import AssemblyError
-from natcoord.mechanism import Pose
-from natcoord.result import evaluate_channels
+from natcoord.model import casemodel
+from natcoord.outputs.result import evaluate_channels
 
 DATA = Path(__file__).parent / "data"
 

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 import natcoord
-from natcoord import reactions
-from natcoord.dynamics import Solution, accelerations, integrate
-from natcoord.kinematics import mobility
-from natcoord.solver import Fixed, Solver
+from natcoord.dynamics.forward import Solution, accelerations, integrate
+from natcoord.dynamics.solver import Fixed, Solver
+from natcoord.model.kinematics import mobility
+from natcoord.outputs import reactions
 from tests import paper_models as paper
 from tests.models import body_angle, build_model, initial_state
 

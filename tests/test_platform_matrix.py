@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
 from tests import platform_matrix as pm
 from tests.conftest import CASES
 

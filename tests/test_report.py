@@ -374,7 +374,7 @@ def test_redundant_case_section_from_a_real_run(tmp_path):
     """five_bar run in natcoord and Exudyn (real engines): the report explains the redundant
     constraint (rank, DOF, N), marks determined / undetermined force channels, puts
     natcoord's reaction methods beside each engine, and shows the published angles."""
-    from natcoord.casefile import load_case
+    from natcoord.case.casefile import load_case
     from natcoord.suite.runner import run_suite
 
     from .conftest import CASES, REFERENCES
@@ -568,7 +568,7 @@ def _figure_series(html: str, anchor: str) -> dict[str, np.ndarray]:
 def balance_report(tmp_path_factory) -> tuple[Path, str]:
     """a03_andrews (motor torque, spring) and a02_four_bar_n2 (conservative) run in natcoord
     (real runs, ~20 s), and their report."""
-    from natcoord.casefile import load_case
+    from natcoord.case.casefile import load_case
     from natcoord.suite.runner import run_suite
 
     from .conftest import CASES, REFERENCES

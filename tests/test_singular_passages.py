@@ -15,12 +15,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from natcoord import exact
-from natcoord.casefile import load_case
+from natcoord.case.casefile import load_case
+from natcoord.derivations import exact
+from natcoord.dynamics.integrators import singular_hint
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
-from natcoord.integrators import singular_hint
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 from tests.conftest import CASES, REFERENCES
 
 

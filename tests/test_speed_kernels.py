@@ -1,4 +1,4 @@
-"""Compiled index-1 loop (natcoord.kernels): agreement with the Python loop, dense output
+"""Compiled index-1 loop (natcoord.compiled.index1): agreement with the Python loop, dense output
 accuracy against the references, fallbacks, and compile time kept out of the stepping time."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pandas as pd
 import pytest
 
 from natcoord import CaseError, load_case
-from natcoord.dynamics import integrate
-from natcoord.solver import Adaptive, Fixed, Index1, Index3, Solver
+from natcoord.dynamics.forward import integrate
+from natcoord.dynamics.solver import Adaptive, Fixed, Index1, Index3, Solver
 from tests.models import body_angle, build_model, initial_state
 
 from .conftest import CASES, REFERENCES, ROOT
@@ -89,7 +89,7 @@ def test_case_file_asking_for_an_invalid_solver_is_refused(tmp_path):
 
 def test_compile_time_is_reported_apart_and_cached():
     """A fresh process loads the cached kernels; the load is build time, not wall time."""
-    code = ("from natcoord.casefile import load_case\n"
+    code = ("from natcoord.case.casefile import load_case\n"
             "from natcoord.engines import natcoord_engine as ne\n"
             "from natcoord.engines.base import initial_body_states\n"
             "c = load_case('cases/slider_crank.toml')\n"

@@ -14,7 +14,7 @@ import pytest
 
 from natcoord import load_case, timing
 from natcoord.engines import natcoord_engine
-from natcoord.result import evaluate_channels
+from natcoord.outputs.result import evaluate_channels
 from natcoord.suite import batches, bench, diff, history, speed
 from natcoord.suite.runner import as_job, machine_info
 

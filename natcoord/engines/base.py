@@ -9,7 +9,7 @@ the adapter's own defaults (declared in its ``SETTINGS``, :mod:`natcoord.engines
 importing the adapter must not import its engine, so that a case loads without it). Every body of a
 case has its points in its own frame; ``init[body]`` gives that frame's pose and rates at
 t = 0. All conventions of an engine (frames, signs, units, quaternion order) stay inside
-its adapter; what it returns is a :class:`~natcoord.result.Motion` in natcoord's neutral
+its adapter; what it returns is a :class:`~natcoord.outputs.result.Motion` in natcoord's neutral
 convention, sampled at ``case.times``.
 """
 
@@ -18,9 +18,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
 
-from ..mechanism import Case
-from ..outputs import BodyState, InitialState, initial_body_states
-from ..result import Motion
+from ..case.mechanism import Case
+from ..outputs.channels import BodyState, InitialState, initial_body_states
+from ..outputs.result import Motion
 
 __all__ = ["Adapter", "BodyState", "EngineRun", "InitialState", "initial_body_states",
            "merged", "steps_per_sample"]

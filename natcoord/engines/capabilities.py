@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..mechanism import DRIVER_TYPES, GROUND, JOINT_TYPES, Case, Joint
+from ..case.mechanism import DRIVER_TYPES, GROUND, JOINT_TYPES, Case, Joint
 
 LOOPS = ("rigid", "soft", "none")
 

@@ -1,8 +1,8 @@
 """natcoord's own solver as an engine: natural coordinates, formulation chosen by settings.
 
 Settings (``[engines.natcoord].settings``): ``coordinates`` (joints | shared, see
-:mod:`natcoord.casemodel`) and the solver, read by
-:meth:`natcoord.solver.Solver.from_settings`: ``formulation`` (index1 | maggi | index3),
+:mod:`natcoord.model.casemodel`) and the solver, read by
+:meth:`natcoord.dynamics.solver.Solver.from_settings`: ``formulation`` (index1 | maggi | index3),
 ``method`` (dop853 | dopri5 | rk4 | trapezoidal | DOP853 | RK45 | Radau | LSODA | BDF),
 ``rtol`` and ``atol`` or a fixed step ``h`` (s), and the formulation's options
 (``stabilization``, ``linsolve``, ``penalty``, ``compiled``, ...). ``reference`` and
@@ -13,7 +13,7 @@ The solver and the model are imported when a run starts, not with this module.
 Every case runs the same way: the case's natural-coordinate model, started from the
 assembled state ``init`` (q, qd), every reaction method of the case, and the channels that
 N = ker Phi_q^T leaves undetermined. The default (index1, dop853) runs as one compiled numba
-loop (:mod:`natcoord.kernels`); its compile or cache-load time goes into ``build_time_s``
+loop (:mod:`natcoord.compiled.index1`); its compile or cache-load time goes into ``build_time_s``
 (and ``counters["compile_time_s"]``), never into ``wall_time_s``.
 """
 
@@ -22,9 +22,8 @@ from __future__ import annotations
 import time
 
 from .. import __version__
-from ..casemodel import COORDINATES
-from ..mechanism import Case
-from ..solver import (
+from ..case.mechanism import Case
+from ..dynamics.solver import (
     DEFAULT_METHOD,
     DEFAULT_TOLERANCES,
     FORMULATIONS,
@@ -36,6 +35,7 @@ from ..solver import (
     Maggi,
     case_solver,
 )
+from ..model.casemodel import COORDINATES
 from .base import EngineRun, InitialState
 from .capabilities import Capabilities
 from .schema import Setting
@@ -110,9 +110,10 @@ def version() -> str:
 def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     """Integrate the case from ``init`` (assembled here when None, or when settings ask
     for other coordinates than ``init`` was assembled in)."""
-    from .. import casemodel, outputs
-    from ..dynamics import integrate
-    from ..kinematics import State
+    from ..dynamics.forward import integrate
+    from ..model import casemodel
+    from ..model.kinematics import State
+    from ..outputs import channels as outputs
 
     solver = case_solver(settings)
     coordinates = settings.get("coordinates", "joints")

@@ -1,6 +1,6 @@
 """A case in 3-D and back, for the engines that only model space (MuJoCo, Pinocchio, DART):
 the one place where a 2-D case becomes spatial, where natcoord's assembled state becomes 3-D
-body frames, and where 3-D samples become a neutral :class:`~natcoord.result.Motion` in the
+body frames, and where 3-D samples become a neutral :class:`~natcoord.outputs.result.Motion` in the
 case's own dimension again.
 
 A 2-D case is the planar case of a 3-D one (:func:`lift_case`): points (x, y, 0), a revolute
@@ -21,8 +21,8 @@ import dataclasses
 
 import numpy as np
 
-from ..mechanism import GROUND, Body, Case, Force, Joint
-from ..result import Motion
+from ..case.mechanism import GROUND, Body, Case, Force, Joint
+from ..outputs.result import Motion
 
 Z = np.array([0.0, 0.0, 1.0])
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+from ..case.mechanism import GROUND, Case, Joint
 from ..errors import Unsupported
-from ..mechanism import GROUND, Case, Joint
 
 
 def spanning_tree(case: Case) -> tuple[list[Joint], list[Joint]]:

@@ -2,7 +2,7 @@
 channel drifts from its value at t = 0.
 
 A channel is drawn when the runner marked it a balance (``balance`` in its summary entry,
-:func:`natcoord.result.is_balance`): kinetic + gravitational + spring energy in a case
+:func:`natcoord.outputs.result.is_balance`): kinetic + gravitational + spring energy in a case
 without non-conservative loads, or that minus the work of applied loads, dampers and drivers
 (``work = true``). Exact physics keeps it constant, so |B(t) - B(0)| is each engine's
 conservation error. It is drawn relative to the energy scale the comparison uses

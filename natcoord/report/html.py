@@ -32,8 +32,8 @@ import plotly.offline
 from markupsafe import Markup, escape
 from plotly.subplots import make_subplots
 
+from ..case.mechanism import FORCE_KINDS
 from ..engines import engine_names
-from ..mechanism import FORCE_KINDS
 from . import balance, redundant, speed, trends
 from .lazy import FigureStore
 from .look import style

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 import plotly.graph_objects as go
 
-from ..mechanism import FORCE_KINDS
+from ..case.mechanism import FORCE_KINDS
 from .sampling import f32, stride
 
 METHOD_DASHES = ("dash", "dot", "dashdot", "longdash", "longdashdot")

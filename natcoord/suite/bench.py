@@ -47,7 +47,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..mechanism import Case
+from ..case.mechanism import Case
 from .io import write_json
 from .references import load_reference
 from .runner import as_job, machine_info, run_subprocess

@@ -7,8 +7,8 @@ from collections.abc import Collection
 import numpy as np
 import pandas as pd
 
-from ..mechanism import FORCE_KINDS, Case
-from ..result import is_balance
+from ..case.mechanism import FORCE_KINDS, Case
+from ..outputs.result import is_balance
 
 
 def channel_errors(case: Case, engine: str, table: pd.DataFrame,
@@ -25,7 +25,7 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
     ``note``. ``undetermined``: channels a self-equilibrating set of the redundant
     constraints changes (from N = ker Phi_q^T, stored with the reference): never gated,
     whatever the case file's tolerances say. An energy channel's ``balance`` says whether it
-    is constant in exact physics (:func:`natcoord.result.is_balance`). Verdict: ``pass``,
+    is constant in exact physics (:func:`natcoord.outputs.result.is_balance`). Verdict: ``pass``,
     ``fail``, ``no-reference`` or ``not-gated``.
     """
     spec = case.engine(engine)

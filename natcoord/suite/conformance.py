@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..casefile import load_case
-from ..mechanism import FORCE_KINDS, Case
+from ..case.casefile import load_case
+from ..case.mechanism import FORCE_KINDS, Case
 from .compare import channel_errors
 from .evidence import BadReference, cell_folder, read_reference, read_table
 from .runner import prepare, run_subprocess

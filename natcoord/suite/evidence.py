@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..case.mechanism import Case
 from ..errors import NatcoordError
-from ..mechanism import Case
 from .compare import channel_errors
 
 SUFFIXES = (".csv", ".methods.csv", ".json")  # a cell's result files: <engine><suffix>

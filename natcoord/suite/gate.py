@@ -22,10 +22,10 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..casefile import NAME_PATTERN, load_case
+from ..case.casefile import NAME_PATTERN, load_case
+from ..case.mechanism import Case
 from ..engines import engine_names
 from ..errors import CaseError, StoredFileError
-from ..mechanism import Case
 from . import evidence
 from .io import locked, read_json, write_json
 

@@ -3,8 +3,8 @@
 ``references/<case>.csv`` holds the channels at the case's sample times and
 ``references/<case>.json`` how they were made: method, settings, versions, date, the
 constraint drift, an error estimate from a second run at a 100x looser tolerance and,
-for the cases :mod:`natcoord.independent` derives, ``independent``: how far a solution in
-joint coordinates (Kane's method) is from the reference, per channel.
+for the cases :mod:`natcoord.derivations.independent` derives, ``independent``: how far a solution
+in joint coordinates (Kane's method) is from the reference, per channel.
 References change only through ``natcoord reference update``.
 """
 
@@ -18,12 +18,12 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
+from ..case.mechanism import Case
+from ..derivations.independent import check as independent_check
 from ..engines.base import initial_body_states
 from ..engines.natcoord_engine import run as natcoord_run
 from ..estimates import estimated_error
-from ..independent import check as independent_check
-from ..mechanism import Case
-from ..result import evaluate_channels, methods_table
+from ..outputs.result import evaluate_channels, methods_table
 from .evidence import BadReference, reference_problem
 from .io import read_csv, read_json, write_csv, write_json
 

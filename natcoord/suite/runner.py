@@ -24,9 +24,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from .. import __version__
+from ..case.mechanism import Case
 from ..errors import NatcoordError
-from ..mechanism import Case
-from ..outputs import initial_body_states
+from ..outputs.channels import initial_body_states
 from . import evidence
 from .io import read_json, write_json
 from .worker import Job, cannot_run

@@ -1,6 +1,6 @@
 """How natcoord's cost per step grows with the size of a mechanism: generated N-four-bars.
 
-For each N the IFToMM A02 family's case is generated (:func:`natcoord.generate.n_four_bar`),
+For each N the IFToMM A02 family's case is generated (:func:`natcoord.case.generate.n_four_bar`),
 its model built, and fixed-step RK4 runs ``steps`` steps of ``h`` in the compiled loop from
 the generated pose at rest (exact by construction, so no dense assembly: the loop projects
 the start itself), every repeat's time kept. Build and sparsity-plan time are reported
@@ -18,11 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import casefile, casemodel
-from ..dynamics import integrate
-from ..generate import n_four_bar
-from ..kinematics import State
-from ..solver import Fixed, Index1, Solver
+from ..case import casefile
+from ..case.generate import n_four_bar
+from ..dynamics.forward import integrate
+from ..dynamics.solver import Fixed, Index1, Solver
+from ..model import casemodel
+from ..model.kinematics import State
 
 SIZES = (64, 512)  # the N of the default scaling run
 H = 1e-3  # s, RK4 step

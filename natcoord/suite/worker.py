@@ -36,12 +36,12 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import numpy as np  # noqa: E402
 
+from ..case.mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..engines import adapter  # noqa: E402
 from ..engines.base import InitialState  # noqa: E402
 from ..engines.capabilities import why_not  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..mechanism import FORCE_KINDS, Case  # noqa: E402
-from ..result import Result, Status, evaluate_channels, methods_table  # noqa: E402
+from ..outputs.result import Result, Status, evaluate_channels, methods_table  # noqa: E402
 from . import batches  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 

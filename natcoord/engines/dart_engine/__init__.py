@@ -72,8 +72,8 @@ import time
 
 import numpy as np
 
+from ...case.mechanism import Case
 from ...errors import Unsupported
-from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, drivers_off_ground_joints, misaligned_loop_revolutes
 from ..schema import Setting, defaults

@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case, Driver
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case, Driver
 from ..planar import Frame, Z, node_point
 from .skeleton import Skeleton, world_axis
 

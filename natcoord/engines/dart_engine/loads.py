@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 from ..planar import Frame, frame_of, node_point
 
 ROD_NOTE = ("massless rod(s) {names}: light uniform rods of {m:g} kg (DART has no distance "

@@ -8,8 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case, Joint
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case, Joint
 from ..planar import Frame, frame_of, node_point
 from ..tree import point_loop_tree, tree_orientation, tree_parents
 from .loads import ROD_NOTE, LightRod, iso, slender_inertia

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 from ..planar import node_point
 
 

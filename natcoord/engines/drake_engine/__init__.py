@@ -31,8 +31,8 @@ import time
 
 import numpy as np
 
+from ...case.mechanism import Case
 from ...errors import Unsupported
-from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, massless, refuse
 from ..schema import Setting, defaults, particle_inertia

@@ -13,8 +13,8 @@ import dataclasses
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case
 from ..planar import Frame, frame_of, node_point
 from ..tree import point_loop_tree, tree_orientation, tree_parents
 

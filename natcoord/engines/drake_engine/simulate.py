@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from ...mechanism import Case
+from ...case.mechanism import Case
 from ..planar import node_point
 from .model import Built
 

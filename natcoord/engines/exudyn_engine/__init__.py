@@ -35,9 +35,9 @@ import time
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case
-from ...result import Motion
+from ...outputs.result import Motion
 from ..base import EngineRun, merged
 from ..capabilities import Capabilities
 from ..schema import Setting, defaults

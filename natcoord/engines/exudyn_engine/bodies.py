@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...case.mechanism import Body
 from ...errors import Unsupported
-from ...mechanism import Body
 from .system import Build, v3
 
 AXIAL_INERTIA = 1e-6  # uniform rods (3-D): axial inertia added, relative to the largest moment

@@ -17,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...case.mechanism import Case, Driver
 from ...errors import Unsupported
-from ...mechanism import Case, Driver
 from .bodies import centre_state
 from .system import Build
 

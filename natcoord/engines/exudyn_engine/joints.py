@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...mechanism import GROUND, Joint
+from ...case.mechanism import GROUND, Joint
 from .system import Build, v3
 
 J2 = np.array([[0.0, -1.0], [1.0, 0.0]])  # +90 deg rotation about z

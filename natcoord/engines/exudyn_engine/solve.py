@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
-from ...mechanism import Case
-from ...result import Motion
+from ...case.mechanism import Case
+from ...outputs.result import Motion
 from ..base import EngineRun, steps_per_sample
 
 

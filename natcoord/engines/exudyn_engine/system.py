@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 
 
 def v3(v) -> list[float]:

@@ -52,8 +52,8 @@ Reactions (force the joint applies to its second body, world axes) and tensions:
 
 from __future__ import annotations
 
+from ...case.mechanism import Case
 from ...errors import Unsupported
-from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities
 from ..schema import Setting, defaults, particle_inertia

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case
 from ..tree import tree_orientation
 
 

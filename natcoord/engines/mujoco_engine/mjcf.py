@@ -17,8 +17,8 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case, Joint
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case, Joint
 from ..planar import GROUND_FRAME, Frame, frame_of, node_point
 from ..tree import spanning_tree, tree_parents
 

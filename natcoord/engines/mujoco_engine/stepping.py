@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from ...mechanism import Case
+from ...case.mechanism import Case
 from ..planar import Samples
 from .forces import Reactions, applied_loads
 

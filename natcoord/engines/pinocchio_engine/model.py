@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case
 from ..planar import GROUND_FRAME, Frame, cross, lift_case, lift_init, node_point, plane_normal
 from ..tree import point_loop_tree, tree_orientation, tree_parents
 

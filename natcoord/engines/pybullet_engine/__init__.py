@@ -34,8 +34,8 @@ cylindrical joints, bodies not joined to the ground, a slide that must close a l
 
 from __future__ import annotations
 
+from ...case.mechanism import Case
 from ...errors import Unsupported
-from ...mechanism import Case
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, massless, misaligned_loop_revolutes, refuse
 from ..schema import Setting, defaults, particle_inertia

@@ -29,8 +29,8 @@ import dataclasses
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case, Joint
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case, Joint
 from ..planar import GROUND_FRAME, Frame, cross, frame_of, node_point
 from ..tree import point_loop_tree, tree_parents
 

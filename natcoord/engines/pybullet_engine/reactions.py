@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 from ..planar import cross
 from ..tree import tree_orientation
 from .multibody import Built

@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 from ..planar import Frame, Samples, check_start
 from . import START_TOLERANCE
 from .multibody import Built

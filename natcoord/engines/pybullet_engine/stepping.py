@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...mechanism import GROUND, Case
+from ...case.mechanism import GROUND, Case
 from ..planar import cross, node_point
 from .multibody import Built
 

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...case.mechanism import GROUND, Case, Joint
 from ...errors import Unsupported
-from ...mechanism import GROUND, Case, Joint
 from ..planar import Frame, cross, frame_of, node_point
 from ..tree import point_loop_tree, tree_orientation, tree_parents
 

@@ -1,0 +1,2 @@
+"""The neutral case layer: case files, the mechanisms they describe, generated families,
+MJCF import."""

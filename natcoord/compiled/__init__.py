@@ -1,0 +1,1 @@
+"""The compiled core: numba loops per formulation, step control, sparsity plans, codegen."""

@@ -1,0 +1,566 @@
+"""Compiled (numba) time loop of the Maggi formulation (R-method, Eq. (23)).
+
+One call integrates the whole run, step for step what ``MaggiLoop`` and the time loop of
+:mod:`natcoord.dynamics.integrators` do in Python. The state is y = [q^i, qd^i] (2f) over the
+independent coordinates of a partition of Phi_q (m, n) by Gaussian elimination with full
+pivoting (rows (r,) of independent constraints, dependent coordinates dep (r,), independent
+indep (f,), f = n - r). Every evaluation of dy/dt
+
+1. rebuilds q (n,): the last solution moved along the last R by the change of q^i, then
+   Newton on Phi[rows](q) = 0 over q^d (at most 20 iterations, stopped at |Phi| <
+   ``newton_tol`` or when |dq| reaches round-off, 10 newton_tol max(1, ptp q));
+2. R (n, f) with R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I; qd = R qd^i; S c (n,) with
+   (S c)^d = (Phi_q^d)^-1 c[rows], c = -qd^T H_k qd;
+3. qdd^i from (R^T M R) qdd^i = R^T (F - M S c)  (Eq. (23)).
+
+Integrators: adaptive ``dop853`` (Hairer's error norm, dense output of order 7) and
+``dopri5`` (order-4 dense output, Hairer's P), fixed-step ``rk4`` and ``dopri5`` (equal
+steps landing on every sample); step control as the Python loop (Hairer's initial step,
+the functions of :mod:`natcoord.compiled.stepcontrol`; a failed Newton in a stage rejects the
+step with h/4). After every
+accepted step the partition is renewed when max|R^d| has grown by ``repartition_growth``
+over its value at the first step after the last partition (the Gaussian elimination is
+ported here, so the loop never leaves numba); a change of rank there stops the run
+(ERR_SINGULAR: the Python loop would carry on with another f). Samples: q, qd from step
+2 at the step end or the dense output, qdd = S c + R qdd^i.
+
+Kernels take plain arrays: the scleronomic constraint triplets ``k, i, j, v`` over qh =
+[q, 1] (:class:`~natcoord.model.constraints.QuadraticConstraints`), M (n, n) as its non-zeros
+(i, j, v), forces packed by :func:`natcoord.compiled.general.pack_forces`. Dense LU with
+partial pivoting on the small blocks (r, r) and (f, f). Units: SI (m, s, kg, N).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import general as kernels_general
+from . import stepcontrol
+from .general import (
+    C_FACT,
+    C_NEWTON,
+    C_REJ,
+    C_REPART,
+    C_RHS,
+    C_STEPS,
+    ERR_MASS,
+    ERR_NEWTON,
+    ERR_NONFINITE,
+    ERR_SINGULAR,
+    ERR_UNDERFLOW,
+    N_COUNTERS,
+    OK,
+    _gamma,
+    _jac,
+    _lu,
+    _lu_solve,
+    _phi,
+    forces,
+    pack_constraints,
+)
+from .index1 import (
+    add_counters,
+    check,
+    drop_stale_cache,
+    njit,
+    tableau,
+    warm_up_model,
+)
+
+NEWTON_ITER = 20
+
+
+# ---- small dense algebra -----------------------------------------------------------------
+@njit(cache=True)
+def partition(J, tol, A, rows, cols):
+    """Gaussian elimination with full pivoting of J = Phi_q (m, n), as
+    :func:`natcoord.dynamics.common.full_pivot_partition`: returns the rank r, with rows[:r]
+    the independent rows, cols[:r] the dependent coordinates (elimination order) and
+    cols[r:] the independent ones (sorted). Work: A (m, n); rows (m,), cols (n,) int."""
+    m, n = J.shape
+    big = 0.0
+    for i in range(m):
+        rows[i] = i
+        for j in range(n):
+            A[i, j] = J[i, j]
+            big = max(big, abs(J[i, j]))
+    for j in range(n):
+        cols[j] = j
+    scale = max(big, 1e-300)
+    r = 0
+    for k in range(min(m, n)):
+        best, bi, bj = -1.0, k, k
+        for i in range(k, m):  # the first largest in row-major order (np.argmax)
+            for j in range(k, n):
+                if abs(A[i, j]) > best:
+                    best, bi, bj = abs(A[i, j]), i, j
+        if best <= tol * scale:
+            break
+        for j in range(n):
+            A[k, j], A[bi, j] = A[bi, j], A[k, j]
+        rows[k], rows[bi] = rows[bi], rows[k]
+        for i in range(m):
+            A[i, k], A[i, bj] = A[i, bj], A[i, k]
+        cols[k], cols[bj] = cols[bj], cols[k]
+        r += 1
+        for i in range(k + 1, m):
+            lr = A[i, k] / A[k, k]
+            for j in range(k, n):
+                A[i, j] -= lr * A[k, j]
+    cols[r:] = np.sort(cols[r:])
+    return r
+
+
+# ---- one evaluation ----------------------------------------------------------------------
+@njit(cache=True)
+def workspace(n, m, r, f):
+    """Work arrays: 0 ql (n,) the last q solved, 1 R (n, f) the last R, 2 (1,) int: 1 when
+    R serves the next predictor (not right after a partition), 3 q, 4 qd, 5 Sc (n,), 6 p
+    (m,), 7 J (m, n), 8 Jd (r, r), 9 piv (r,) int, 10 b (r,), 11 F, 12 w (n,), 13 MR (n, f),
+    14 A3 (f, f), 15 piv3 (f,) int, 16 (2,): max|R^d| of the last R and R0 (< 0: not set
+    since the last partition); 17 A (m, n), 18 rows (m,), 19 cols (n,) int: a re-partition's."""
+    return (np.zeros(n), np.zeros((n, f)), np.zeros(1, np.int64), np.zeros(n), np.zeros(n),
+            np.zeros(n), np.zeros(m), np.zeros((m, n)), np.zeros((r, r)),
+            np.zeros(r, np.int64), np.zeros(r), np.zeros(n), np.zeros(n), np.zeros((n, f)),
+            np.zeros((f, f)), np.zeros(f, np.int64), np.full(2, -1.0), np.zeros((m, n)),
+            np.zeros(m, np.int64), np.zeros(n, np.int64))
+
+
+@njit(cache=True)
+def _factor_dep(J, rows, dep, Jd, piv, cnt):
+    """Jd = Phi_q[rows][:, dep] (r, r) factored in place; False when singular."""
+    r = dep.shape[0]
+    for i in range(r):
+        for j in range(r):
+            Jd[i, j] = J[rows[i], dep[j]]
+    cnt[C_FACT] += 1
+    return _lu(Jd, piv)
+
+
+@njit(cache=True)
+def _positions(con, part, tol, y, ws, cnt):
+    """q (ws[3]) at the independent positions y[:f] by Newton on Phi[rows] = 0 from the last
+    solution moved along the last R (``MaggiLoop._positions``); kept in ws[0] when it
+    converges. A status code."""
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    ql, R, flags, q, p, J, Jd, piv, b = ws[0], ws[1], ws[2], ws[3], ws[6], ws[7], ws[8], \
+        ws[9], ws[10]
+    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+    lo, hi = ql[0], ql[0]
+    for a in range(n):
+        q[a] = ql[a]
+        lo = min(lo, ql[a])
+        hi = max(hi, ql[a])
+    size = max(hi - lo, 1e-300)
+    if flags[0]:  # q += R (q^i - q_last^i)
+        for a in range(n):
+            s = 0.0
+            for c in range(f):
+                s += R[a, c] * (y[c] - ql[indep[c]])
+            q[a] += s
+    for c in range(f):
+        q[indep[c]] = y[c]
+    for _ in range(NEWTON_ITER):
+        _phi(kk, ii, jj, vv, m, q, p)
+        e = 0.0
+        for i in range(r):
+            e = max(e, abs(p[rows[i]]))
+        if e < tol:
+            break
+        _jac(kk, ii, jj, vv, q, J)
+        if not _factor_dep(J, rows, dep, Jd, piv, cnt):
+            return ERR_SINGULAR
+        for i in range(r):
+            b[i] = p[rows[i]]
+        _lu_solve(Jd, piv, b)
+        step = 0.0
+        for i in range(r):
+            q[dep[i]] -= b[i]
+            step = max(step, abs(b[i]))
+        cnt[C_NEWTON] += 1
+        if step < tol * 10.0 * max(1.0, size):  # round-off reached
+            break
+    else:
+        return ERR_NEWTON
+    ql[:] = q
+    return OK
+
+
+@njit(cache=True)
+def _kinematics(con, part, tol, y, ws, cnt):
+    """q, qd, R, S c (ws[3], ws[4], ws[1], ws[5]) and max|R^d| (ws[16][0]) at the
+    integrated y = [q^i, qd^i] (``MaggiLoop._kinematics``); a status code."""
+    st = _positions(con, part, tol, y, ws, cnt)
+    if st != OK:
+        return st
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    R, flags, q, qd, Sc, p, J, Jd, piv, b = ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], \
+        ws[7], ws[8], ws[9], ws[10]
+    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+    _jac(kk, ii, jj, vv, q, J)
+    if not _factor_dep(J, rows, dep, Jd, piv, cnt):
+        return ERR_SINGULAR
+    g = 0.0
+    for c in range(f):  # R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I
+        for i in range(r):
+            b[i] = J[rows[i], indep[c]]
+        _lu_solve(Jd, piv, b)
+        for i in range(r):
+            R[dep[i], c] = -b[i]
+            g = max(g, abs(b[i]))
+        for c2 in range(f):
+            R[indep[c2], c] = 1.0 if c2 == c else 0.0
+    ws[16][0] = g
+    flags[0] = 1
+    for a in range(n):
+        s = 0.0
+        for c in range(f):
+            s += R[a, c] * y[f + c]
+        qd[a] = s
+    _gamma(kk, ii, jj, vv, qd, p)  # c (m,)
+    for i in range(r):
+        b[i] = p[rows[i]]
+    _lu_solve(Jd, piv, b)
+    Sc[:] = 0.0
+    for i in range(r):
+        Sc[dep[i]] = b[i]
+    return OK
+
+
+@njit(cache=True)
+def _acc(Msp, frc, ws, qddi, cnt):
+    """qdd^i (f,) of Eq. (23) at the kinematics in ws; OK or ERR_MASS (R^T M R singular)."""
+    Mi, Mj, Mv = Msp
+    R, q, qd, Sc, F, w, MR, A3, piv3 = ws[1], ws[3], ws[4], ws[5], ws[11], ws[12], ws[13], \
+        ws[14], ws[15]
+    n, f = R.shape
+    cnt[C_RHS] += 1
+    cnt[C_FACT] += 1
+    if f == 0:
+        return OK
+    forces(frc, q, qd, F)
+    w[:] = F
+    MR[:, :] = 0.0
+    for e in range(Mv.shape[0]):  # w = F - M S c, MR = M R
+        a, b2, v = Mi[e], Mj[e], Mv[e]
+        w[a] -= v * Sc[b2]
+        for c in range(f):
+            MR[a, c] += v * R[b2, c]
+    for c in range(f):
+        s = 0.0
+        for a in range(n):
+            s += R[a, c] * w[a]
+        qddi[c] = s
+        for c2 in range(f):
+            s = 0.0
+            for a in range(n):
+                s += R[a, c] * MR[a, c2]
+            A3[c, c2] = s
+    if not _lu(A3, piv3):
+        return ERR_MASS
+    _lu_solve(A3, piv3, qddi)
+    return OK
+
+
+@njit(cache=True)
+def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt):
+    """dy = [qd^i, qdd^i] (2f) at y; a status code."""
+    st = _kinematics(con, part, tol, y, ws, cnt)
+    if st != OK:
+        return st
+    f = part[2].shape[0]
+    for c in range(f):
+        dy[c] = y[f + c]
+    return _acc(Msp, frc, ws, dy[f:], cnt)
+
+
+@njit(cache=True)
+def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt):
+    """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
+    qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``)."""
+    Q, QD, QDD = out[0], out[1], out[2]
+    st = _kinematics(con, part, tol, y, ws, cnt)
+    if st != OK:
+        return st
+    Q[k] = ws[3]
+    QD[k] = ws[4]
+    st = _kinematics(con, part, tol, y, ws, cnt)
+    if st != OK:
+        return st
+    f = part[2].shape[0]
+    qddi = np.zeros(f)
+    st = _acc(Msp, frc, ws, qddi, cnt)
+    if st != OK:
+        return st
+    R, Sc = ws[1], ws[5]
+    for a in range(R.shape[0]):
+        s = Sc[a]
+        for c in range(f):
+            s += R[a, c] * qddi[c]
+        QDD[k, a] = s
+    return OK
+
+
+@njit(cache=True)
+def _post_step(con, part, ctl, y, ws, cnt):
+    """After an accepted step (``MaggiLoop.post_step``): re-partition at the step end when
+    max|R^d| exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status
+    code (ERR_SINGULAR when the rank of Phi_q changed)."""
+    tol, rank_tol, growth = ctl[3], ctl[4], ctl[5]
+    st = _kinematics(con, part, tol, y, ws, cnt)
+    if st != OK:
+        return st
+    gs = ws[16]
+    if gs[1] < 0.0:
+        gs[1] = max(gs[0], 1.0)
+        return OK
+    if gs[0] <= growth * gs[1]:
+        return OK
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    q, qd, J, A, rows_all, cols = ws[3], ws[4], ws[7], ws[17], ws[18], ws[19]
+    r, f = dep.shape[0], indep.shape[0]
+    _jac(kk, ii, jj, vv, q, J)
+    if partition(J, rank_tol, A, rows_all, cols) != r:
+        return ERR_SINGULAR
+    cnt[C_FACT] += 1
+    cnt[C_REPART] += 1
+    rows[:] = rows_all[:r]
+    dep[:] = cols[:r]
+    indep[:] = cols[r:]
+    for c in range(f):
+        y[c] = q[indep[c]]
+        y[f + c] = qd[indep[c]]
+    gs[1] = -1.0
+    ws[2][0] = 0  # no predictor right after a partition
+    return OK
+
+
+# ---- the loop ------------------------------------------------------------------------------
+@njit(cache=True)
+def _stages(con, Msp, frc, part, tol, y, h, A, lo, hi, K, ys, ws, cnt):
+    """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1; a status code."""
+    N = y.shape[0]
+    for s in range(lo, hi):
+        for a in range(N):
+            acc = 0.0
+            for p in range(s):
+                if A[s, p] != 0.0:
+                    acc += A[s, p] * K[p, a]
+            ys[a] = y[a] + h * acc
+        st = _rhs(con, Msp, frc, part, tol, ys, K[s], ws, cnt)
+        if st != OK:
+            return st
+    return OK
+
+
+@njit(cache=True)
+def _weights(W, K, s, out, h):
+    """out = h sum_p W[p] K[p] over the first s stages."""
+    for a in range(out.shape[0]):
+        acc = 0.0
+        for p in range(s):
+            if W[p] != 0.0:
+                acc += W[p] * K[p, a]
+        out[a] = h * acc
+
+
+@njit(cache=True)
+def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
+    """Integrate y = [q^i, qd^i] over ``times`` (T,) from y0 (2f) at times[0], with q0 (n,)
+    the consistent positions there and ``part`` = (rows (r,), dep (r,), indep (f,)) their
+    partition (renewed in place). ``con`` = (k, i, j, v, m); ``Msp`` = M's non-zeros (i, j,
+    v); ``frc``: :func:`pack_forces`; ``ctl`` = (rtol, atol, h_fixed (> 0: fixed steps),
+    newton_tol, rank_tol, repartition_growth); ``tab`` = (A, B, C, E5, E3, expo, dop853,
+    Aext (3, 16), Cext, D (4, 16), P (s, 4)): the method's tableau
+    (:func:`natcoord.compiled.index1.tableau`), the exponent of the step control and dopri5's dense
+    output P (0 rows: none); ``out`` = (Q, QD, QDD (T, n), cnt (N_COUNTERS,), tfail (1,))
+    filled in place (tfail: the time of a failure). Returns a status code (0 = ok)."""
+    rows, dep, indep = part
+    rtol, atol, h_fixed, tol = ctl[0], ctl[1], ctl[2], ctl[3]
+    A, B, C, E5, E3, expo, dop853, Aext, Cext, D, P = tab
+    cnt, tfail = out[3], out[4]
+    n, m = q0.shape[0], con[4]
+    r, f = dep.shape[0], indep.shape[0]
+    N = 2 * f
+    ws = workspace(n, m, r, f)
+    ws[0][:] = q0
+    T = times.shape[0]
+    t, tend = times[0], times[T - 1]
+    tfail[0] = t
+    y = y0.copy()
+    st = _sample(con, Msp, frc, part, tol, y, 0, out, ws, cnt)
+    if st != OK:
+        return st
+    if f == 0:  # no degrees of freedom: kinematics at every sample
+        for k in range(1, T):
+            tfail[0] = times[k]
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            if st != OK:
+                return st
+        return OK
+    s_st, n_ext = B.shape[0], Aext.shape[0]
+    Aall = np.zeros((s_st + n_ext, s_st + n_ext))  # the step's and the extension's stages
+    Aall[:s_st, :s_st] = A
+    Aall[s_st:, :] = Aext[:, :s_st + n_ext]
+    K = np.zeros((s_st + n_ext, N))
+    Fd = np.zeros((3 + D.shape[0], N))  # dop853's continuous extension
+    ys, yn, yu, e5v, e3v = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
+    if h_fixed > 0.0:  # equal steps of at most h_fixed landing on every sample
+        for k in range(1, T):
+            t0, t1 = times[k - 1], times[k]
+            nsub = max(1, math.ceil((t1 - t0) / h_fixed - 1e-9))
+            hh = (t1 - t0) / nsub
+            for i in range(nsub):
+                tfail[0] = t0 + i * hh
+                st = _stages(con, Msp, frc, part, tol, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+                if st != OK:
+                    return st
+                _weights(B, K, s_st, yn, hh)
+                for a in range(N):
+                    y[a] += yn[a]
+                st = _post_step(con, part, ctl, y, ws, cnt)
+                if st != OK:
+                    return st
+                cnt[C_STEPS] += 1
+            tfail[0] = t1
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            if st != OK:
+                return st
+        return OK
+    # adaptive: Hairer's initial step
+    st = _rhs(con, Msp, frc, part, tol, y, ys, ws, cnt)
+    if st != OK:
+        return st
+    d0, d1 = 0.0, 0.0
+    for a in range(N):
+        sc = atol + rtol * abs(y[a])
+        d0 += (y[a] / sc) ** 2
+        d1 += (ys[a] / sc) ** 2
+    d0, d1 = math.sqrt(d0 / N), math.sqrt(d1 / N)
+    h = stepcontrol.initial_step(d0, d1, tend - t)
+    k = 1
+    while k < T:
+        hh = min(h, tend - t)
+        tfail[0] = t
+        st = _stages(con, Msp, frc, part, tol, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+        if st == ERR_NEWTON:  # the step is too long for the dependent positions
+            if stepcontrol.underflow(hh * 1e-4, t):
+                return ERR_UNDERFLOW
+            cnt[C_REJ] += 1
+            h = stepcontrol.STAGE_FAILURE_FACTOR * hh
+            continue
+        if st != OK:
+            return st
+        _weights(B, K, s_st, yn, hh)
+        _weights(E5, K, s_st, e5v, hh)
+        if dop853:
+            _weights(E3, K, s_st, e3v, hh)
+        e5, e3 = 0.0, 0.0
+        for a in range(N):
+            yn[a] += y[a]
+            sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
+            e5 += (e5v[a] / sc) ** 2
+            e3 += (e3v[a] / sc) ** 2
+        err = stepcontrol.dop853_norm(e5, e3, N, 1.0) if dop853 else stepcontrol.rms_norm(e5, N)
+        if not math.isfinite(err):
+            return ERR_NONFINITE
+        if err > 1.0:
+            cnt[C_REJ] += 1
+            h = hh * stepcontrol.reject_factor(err, expo)
+            if stepcontrol.underflow(h, t):
+                return ERR_UNDERFLOW
+            continue
+        t1 = tend if hh == tend - t else t + hh
+        tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
+        inner = False
+        while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
+            tfail[0] = times[k]
+            if dop853 and not inner:
+                st = _stages(con, Msp, frc, part, tol, y, hh, Aall, s_st, s_st + n_ext, K,
+                             ys, ws, cnt)
+                if st != OK:
+                    return st
+                stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
+            inner = True
+            x = (times[k] - t) / hh
+            if dop853:
+                stepcontrol.dense_at(Fd, y, x, yu)
+            else:
+                stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
+            st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt)
+            if st != OK:
+                return st
+            k += 1
+        t = t1
+        y[:] = yn
+        tfail[0] = t
+        st = _post_step(con, part, ctl, y, ws, cnt)
+        if st != OK:
+            return st
+        cnt[C_STEPS] += 1
+        if k < T and times[k] <= t1 + tol_t:
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            if st != OK:
+                return st
+            k += 1
+        h = hh * stepcontrol.accept_factor(err, expo)
+    return OK
+
+
+# ---- Python side ---------------------------------------------------------------------------
+def pack(con, M) -> tuple:
+    """(con, Msp): the constraint triplets as (k, i, j, v, m) and M (n, n) kg as its
+    non-zeros (i, j, v), the arrays :func:`run_maggi` takes (model only)."""
+    Mi, Mj = np.nonzero(M)
+    return (pack_constraints(con),
+            (Mi.astype(np.int64), Mj.astype(np.int64), np.ascontiguousarray(M[Mi, Mj], float)))
+
+
+def _tab(method: str) -> tuple:
+    A, B, C, E5, E3, expo, Aext, Cext, D, _ = tableau(method)
+    P = stepcontrol.DOPRI5_P if method == "dopri5" else np.zeros((0, 4))
+    return (A, B, C, E5, E3, expo, method == "dop853", Aext, Cext, D, P)
+
+
+def run(packed, frc, times, y, q, rows, dep, indep, *, method: str, rtol: float = 0.0,
+        atol: float = 0.0, h=None, newton_tol: float, rank_tol: float,
+        repartition_growth: float, cnt=None):
+    """Integrate with the compiled loop from y = [q^i, qd^i] (2f) at times[0] with q (n,)
+    the consistent positions there and their partition rows, dep (r,), indep (f,)
+    (``MaggiLoop.init``); returns (Q, QD, QDD) (T, n) at ``times`` (T,) s. ``packed``:
+    :func:`pack`; ``frc``: :func:`pack_forces`; ``h``: a fixed step (s) for rk4 or dopri5,
+    else adaptive dop853 or dopri5 at ``rtol``/``atol``; the options as in
+    :class:`natcoord.dynamics.maggi.Maggi`; ``cnt``: counters added to. Raises RuntimeError."""
+    con, Msp = packed
+    n, T = len(q), len(times)
+    Q, QD, QDD = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n))
+    c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
+    part = tuple(np.array(x, np.int64) for x in (rows, dep, indep))
+    ctl = (float(rtol), float(atol), 0.0 if h is None else float(h), float(newton_tol),
+           float(rank_tol), float(repartition_growth))
+    status = run_maggi(con, Msp, frc, part, ctl, _tab(method),
+                       np.ascontiguousarray(times, float), np.array(y, float),
+                       np.array(q, float), (Q, QD, QDD, c, tfail))
+    add_counters(c, cnt)
+    check(status, f"maggi {method} at t = {tfail[0]:.6g} s")
+    return Q, QD, QDD
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the loop by tiny runs, adaptive and fixed-step:
+    a particle on a unit circle under gravity (x dependent, y independent)."""
+    con, frc = warm_up_model()
+    packed = pack(con, np.eye(2))
+    q, part = np.array([0.8, -0.6]), ([0], [0], [1])
+    for method, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005), ("dopri5", 0.005)):
+        run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, *part,
+            method=method, rtol=1e-6, atol=1e-8, h=h, newton_tol=1e-13, rank_tol=1e-9,
+            repartition_growth=1.5)
+
+
+drop_stale_cache(globals(), __name__, (kernels_general, stepcontrol))

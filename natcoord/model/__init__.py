@@ -1,0 +1,1 @@
+"""The natural-coordinate model: points and unit vectors, constant M, quadratic constraints."""

@@ -1,0 +1,1 @@
+"""What a run reports: channels of a case, reactions, the result record."""

@@ -1,0 +1,285 @@
+"""What an engine run returns: neutral motion, named channels, status and costs."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+from ..case.mechanism import FORCE_KINDS, GROUND, PLANES, Case
+
+
+class Status(StrEnum):
+    """Outcome of one case x engine run."""
+
+    OK = "ok"
+    FAILED = "failed"  # the engine ran and crashed, hung, diverged or returned NaN
+    UNSUPPORTED = "unsupported"  # the engine cannot model the case; reason says what
+    SKIPPED = "skipped"  # not run here (engine package missing, or not asked for)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Raw engine output at the case's sample times, in natcoord's neutral convention.
+
+    Attributes
+    ----------
+    t : (T,) sample times, s
+    origin : body -> (T, d) world position of the body frame origin, m
+    angle : body -> (T,) angle of the body frame x axis from world +x, rad (2-D only)
+    velocity : body -> (T, d) world velocity of the body frame origin, m/s
+    omega : body -> (T,) angular velocity, rad/s (2-D); (T, 3) world axes (3-D)
+    joint_force : joint -> (T, d) force the joint applies to its *second* body, world
+        axes, N. A joint an engine cannot report is absent; its channels become NaN.
+    rotation : body -> (T, 3, 3) body-to-world rotation (3-D only)
+    rod_force : rod or spring -> (T,) axial force, tension positive, N
+    """
+
+    t: np.ndarray
+    origin: dict[str, np.ndarray]
+    angle: dict[str, np.ndarray]
+    velocity: dict[str, np.ndarray]
+    omega: dict[str, np.ndarray]
+    joint_force: dict[str, np.ndarray] = field(default_factory=dict)
+    # optional (an engine that cannot report them leaves them empty; channels become NaN):
+    # body -> (T, d) acceleration of the frame origin, m/s^2; body -> (T,) angular
+    # acceleration, rad/s^2; driver -> (T,) effort of a driver (N m for an angle driver)
+    acceleration: dict[str, np.ndarray] = field(default_factory=dict)
+    alpha: dict[str, np.ndarray] = field(default_factory=dict)
+    driver_effort: dict[str, np.ndarray] = field(default_factory=dict)
+    rotation: dict[str, np.ndarray] = field(default_factory=dict)
+    rod_force: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def R(self, body: str) -> np.ndarray:
+        """(T, d, d) body-to-world rotation."""
+        return self.rotation[body] if body in self.rotation else _rot(self.angle[body])
+
+
+def _rot(angle: np.ndarray) -> np.ndarray:
+    """(T,) angles -> (T, 2, 2) rotation matrices."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def point_position(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World position (T, d) of a body-frame point (d,)."""
+    if body == GROUND:
+        return np.broadcast_to(point, (len(motion.t), len(point)))
+    return motion.origin[body] + motion.R(body) @ point
+
+
+def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World velocity (T, d) of a body-frame point (d,): v_O + omega x (R p)."""
+    if body == GROUND:
+        return np.zeros((len(motion.t), len(point)))
+    rp = motion.R(body) @ point
+    if case.dimension == 3:
+        return motion.velocity[body] + np.cross(motion.omega[body], rp)
+    w = motion.omega[body][:, None]
+    return motion.velocity[body] + w * np.stack([-rp[:, 1], rp[:, 0]], -1)
+
+
+def point_acceleration(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
+    """World acceleration (T, 2) of a body-frame point: a_O + alpha x (R p) - omega^2 R p."""
+    if body not in motion.acceleration or body not in motion.alpha:
+        return np.full((len(motion.t), 2), np.nan)
+    rp = _rot(motion.angle[body]) @ point
+    w, a = motion.omega[body][:, None], motion.alpha[body][:, None]
+    return motion.acceleration[body] + a * np.stack([-rp[:, 1], rp[:, 0]], -1) - w * w * rp
+
+
+def energy(case: Case, motion: Motion) -> np.ndarray:
+    """Kinetic plus gravitational potential energy (T,), J (zero potential at the origin)."""
+    e = np.zeros_like(motion.t)
+    for b in case.bodies:
+        vg = point_velocity(case, motion, b.name, b.com)
+        rg = point_position(case, motion, b.name, b.com)
+        w = motion.omega[b.name]
+        if case.dimension == 3:  # 1/2 w^T R I R^T w, I in body axes
+            wb = np.einsum("tji,tj->ti", motion.R(b.name), w)
+            rot = 0.5 * np.einsum("ti,ij,tj->t", wb, b.inertia, wb)
+        else:
+            rot = 0.5 * b.inertia * w**2
+        e += 0.5 * b.mass * np.sum(vg**2, axis=1) + rot
+        e -= b.mass * rg @ case.gravity
+    for s in case.springs:  # elastic energy
+        pa, pb = (point_position(case, motion, body, _point(case, body, p))
+                  for body, p in s.ends)
+        e += 0.5 * s.stiffness * (np.linalg.norm(pb - pa, axis=1) - s.length) ** 2
+    return e
+
+
+def work(case: Case, motion: Motion) -> np.ndarray:
+    """Work done on the system since t = 0 (T,), J, by the loads :func:`energy` leaves out:
+    applied forces and torques, the springs' dampers and the drivers' efforts. Then
+    ``energy - work`` stays at its value at t = 0 (the energy balance).
+
+    Exact from the samples where the work is a function of the position: a constant force F
+    at a point P does F . (r_P(t) - r_P(0)), a constant 2-D torque tau does
+    tau (angle(t) - angle(0)). The rest is the time integral of a power sampled at the
+    output times (:func:`cumulative_integral`): a 3-D torque's tau . omega; a damper's
+    -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times the rate of
+    its driven coordinate, rate + accel t (NaN where the engine reports no effort).
+    """
+    t = motion.t
+    w = np.zeros_like(t)
+    power = np.zeros_like(t)  # W, integrated once at the end
+    for f in case.forces:
+        if f.type == "force":
+            r = point_position(case, motion, f.body, case.body(f.body).points[f.point])
+            w += (r - r[0]) @ np.asarray(f.value, float)
+        elif case.dimension == 2:
+            a = np.unwrap(motion.angle[f.body])
+            w += float(f.value) * (a - a[0])
+        else:
+            power += motion.omega[f.body] @ np.asarray(f.value, float)
+    for s in case.springs:
+        if s.damping:
+            (ba, pa), (bb, pb) = s.ends
+            d = (point_position(case, motion, bb, _point(case, bb, pb))
+                 - point_position(case, motion, ba, _point(case, ba, pa)))
+            v = (point_velocity(case, motion, bb, _point(case, bb, pb))
+                 - point_velocity(case, motion, ba, _point(case, ba, pa)))
+            ldot = np.sum(d * v, axis=1) / np.linalg.norm(d, axis=1)
+            power -= s.damping * ldot**2
+    for dr in case.drivers:
+        effort = motion.driver_effort.get(dr.name, np.full_like(t, np.nan))
+        power += effort * (dr.rate + dr.accel * t)
+    if np.any(power != 0):
+        w += cumulative_integral(power, t)
+    return w
+
+
+def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The integral of y from t[0] to every sample (T,): the not-a-knot cubic spline through
+    the samples, integrated exactly (error O(dt^4) at every sample for a smooth y; a
+    cumulative Simpson rule is O(dt^3) at every other sample and alternates). NaN from the
+    first non-finite sample on."""
+    out = np.full(len(t), np.nan)
+    bad = ~np.isfinite(y)
+    n = int(np.argmax(bad)) if bad.any() else len(t)
+    if n == 1:
+        out[0] = 0.0
+    elif n > 1:
+        from scipy.interpolate import CubicSpline  # imported when used: start-up time
+        out[:n] = CubicSpline(t[:n], y[:n]).antiderivative()(t[:n])
+    return out
+
+
+def is_balance(case: Case, channel) -> bool:
+    """Whether an energy channel is constant in exact physics: it includes the work of
+    non-conservative loads (``work``), or the case has none (no applied force or torque,
+    no damper, no driver: :func:`energy` then holds every force's potential)."""
+    if channel.kind != "energy":
+        return False
+    return channel.work or not (case.forces or case.drivers
+                                or any(s.damping for s in case.springs))
+
+
+def _point(case: Case, body: str, point: str) -> np.ndarray:
+    return case.ground[point] if body == GROUND else case.body(body).points[point]
+
+
+def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
+    """The case's output channels from a neutral motion: column ``t`` then one per channel."""
+    import pandas as pd  # imported when used: start-up time
+    cols: dict[str, np.ndarray] = {"t": motion.t}
+    axis_index = {"x": 0, "y": 1, "z": 2}
+    for ch in case.channels:
+        if ch.kind == "angle" and ch.points is not None:
+            pts = case.body(ch.body).points
+            d = (point_position(case, motion, ch.body, pts[ch.points[1]])
+                 - point_position(case, motion, ch.body, pts[ch.points[0]]))
+            i, j = PLANES[ch.plane]
+            v = np.unwrap(np.arctan2(d[:, j], d[:, i]))
+        elif ch.kind == "angle":
+            v = np.unwrap(motion.angle[ch.body])
+        elif ch.kind == "position":
+            p = case.body(ch.body).points[ch.point]
+            v = point_position(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "velocity":
+            p = case.body(ch.body).points[ch.point]
+            v = point_velocity(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "acceleration":
+            p = case.body(ch.body).points[ch.point]
+            v = point_acceleration(case, motion, ch.body, p)[:, axis_index[ch.axis]]
+        elif ch.kind == "driver":
+            v = motion.driver_effort.get(ch.driver, np.full_like(motion.t, np.nan))
+        elif ch.kind == "energy":
+            v = energy(case, motion) - (work(case, motion) if ch.work else 0.0)
+        elif ch.kind == "axial":
+            v = motion.rod_force.get(ch.rod, np.full_like(motion.t, np.nan))
+        elif ch.kind == "combination":
+            v = sum(c * cols[name] for name, c in ch.of)
+        else:  # reaction
+            f = motion.joint_force.get(ch.joint)
+            if f is None:
+                v = np.full_like(motion.t, np.nan)
+            elif ch.axis == "normal":
+                j = case.joint(ch.joint)
+                n = normal_direction(case, motion, j.name)
+                v = np.sum(f * n, axis=1)
+            else:
+                v = f[:, axis_index[ch.axis]]
+        if ch.relative_to is not None:  # a joint angle: both unwrapped from t = 0
+            v = v - cols[ch.relative_to]
+        cols[ch.name] = np.asarray(v, dtype=float)
+    return pd.DataFrame(cols)
+
+
+def methods_table(case: Case, run) -> pd.DataFrame:
+    """Force channels of every reaction method of a run (``run.methods``: method ->
+    Motion): column ``t`` then ``<channel>@<method>``."""
+    import pandas as pd  # imported when used: start-up time
+    cols: dict[str, np.ndarray] = {}
+    for method, motion in run.methods.items():
+        table = evaluate_channels(case, motion)
+        cols.setdefault("t", table["t"].to_numpy())
+        for ch in case.channels:
+            if ch.kind in FORCE_KINDS:
+                cols[f"{ch.name}@{method}"] = table[ch.name].to_numpy()
+    return pd.DataFrame(cols)
+
+
+def normal_direction(case: Case, motion: Motion, joint: str) -> np.ndarray:
+    """(T, 2) unit normal of a prismatic joint: its axis turned +90 deg, in world axes."""
+    j = case.joint(joint)
+    a = j.bodies[0]
+    angle = motion.angle[a] if a in motion.angle else np.zeros_like(motion.t)
+    u = _rot(angle) @ j.axis
+    return np.stack([-u[:, 1], u[:, 0]], -1)
+
+
+@dataclass
+class Result:
+    """One case x engine run.
+
+    ``table`` has column ``t`` (s) then the case's channels (SI, angles unwrapped).
+    ``counters`` holds cost counters (steps, rhs evaluations, factorizations, Newton
+    iterations) and constraint drift; ``notes`` lists modelling substitutions to report.
+    """
+
+    case: str
+    engine: str
+    engine_version: str = ""
+    status: Status = Status.OK
+    reason: str = ""
+    table: pd.DataFrame | None = None
+    build_time_s: float = float("nan")
+    wall_time_s: float = float("nan")
+    n_steps: int = 0
+    settings: dict = field(default_factory=dict)
+    counters: dict = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    methods: pd.DataFrame | None = None  # natcoord: force channels per reaction method
+    samples_s: list[float] = field(default_factory=list)  # wall time of every repeat, s
+
+    @property
+    def us_per_step(self) -> float:
+        return 1e6 * self.wall_time_s / self.n_steps if self.n_steps else float("nan")
+
