@@ -121,8 +121,11 @@ def work(case: Case, motion: Motion) -> np.ndarray:
 
     Exact from the samples where the work is a function of the position: a constant force F
     at a point P does F . (r_P(t) - r_P(0)), a constant 2-D torque tau does
-    tau (angle(t) - angle(0)). The rest is the time integral of a power sampled at the
-    output times (:func:`cumulative_integral`): a 3-D torque's tau . omega; a damper's
+    tau (angle(t) - angle(0)). A constant 3-D torque does tau . (integral of omega), summed
+    over the sample intervals from the rotations at their ends (:func:`_turn`: exact
+    while the body turns about a fixed axis over an interval, else to O(dt^4) per
+    interval). The rest is the time integral of a power sampled at the
+    output times (:func:`cumulative_integral`): a damper's
     -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times the rate of
     its driven coordinate, rate + accel t (NaN where the engine reports no effort).
     """
@@ -137,7 +140,11 @@ def work(case: Case, motion: Motion) -> np.ndarray:
             a = np.unwrap(motion.angle[f.body])
             w += float(f.value) * (a - a[0])
         else:
-            power += motion.omega[f.body] @ np.asarray(f.value, float)
+            turn = _turn(motion, f.body)
+            if turn is None:  # turning too fast between samples to tell the rotation
+                power += motion.omega[f.body] @ np.asarray(f.value, float)
+            else:
+                w += turn @ np.asarray(f.value, float)
     for s in case.springs:
         if s.damping:
             (ba, pa), (bb, pb) = s.ends
@@ -155,6 +162,45 @@ def work(case: Case, motion: Motion) -> np.ndarray:
     return w
 
 
+def _turn(motion: Motion, body: str, max_step: float = 1.0) -> np.ndarray | None:
+    """The integral of a 3-D body's angular velocity (world axes) from t[0] to every sample,
+    (T, 3) rad, from its rotations: over each interval of length h, the rotation vector of
+    R(t + h) R(t)^T less the Magnus expansion's second term, (h^2 / 12) omega(t + h) x
+    omega(t) (omega linear over the interval; zero when the axis is fixed, where the
+    rotation vector is exact whatever the rate). None when the samples are not finite or
+    the body turns more than ``max_step`` rad over an interval (the rotation vector would be
+    ambiguous near pi)."""
+    R, w, t = motion.R(body), motion.omega[body], motion.t
+    h = np.diff(t)
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(w))):
+        return None
+    speed = np.linalg.norm(w, axis=1)
+    if len(t) > 1 and np.max(np.maximum(speed[1:], speed[:-1]) * h) > max_step:
+        return None
+    from scipy.spatial.transform import Rotation  # imported when used: start-up time
+
+    step = Rotation.from_matrix(R[1:] @ np.swapaxes(R[:-1], 1, 2)).as_rotvec()
+    if len(t) > 2:
+        step -= _magnus2(w, t)
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(step, 0)])
+
+
+def _magnus2(w: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The Magnus expansion's second term over each sample interval (T - 1, 3): half the
+    integral of omega(s) x (integral of omega from the interval's start to s), omega the
+    cubic spline through the samples (a degree-7 integrand: 4-point Gauss-Legendre is
+    exact). Zero when omega keeps its direction."""
+    from scipy.interpolate import CubicSpline
+
+    spline = CubicSpline(t, w, axis=0)
+    P = spline.antiderivative()
+    x, g = np.polynomial.legendre.leggauss(4)
+    h = np.diff(t)
+    s = t[:-1, None] + 0.5 * h[:, None] * (x + 1)  # (T - 1, 4) nodes
+    ws, Ps = spline(s), P(s) - P(t[:-1])[:, None]  # (T - 1, 4, 3)
+    return 0.25 * h[:, None] * np.einsum("q,kqi->ki", g, np.cross(ws, Ps))
+
+
 def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The integral of y from t[0] to every sample (T,): the not-a-knot cubic spline through
     the samples, integrated exactly (error O(dt^4) at every sample for a smooth y; a
@@ -168,6 +214,79 @@ def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     elif n > 1:
         from scipy.interpolate import CubicSpline  # imported when used: start-up time
         out[:n] = CubicSpline(t[:n], y[:n]).antiderivative()(t[:n])
+    return out
+
+
+def loop_gap(case: Case, motion: Motion, joints=()) -> np.ndarray:
+    """The largest distance (T,), m, between the points the ``joints`` (every joint when
+    empty) hold together, from the body poses the engine reports: a revolute, spherical or
+    universal joint's two joint points; a prismatic or cylindrical joint's second point from
+    the line through its first point along its axis (only the part across the axis: sliding
+    along it is motion). Zero in exact physics; an engine that closes a loop softly (a
+    penalty, a stabilised constraint) shows how far it lets the loop open. The joints'
+    angular conditions (a hinge's axis) are not in it."""
+    gap = np.zeros_like(motion.t)
+    for name in joints or [j.name for j in case.joints]:
+        j = case.joint(name)
+        (ba, bb), (pa, pb) = j.bodies, j.points
+        d = (point_position(case, motion, bb, _point(case, bb, pb))
+             - point_position(case, motion, ba, _point(case, ba, pa)))
+        if j.type in ("prismatic", "cylindrical"):
+            u = j.axis if ba == GROUND else motion.R(ba) @ j.axis  # world axis (T, d)
+            d = d - np.sum(d * u, axis=-1, keepdims=True) * u
+        gap = np.maximum(gap, np.linalg.norm(d, axis=1))
+    return gap
+
+
+def angular_velocity(case: Case, motion: Motion, body: str, frame: str = "world"
+                     ) -> np.ndarray:
+    """Angular velocity of ``body``, rad/s: (T, 3) in world axes, or body axes with
+    ``frame = "body"`` (R^T omega); (T,) about z in 2-D (both frames)."""
+    w = motion.omega[body]
+    if case.dimension == 2 or frame == "world":
+        return w
+    return np.einsum("tji,tj->ti", motion.R(body), w)
+
+
+def momentum(case: Case, motion: Motion, body: str | None = None) -> np.ndarray:
+    """Linear momentum (T, d), kg m/s, of ``body`` or of every body (None): sum m v_G."""
+    out = np.zeros((len(motion.t), case.dimension))
+    for b in case.bodies if body is None else [case.body(body)]:
+        out += b.mass * point_velocity(case, motion, b.name, b.com)
+    return out
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b row by row: (T, 3), or its z component (T,) for 2-D vectors."""
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] if a.shape[1] == 2 else np.cross(a, b)
+
+
+def angular_momentum(case: Case, motion: Motion, body: str | None = None,
+                     about=()) -> np.ndarray:
+    """Angular momentum, kg m^2/s, of ``body`` or of every body (None) about a point: the
+    world point ``about`` (m, default the origin; a fixed point) or ``"com"``, the centre
+    of mass of what is measured (moving). Sum of m (r_G - P) x v_G + R I R^T omega: (T, 3)
+    world axes, (T,) about z in 2-D."""
+    bodies = case.bodies if body is None else [case.body(body)]
+    T, d = len(motion.t), case.dimension
+    rg = {b.name: point_position(case, motion, b.name, b.com) for b in bodies}
+    if isinstance(about, str):  # "com": sum m r_G / sum m
+        mass = sum(b.mass for b in bodies)
+        P = sum(b.mass * rg[b.name] for b in bodies) / mass
+    else:
+        P = np.broadcast_to(np.asarray(about, float) if len(about) else np.zeros(d), (T, d))
+    out = np.zeros((T, 3)) if d == 3 else np.zeros(T)
+    for b in bodies:
+        vg = point_velocity(case, motion, b.name, b.com)
+        out = out + b.mass * _cross(rg[b.name] - P, vg)
+        w = motion.omega.get(b.name)
+        if w is None or not np.any(b.inertia):
+            continue
+        if d == 3:  # R I R^T omega, I in body axes
+            R = motion.R(b.name)
+            out = out + np.einsum("tij,jk,tlk,tl->ti", R, b.inertia, R, w)
+        else:
+            out = out + b.inertia * w
     return out
 
 
@@ -216,6 +335,16 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
             v = motion.rod_force.get(ch.rod, np.full_like(motion.t, np.nan))
         elif ch.kind == "combination":
             v = sum(c * cols[name] for name, c in ch.of)
+        elif ch.kind == "loop_gap":
+            v = loop_gap(case, motion, ch.joints)
+        elif ch.kind in ("angular_velocity", "angular_momentum", "momentum"):
+            if ch.kind == "momentum":
+                v = momentum(case, motion, ch.body)
+            elif ch.kind == "angular_velocity":
+                v = angular_velocity(case, motion, ch.body, ch.frame)
+            else:
+                v = angular_momentum(case, motion, ch.body, ch.about)
+            v = v if v.ndim == 1 else v[:, axis_index[ch.axis]]
         else:  # reaction
             f = motion.joint_force.get(ch.joint)
             if f is None:
