@@ -121,13 +121,13 @@ def work(case: Case, motion: Motion) -> np.ndarray:
 
     Exact from the samples where the work is a function of the position: a constant force F
     at a point P does F . (r_P(t) - r_P(0)), a constant 2-D torque tau does
-    tau (angle(t) - angle(0)). A constant 3-D torque does tau . (integral of omega), summed
-    over the sample intervals from the rotations at their ends (:func:`_turn`: exact
-    while the body turns about a fixed axis over an interval, else to O(dt^4) per
-    interval). The rest is the time integral of a power sampled at the
-    output times (:func:`cumulative_integral`): a damper's
-    -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times the rate of
-    its driven coordinate, rate + accel t (NaN where the engine reports no effort).
+    tau (angle(t) - angle(0)). A constant 3-D torque does tau . (integral of omega), from
+    the rotations at the samples (:func:`_turn`: exact while the body turns about a fixed
+    axis, whatever its rate; else fourth order in the output step). The rest is the time
+    integral of a power sampled at the output times (:func:`cumulative_integral`): a
+    damper's -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times
+    the rate of its driven coordinate, rate + accel t (NaN where the engine reports no
+    effort).
     """
     t = motion.t
     w = np.zeros_like(t)
@@ -164,41 +164,65 @@ def work(case: Case, motion: Motion) -> np.ndarray:
 
 def _turn(motion: Motion, body: str, max_step: float = 1.0) -> np.ndarray | None:
     """The integral of a 3-D body's angular velocity (world axes) from t[0] to every sample,
-    (T, 3) rad, from its rotations: over each interval of length h, the rotation vector of
-    R(t + h) R(t)^T less the Magnus expansion's second term, (h^2 / 12) omega(t + h) x
-    omega(t) (omega linear over the interval; zero when the axis is fixed, where the
-    rotation vector is exact whatever the rate). None when the samples are not finite or
-    the body turns more than ``max_step`` rad over an interval (the rotation vector would be
-    ambiguous near pi)."""
+    (T, 3) rad. Over each sample interval: along the interval's rotation vector r (that of
+    R(t + h) R(t)^T less the Magnus expansion's second and third terms,
+    :func:`_magnus23`), r itself, which is exact when the axis stays fixed whatever the
+    rate; across r, the integral of the cubic spline through omega (zero for a fixed axis).
+    None when the samples are not finite or the body turns more than ``max_step`` rad over
+    an interval (the rotation vector would be ambiguous near pi)."""
     R, w, t = motion.R(body), motion.omega[body], motion.t
-    h = np.diff(t)
+    if len(t) < 2:
+        return np.zeros((len(t), 3))
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(w))):
         return None
     speed = np.linalg.norm(w, axis=1)
-    if len(t) > 1 and np.max(np.maximum(speed[1:], speed[:-1]) * h) > max_step:
+    if np.max(np.maximum(speed[1:], speed[:-1]) * np.diff(t)) > max_step:
         return None
-    from scipy.spatial.transform import Rotation  # imported when used: start-up time
+    from scipy.interpolate import CubicSpline  # imported when used: start-up time
+    from scipy.spatial.transform import Rotation
 
-    step = Rotation.from_matrix(R[1:] @ np.swapaxes(R[:-1], 1, 2)).as_rotvec()
-    if len(t) > 2:
-        step -= _magnus2(w, t)
+    r = Rotation.from_matrix(R[1:] @ np.swapaxes(R[:-1], 1, 2)).as_rotvec() - _magnus23(w, t)
+    P = CubicSpline(t, w, axis=0).antiderivative()
+    step = P(t[1:]) - P(t[:-1])
+    size = np.linalg.norm(r, axis=1)
+    n = np.divide(r, size[:, None], out=np.zeros_like(r), where=size[:, None] > 0)
+    step += (size - np.sum(step * n, axis=1))[:, None] * n
     return np.concatenate([np.zeros((1, 3)), np.cumsum(step, 0)])
 
 
-def _magnus2(w: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """The Magnus expansion's second term over each sample interval (T - 1, 3): half the
-    integral of omega(s) x (integral of omega from the interval's start to s), omega the
-    cubic spline through the samples (a degree-7 integrand: 4-point Gauss-Legendre is
-    exact). Zero when omega keeps its direction."""
+def _magnus23(w: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The Magnus expansion's second and third terms over each sample interval (T - 1, 3),
+    omega the cubic spline through the samples (world axes, rad/s); with P(s) the integral
+    of omega over the interval up to s:
+
+    Omega2 = 1/2 int omega x P,
+    Omega3 = 1/6 int (omega1 x Q1 + M1 omega1 - (m1) omega1), Q, M, m the running integrals
+    of omega x P, omega P^T, P . omega (from the triple integral of [A1, [A2, A3]] +
+    [A3, [A2, A1]]). Polynomial integrands: nested Gauss-Legendre (6 points outside, 4
+    inside) is exact. Both vanish when omega keeps its direction."""
     from scipy.interpolate import CubicSpline
 
     spline = CubicSpline(t, w, axis=0)
-    P = spline.antiderivative()
-    x, g = np.polynomial.legendre.leggauss(4)
-    h = np.diff(t)
-    s = t[:-1, None] + 0.5 * h[:, None] * (x + 1)  # (T - 1, 4) nodes
-    ws, Ps = spline(s), P(s) - P(t[:-1])[:, None]  # (T - 1, 4, 3)
-    return 0.25 * h[:, None] * np.einsum("q,kqi->ki", g, np.cross(ws, Ps))
+    anti = spline.antiderivative()
+    h, t0 = np.diff(t)[:, None], t[:-1]
+
+    def at(s):  # omega and P at local times s (K, ...) from each interval's start
+        idx = (slice(None),) + (None,) * (s.ndim - 1)
+        return spline(t0[idx] + s), anti(t0[idx] + s) - anti(t0)[idx]
+
+    xo, go = np.polynomial.legendre.leggauss(6)
+    xi, gi = np.polynomial.legendre.leggauss(4)
+    so = 0.5 * h * (xo + 1)  # (K, 6) outer nodes
+    si = 0.5 * so[:, :, None] * (xi + 1)  # (K, 6, 4) inner nodes on [0, so]
+    wo, Po = at(so)  # (K, 6, 3)
+    wi, Pi = at(si)  # (K, 6, 4, 3)
+    half = 0.5 * so[:, :, None]  # inner weights' scale (K, 6, 1)
+    Q = half * np.einsum("b,kabi->kai", gi, np.cross(wi, Pi))
+    M = half[..., None] * np.einsum("b,kabi,kabj->kaij", gi, wi, Pi)
+    m = half[..., 0] * np.einsum("b,kabi,kabi->ka", gi, wi, Pi)
+    f2 = 0.5 * np.cross(wo, Po)
+    f3 = (np.cross(wo, Q) + np.einsum("kaij,kaj->kai", M, wo) - m[..., None] * wo) / 6
+    return 0.5 * h * np.einsum("a,kai->ki", go, f2 + f3)
 
 
 def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
