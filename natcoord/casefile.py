@@ -565,7 +565,8 @@ def _kind_dim(key: str, channels) -> str:
             "reaction": "force", "energy": "energy", "acceleration": "acceleration",
             "driver": "torque", "axial": "force", "combination": "force",
             "loop_gap": "length", "angular_velocity": "angular velocity",
-            "angular_momentum": "angular momentum", "momentum": "momentum"}[kind]
+            "angular_momentum": "angular momentum", "momentum": "momentum",
+            "vector_angle": "angle"}[kind]
 
 
 def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
@@ -736,9 +737,6 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
-        if kind == "acceleration" and dim == 3:
-            r.fail(f"{p}.kind", "acceleration channels are planar only: no engine adapter "
-                   "computes 3-D point accelerations yet (use velocity channels)")
         body = point = joint = axis = driver = rod = points = relative_to = None
         plane, of, work, gap_joints = "xy", (), False, ()
         if kind == "loop_gap":  # joints = [...]: the joints it measures (default every one)
@@ -758,6 +756,16 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if kind == "angular_velocity":
             frame = r.string(c, "frame", p, required=False, default="world",
                              choices=("world", "body"))
+        vectors = ()
+        if kind == "vector_angle":  # vectors = [[body, p, q], [body, p, q]]
+            v = r.get(c, "vectors", p)
+            if not (isinstance(v, list) and len(v) == 2 and all(
+                    isinstance(x, list) and len(x) == 3 and all(isinstance(n, str) for n in x)
+                    and x[0] in points_of and x[1] in points_of[x[0]]
+                    and x[2] in points_of[x[0]] and x[1] != x[2] for x in v)):
+                r.fail(f"{p}.vectors", "must be two [body, p, q] lists (r_q - r_p, two "
+                       f"different points of that body or of ground), got {_short(v)}")
+            vectors = tuple(tuple(x) for x in v)
         if kind == "angular_momentum":
             about = r.get(c, "about", p, required=False, default=[0.0] * dim)
             if about != "com":
@@ -821,7 +829,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 r.fail(f"{p}.of", "must not be empty")
             of = tuple((t, float(v)) for t, v in terms.items())
         out.append(Channel(name, kind, body, point, joint, axis, driver, rod, points, plane,
-                           of, relative_to, work, gap_joints, frame, about))
+                           of, relative_to, work, gap_joints, frame, about, vectors))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)

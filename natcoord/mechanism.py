@@ -34,7 +34,7 @@ PLANAR_JOINTS = ("revolute", "prismatic")  # the joint types a 2-D case can have
 FORCE_TYPES = ("torque", "force")
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
                  "driver", "axial", "combination", "loop_gap", "angular_velocity",
-                 "angular_momentum", "momentum")
+                 "angular_momentum", "momentum", "vector_angle")
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
@@ -153,7 +153,8 @@ class Channel:
     world or body axes, rad/s), ``angular_momentum`` (of ``body``, or the system when it is
     None, about the world point ``about`` or ``"com"`` its centre of mass, world axis,
     kg m^2/s), ``momentum`` (linear, of ``body`` or the system, world axis, kg m/s); the
-    angular ones take axis ``z`` in 2-D.
+    angular ones take axis ``z`` in 2-D; ``vector_angle`` (the angle in [0, pi] between
+    r_q - r_p of the two ``vectors`` (body, p, q), rad).
     """
 
     name: str
@@ -172,13 +173,15 @@ class Channel:
     joints: tuple[str, ...] = ()  # loop_gap: the joints it measures (empty: every joint)
     frame: str = "world"  # angular_velocity: "world" or "body" axes
     about: str | tuple[float, ...] = ()  # angular_momentum: a world point (m), or "com"
+    vectors: tuple[tuple[str, str, str], ...] = ()  # vector_angle: two (body, p, q)
 
     @property
     def unit(self) -> str:
         return {"angle": "rad", "position": "m", "velocity": "m/s", "reaction": "N",
                 "energy": "J", "acceleration": "m/s^2", "driver": "N m", "axial": "N",
                 "combination": "N", "loop_gap": "m", "angular_velocity": "rad/s",
-                "angular_momentum": "kg m^2/s", "momentum": "kg m/s"}[self.kind]
+                "angular_momentum": "kg m^2/s", "momentum": "kg m/s",
+                "vector_angle": "rad"}[self.kind]
 
 
 @dataclass(frozen=True)

@@ -85,10 +85,17 @@ def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> 
 
 
 def point_acceleration(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
-    """World acceleration (T, 2) of a body-frame point: a_O + alpha x (R p) - omega^2 R p."""
+    """World acceleration (T, d) of a body-frame point: a_O + alpha x (R p) + omega x
+    (omega x R p) (2-D: - omega^2 R p); NaN where the engine reports no accelerations."""
+    if body == GROUND:
+        return np.zeros((len(motion.t), len(point)))
     if body not in motion.acceleration or body not in motion.alpha:
-        return np.full((len(motion.t), 2), np.nan)
-    rp = _rot(motion.angle[body]) @ point
+        return np.full((len(motion.t), len(point)), np.nan)
+    rp = motion.R(body) @ point
+    if case.dimension == 3:
+        w = motion.omega[body]
+        return (motion.acceleration[body] + np.cross(motion.alpha[body], rp)
+                + np.cross(w, np.cross(w, rp)))
     w, a = motion.omega[body][:, None], motion.alpha[body][:, None]
     return motion.acceleration[body] + a * np.stack([-rp[:, 1], rp[:, 0]], -1) - w * w * rp
 
@@ -262,6 +269,19 @@ def loop_gap(case: Case, motion: Motion, joints=()) -> np.ndarray:
     return gap
 
 
+def vector_angle(case: Case, motion: Motion, a, b) -> np.ndarray:
+    """The angle (T,) in [0, pi], rad, between two body vectors, each (body, p, q): r_q - r_p
+    in world axes (by atan2 of |u x v| and u . v: accurate near 0 and pi)."""
+    def vec(body, p, q):
+        return (point_position(case, motion, body, _point(case, body, q))
+                - point_position(case, motion, body, _point(case, body, p)))
+
+    u, v = vec(*a), vec(*b)
+    cross = _cross(u, v)
+    size = np.abs(cross) if cross.ndim == 1 else np.linalg.norm(cross, axis=1)
+    return np.arctan2(size, np.sum(u * v, axis=1))
+
+
 def angular_velocity(case: Case, motion: Motion, body: str, frame: str = "world"
                      ) -> np.ndarray:
     """Angular velocity of ``body``, rad/s: (T, 3) in world axes, or body axes with
@@ -359,6 +379,8 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
             v = motion.rod_force.get(ch.rod, np.full_like(motion.t, np.nan))
         elif ch.kind == "combination":
             v = sum(c * cols[name] for name, c in ch.of)
+        elif ch.kind == "vector_angle":
+            v = vector_angle(case, motion, *ch.vectors)
         elif ch.kind == "loop_gap":
             v = loop_gap(case, motion, ch.joints)
         elif ch.kind in ("angular_velocity", "angular_momentum", "momentum"):

@@ -63,13 +63,12 @@ def test_loop_gap_joints_must_be_named_joints(case_variant):
 
 @pytest.mark.engines
 def test_loop_gap_natcoord_closed_mujoco_soft(case_variant):
-    """four_bar over 2 s: natcoord holds its loop to round-off (measured GAP_NATCOORD m);
-    MuJoCo's connect is soft, so its gap is positive but small (measured GAP_MUJOCO m at
-    the adapter defaults)."""
+    """four_bar over 2 s: natcoord holds its loop to round-off (measured 4.4e-16 m);
+    MuJoCo's connect is soft, so its gap is positive but small (measured 4.8e-9 m at the
+    adapter defaults: RK4 dt 1e-4, solref 1e-3 s)."""
     case = _four_bar_with_gap(case_variant)
     nat = evaluate_channels(case, ec.natcoord(case).motion)["gap"].to_numpy()
     muj = evaluate_channels(case, ec.run("mujoco", case).motion)["gap"].to_numpy()
-    print(f"natcoord {nat.max():.3g} m, mujoco {muj.max():.3g} m")
     assert nat.max() < 1e-11
     assert 1e-10 < muj.max() < 1e-6
 
@@ -219,3 +218,90 @@ def test_angular_channels_are_refused_where_they_mean_nothing(tmp_path):
                          "channels.w.body")):
         with pytest.raises(CaseError, match=field):
             ec.case_from_text(tmp_path, base + line + "\n", "check_rod")
+
+
+# ---- accelerations in 3-D ------------------------------------------------------------------
+ACCEL = ('acx = { kind = "acceleration", body = "b", point = "c", axis = "x" }\n'
+         'acy = { kind = "acceleration", body = "b", point = "c", axis = "y" }\n'
+         'acz = { kind = "acceleration", body = "b", point = "c", axis = "z" }\n')
+
+
+@pytest.mark.parametrize("engine, settings, bound", [
+    ("natcoord", {}, 1e-6), ("mujoco", {}, 1e-6), ("dart", {}, 1e-6), ("simbody", {}, 1e-6),
+    ("exudyn", {"dt": 1e-4}, 3e-5)])
+def test_3d_point_acceleration_of_a_body_driven_about_a_hinge(tmp_path, engine, settings,
+                                                              bound):
+    """The hinged body of the spin tests with a torque of 0.5 N m about the hinge (z): its
+    angular acceleration is tau / I_O,zz = 1.72 rad/s^2 (I_O,zz = 0.29 kg m^2), so its
+    centre of mass accelerates by alpha z x r - omega^2 r (omega = 3 + alpha t), nothing
+    along z. Bound 1e-6 m/s^2 (measured: natcoord 4.4e-11, MuJoCo, classical accelerations
+    from mj_objectAcceleration, 4.5e-12, DART 4.5e-12, Simbody 4.1e-14); Exudyn's are
+    generalized-alpha's, 1.0e-2 at its default step 1e-3 s, 1.1e-5 at 1e-4 s (bound 3e-5).
+    Pinocchio, Drake and PyBullet report none: NaN, "not computed"."""
+    w0, tau = 3.0, 0.5
+    text = (SPIN.replace("JOINT", 'type = "revolute"\naxis = [0.0, 0.0, 1.0]')
+            .replace("VELOCITY", f"{{ theta = {w0!r} }}").replace("GRAVITY", "0.0")
+            .replace("[channels]\n", "[channels]\n" + ACCEL)
+            + f'[[forces]]\ntype = "torque"\nbody = "b"\nvalue = [0.0, 0.0, {tau!r}]\n')
+    case = ec.case_from_text(tmp_path, text, "spin")
+    tab = evaluate_channels(case, ec.run(engine, case, settings).motion)
+    alpha = tau / I_O[2, 2]
+    t, x, y = (tab[k].to_numpy() for k in ("t", "xc", "yc"))
+    w = w0 + alpha * t
+    err = {"acx": np.max(np.abs(tab["acx"] - (-alpha * y - w**2 * x))),
+           "acy": np.max(np.abs(tab["acy"] - (alpha * x - w**2 * y))),
+           "acz": np.max(np.abs(tab["acz"]))}
+    assert max(err.values()) < bound, err
+
+
+@pytest.mark.engines
+def test_an_acceleration_channel_an_engine_does_not_report_leaves_the_run_ok(case_variant):
+    """Pinocchio's adapter reports no accelerations: the column is NaN throughout, which is
+    "not reported" for that channel (ungated, noted), never a discarded run."""
+    from natcoord.engines.base import initial_body_states as init
+    from natcoord.suite.worker import Job, run_job
+
+    path = case_variant("pendulum", [(r'^(y = \{ kind = "position", body = "link", '
+                                      r'point = "P", axis = "y" \})',
+                                      r'\1\nay = { kind = "acceleration", body = "link", '
+                                      r'point = "P", axis = "y" }')])
+    case = load_case(path)
+    res, _ = run_job(Job(case, init(case), "pinocchio"))
+    assert res.status.value == "ok", res.reason
+    assert np.all(np.isnan(res.table["ay"])) and np.all(np.isfinite(res.table["theta"]))
+    assert any("not computed by pinocchio: ay" in n for n in res.notes)
+
+
+# ---- the angle between two body vectors ------------------------------------------------------
+@pytest.mark.parametrize("engine", ["natcoord", "mujoco"])
+def test_vector_angle_of_a_spinning_body_against_a_ground_axis(tmp_path, engine):
+    """The hinged body spinning at 3 rad/s about z: its horizontal vector e -> c makes the
+    angle arccos(cos(phi0 + w t)) with world x (phi0 = atan2(0.2, 0.3)), through pi;
+    its vertical O -> e stays at pi / 2. Bound 1e-9 rad (measured round-off)."""
+    w = 3.0
+    text = (SPIN.replace("JOINT", 'type = "revolute"\naxis = [0.0, 0.0, 1.0]')
+            .replace("VELOCITY", f"{{ theta = {w!r} }}").replace("GRAVITY", "0.0")
+            .replace("{ O = [0.0, 0.0, 0.0] }", "{ O = [0.0, 0.0, 0.0], X = [1.0, 0.0, 0.0] }")
+            .replace("[channels]\n", '[channels]\n'
+                     'a = { kind = "vector_angle", vectors = [["b", "e", "c"], '
+                     '["ground", "O", "X"]] }\n'
+                     'v = { kind = "vector_angle", vectors = [["b", "O", "e"], '
+                     '["ground", "O", "X"]] }\n'))
+    case = ec.case_from_text(tmp_path, text, "spin")
+    tab = evaluate_channels(case, ec.run(engine, case).motion)
+    t = tab["t"].to_numpy()
+    expected = np.arccos(np.cos(np.arctan2(0.2, 0.3) + w * t))
+    np.testing.assert_allclose(tab["a"], expected, atol=1e-9)
+    np.testing.assert_allclose(tab["v"], np.pi / 2, atol=1e-9)
+    assert tab["a"].max() > 3.13  # it passes pi (phi0 + w t from 0.59 to 3.59 rad)
+
+
+def test_vector_angle_needs_two_body_vectors(tmp_path):
+    base = (SPIN.replace("JOINT", 'type = "revolute"\naxis = [0.0, 0.0, 1.0]')
+            .replace("VELOCITY", "{ theta = 1.0 }").replace("GRAVITY", "0.0"))
+    for vectors in ('[["b", "e", "c"]]', '[["b", "e", "c"], ["b", "e", "e"]]',
+                    '[["b", "e", "c"], ["nobody", "O", "e"]]', '"e"'):
+        text = base.replace("[channels]\n", f'[channels]\na = {{ kind = "vector_angle", '
+                            f'vectors = {vectors} }}\n')
+        with pytest.raises(CaseError, match=r"channels\.a\.vectors"):
+            ec.case_from_text(tmp_path, text, "spin")
