@@ -801,11 +801,15 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
             joint = r.string(c, "joint", p)
             if joint not in jnames:
                 r.fail(f"{p}.joint", f"unknown joint {joint!r}; joints are {', '.join(jnames)}")
-            axis = r.string(c, "axis", p, choices=(*axes, "normal"))
+            axis = r.string(c, "axis", p, choices=(*axes, "normal", "along", "across"))
             jt = joints[jnames.index(joint)]
             if axis == "normal" and (jt.type != "prismatic" or dim != 2):
                 r.fail(f"{p}.axis", f"'normal' needs a 2-D prismatic joint; {joint!r} is a "
                        f"{dim}-D {jt.type} joint")
+            if axis in ("along", "across") and (
+                    dim != 3 or jt.type not in ("prismatic", "cylindrical", "revolute")):
+                r.fail(f"{p}.axis", f"{axis!r} needs a 3-D prismatic, cylindrical or revolute "
+                       f"joint (one with an axis); {joint!r} is a {dim}-D {jt.type} joint")
         if kind == "driver":
             driver = r.string(c, "driver", p)
             if driver not in drivers:

@@ -142,9 +142,11 @@ class Channel:
     its first axis towards its second; with ``relative_to`` that angle minus the angle
     channel ``relative_to``: a joint angle between two bodies),
     ``position``/``velocity``/``acceleration`` (body, point, axis x|y|z), ``reaction``
-    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J; with
-    ``work`` that minus the work done since t = 0 by applied loads, dampers and drivers:
-    the energy balance, constant in exact physics, see :func:`natcoord.result.work`),
+    (joint, axis x|y|z|normal (2-D prismatic)|along|across (3-D joint with an axis: the
+    component along it, the size of the rest)), ``energy`` (kinetic + gravitational +
+    spring, J; with ``work`` that minus the work done since t = 0 by applied loads,
+    dampers and drivers: the energy balance, constant in exact physics, see
+    :func:`natcoord.result.work`),
     ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate),
     ``axial`` (tension of rod or spring ``rod``, N), ``combination``
     (``sum(c * channel)`` over ``of``, in the unit of its terms), ``loop_gap`` (the largest

@@ -399,6 +399,11 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
                 j = case.joint(ch.joint)
                 n = normal_direction(case, motion, j.name)
                 v = np.sum(f * n, axis=1)
+            elif ch.axis in ("along", "across"):  # 3-D: the joint's axis, turned with its
+                u = joint_axis(case, motion, ch.joint)  # first body
+                along = np.sum(f * u, axis=1)
+                v = along if ch.axis == "along" else np.linalg.norm(
+                    f - along[:, None] * u, axis=1)
             else:
                 v = f[:, axis_index[ch.axis]]
         if ch.relative_to is not None:  # a joint angle: both unwrapped from t = 0
@@ -419,6 +424,15 @@ def methods_table(case: Case, run) -> pd.DataFrame:
             if ch.kind in FORCE_KINDS:
                 cols[f"{ch.name}@{method}"] = table[ch.name].to_numpy()
     return pd.DataFrame(cols)
+
+
+def joint_axis(case: Case, motion: Motion, joint: str) -> np.ndarray:
+    """(T, d) unit world direction of a joint's ``axis`` (given in its first body's frame)."""
+    j = case.joint(joint)
+    u = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
+    if j.bodies[0] == GROUND:
+        return np.broadcast_to(u, (len(motion.t), len(u)))
+    return motion.R(j.bodies[0]) @ u
 
 
 def normal_direction(case: Case, motion: Motion, joint: str) -> np.ndarray:

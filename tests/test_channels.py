@@ -305,3 +305,28 @@ def test_vector_angle_needs_two_body_vectors(tmp_path):
                             f'vectors = {vectors} }}\n')
         with pytest.raises(CaseError, match=r"channels\.a\.vectors"):
             ec.case_from_text(tmp_path, text, "spin")
+
+
+# ---- a 3-D joint's reaction along and across its axis --------------------------------------
+@pytest.mark.parametrize("engine", ["natcoord", "mujoco"])
+@pytest.mark.parametrize("joint", ["prismatic", "cylindrical"])
+def test_reaction_along_and_across_an_inclined_slide(tmp_path, engine, joint):
+    """incline_3d: a 2 kg block on a frictionless slide along (1, 1, 1) / sqrt(3) through
+    its centre of mass (prismatic, or cylindrical: no moment about the axis either): the
+    joint pushes across the axis with m |g - (g . u) u| = m g sqrt(2/3) = 16.02 N and not
+    along it. Bound 1e-9 N (measured round-off)."""
+    case = ec.data_case(tmp_path, "incline_3d", {
+        'type = "prismatic"': f'type = "{joint}"',
+        "Rz = {": 'along = { kind = "reaction", joint = "slide", axis = "along" }\n'
+                  'across = { kind = "reaction", joint = "slide", axis = "across" }\nRz = {'})
+    tab = evaluate_channels(case, ec.run(engine, case).motion)
+    np.testing.assert_allclose(tab["along"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(tab["across"], 2.0 * 9.81 * np.sqrt(2 / 3), atol=1e-9)
+
+
+def test_along_and_across_need_a_3d_joint_with_an_axis(case_variant):
+    with pytest.raises(CaseError, match=r"channels\.O_x\.axis"):
+        load_case(case_variant("four_bar", [(r'^O_x = \{ kind = "reaction", joint = "O", '
+                                             r'axis = "x" \}',
+                                             'O_x = { kind = "reaction", joint = "O", '
+                                             'axis = "along" }')]))
