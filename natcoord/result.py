@@ -263,7 +263,7 @@ def loop_gap(case: Case, motion: Motion, joints=()) -> np.ndarray:
         d = (point_position(case, motion, bb, _point(case, bb, pb))
              - point_position(case, motion, ba, _point(case, ba, pa)))
         if j.type in ("prismatic", "cylindrical"):
-            u = j.axis if ba == GROUND else motion.R(ba) @ j.axis  # world axis (T, d)
+            u = joint_axis(case, motion, name)  # (T, d) unit, world axes
             d = d - np.sum(d * u, axis=-1, keepdims=True) * u
         gap = np.maximum(gap, np.linalg.norm(d, axis=1))
     return gap

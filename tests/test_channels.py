@@ -314,12 +314,17 @@ def test_reaction_along_and_across_an_inclined_slide(tmp_path, engine, joint):
     """incline_3d: a 2 kg block on a frictionless slide along (1, 1, 1) / sqrt(3) through
     its centre of mass (prismatic, or cylindrical: no moment about the axis either): the
     joint pushes across the axis with m |g - (g . u) u| = m g sqrt(2/3) = 16.02 N and not
-    along it. Bound 1e-9 N (measured round-off)."""
+    along it, and the block stays on the axis (loop_gap across it). Bounds 1e-9 N, 1e-9 m
+    (measured round-off)."""
     case = ec.data_case(tmp_path, "incline_3d", {
         'type = "prismatic"': f'type = "{joint}"',
         "Rz = {": 'along = { kind = "reaction", joint = "slide", axis = "along" }\n'
-                  'across = { kind = "reaction", joint = "slide", axis = "across" }\nRz = {'})
+                  'across = { kind = "reaction", joint = "slide", axis = "across" }\n'
+                  'gap = { kind = "loop_gap" }\nRz = {'})
     tab = evaluate_channels(case, ec.run(engine, case).motion)
+    z = tab["z"].to_numpy()
+    assert z[0] - z[-1] > 0.3  # it slides down the axis: the gap counts only across it
+    assert np.max(tab["gap"]) < 1e-9
     np.testing.assert_allclose(tab["along"], 0.0, atol=1e-9)
     np.testing.assert_allclose(tab["across"], 2.0 * 9.81 * np.sqrt(2 / 3), atol=1e-9)
 
