@@ -8,8 +8,9 @@ Bounds on the closed loops are the errors measured at the adapter defaults (RK4,
 connect solref 1e-3 s 1, solimp 0.9999; mujoco 4.0.0) times about 3. They are deterministic
 model error of MuJoCo's soft loop constraint, not noise: the angle error scales with the square
 of the solref time constant, the reaction error has a floor set by solimp (0.9999 is MuJoCo's
-cap), largest at t = 0 before the constraint stabilisation settles. Open chains carry no soft
-constraint and match natcoord to round-off.
+cap). At t = 0 the adapter reports the full acceleration's hard constraint forces
+(stepping.forward_start): before that, the reactions were largest there. Open chains carry no
+soft constraint and match natcoord to round-off.
 """
 
 from __future__ import annotations
@@ -59,9 +60,9 @@ def test_hanging_rod_joint_listed_child_first_flips_the_reaction():
 # ------------------------------------------------------------------------------ closed loops
 
 # measured max |mujoco - natcoord| over 2 s at the defaults:
-#   slider_crank: theta 1.09e-8 rad, xB 6.5e-9 m, reactions 1.5e-4..5.0e-4 N (t = 0), energy
-#   9.7e-8 J; four_bar: theta 2.07e-8, positions 8.5e-9..1.92e-8, O 2.3e-4, D_y 1.59e-3 (t = 0),
-#   energy 3.7e-7.
+#   slider_crank: theta 1.09e-8 rad, xB 6.5e-9 m, reactions 1.5e-4..5.0e-4 N (t = 0; 1.1e-4
+#   since t = 0 takes the hard forces), energy 9.7e-8 J; four_bar: theta 2.07e-8, positions
+#   8.5e-9..1.92e-8, O 2.3e-4, D_y 1.59e-3 (t = 0; 3.3e-4 since), energy 3.7e-7.
 BOUNDS = {
     "slider_crank": {"angle": 3e-8, "position": 2e-8, "reaction": 1.5e-3, "energy": 3e-7},
     "four_bar": {"angle": 6e-8, "position": 6e-8, "reaction": 5e-3, "energy": 1.2e-6},
@@ -142,12 +143,54 @@ def test_rod_tension_is_positive_when_it_holds_a_hanging_body(tmp_path, name, m)
     case = ec.data_case(tmp_path, name)
     run = _run(case)
     table = evaluate_channels(case, run.motion)
-    # t = 0: the soft equality carries solimp (0.9999) of the load before its stabilisation
-    # term has built up; from the next sample on, m g to ~1e-9
-    assert table["T"].iloc[0] == pytest.approx(0.9999 * m * G, rel=1e-6)
+    # t = 0: the full acceleration's hard constraint force (stepping.forward_start; MuJoCo's
+    # own soft equality carried solimp, 0.9999, of it there); from the next sample on,
+    # MuJoCo's own, m g to ~1e-9
+    assert table["T"].iloc[0] == pytest.approx(m * G, rel=1e-9)
     np.testing.assert_allclose(table["T"].iloc[1:], m * G, rtol=1e-7)  # measured 4.1e-8
     assert float(np.max(np.abs(table.iloc[:, 2] - table.iloc[0, 2]))) < 1e-8  # stays put
     assert any("tendon-length equality" in n for n in run.notes)
+
+
+SLING = """name = "sling"
+description = "a particle of 2 kg on a massless rod of 1 m, hanging, moving at 2 m/s"
+dimension = {dim}
+gravity = {g}
+duration = 0.05
+output_dt = 0.01
+[ground]
+points = {{ O = {zero} }}
+[[bodies]]
+name = "bob"
+kind = "particle"
+mass = 2.0
+points = {{ P = {below} }}
+[[rods]]
+name = "T"
+ends = [["ground", "O"], ["bob", "P"]]
+[initial]
+velocity = {velocity}
+[channels]
+T = {{ kind = "axial", rod = "T" }}
+xP = {{ kind = "position", body = "bob", point = "P", axis = "x" }}
+yP = {{ kind = "position", body = "bob", point = "P", axis = "y" }}
+"""
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_rod_tension_at_the_first_sample_has_the_centripetal_term(tmp_path, dim):
+    """A particle (2 kg) hanging on a massless rod (1 m) moving at 2 m/s: the tension at
+    t = 0 is m g + m v^2 / L = 27.62 N exactly. MuJoCo's own efc_force there was
+    0.9999 m g = 19.618 N (its reference acceleration lacks Jdot qdot at the unstepped
+    state); the adapter's first sample takes the full acceleration (measured 27.62 N to
+    1e-12; natcoord the same)."""
+    zero, below = ("[0.0, 0.0]", "[0.0, -1.0]") if dim == 2 else ("[0.0, 0.0, 0.0]",
+                                                                  "[0.0, 0.0, -1.0]")
+    text = SLING.format(dim=dim, g=zero.replace("0.0]", "-9.81]"), zero=zero, below=below,
+                        velocity="{ xP = 2.0 }" if dim == 2 else "{ xP = 2.0, yP = 0.0 }")
+    case = ec.case_from_text(tmp_path, text, "sling")
+    table = evaluate_channels(case, _run(case).motion)
+    assert table["T"].iloc[0] == pytest.approx(2.0 * G + 2.0 * 2.0**2 / 1.0, rel=1e-9)
 
 
 @pytest.mark.parametrize("joint", ['type = "spherical"',
@@ -427,12 +470,13 @@ def test_version_and_lazy_import():
                                       ["mujoco", "mujoco"])
 
 
-def test_an_acceleration_channel_mujoco_does_not_compute_leaves_the_run_ok(case_variant):
-    """MuJoCo's adapter reports no point accelerations: the column is NaN throughout. That
-    is "not reported" for that channel (ungated, noted), not a divergence that used to
-    discard the whole run. natcoord computes the channel: the point mass released at rest
-    from the horizontal falls freely at t = 0 (the massless link carries no force yet),
-    a_y = -g."""
+def test_mujoco_reports_point_accelerations(case_variant):
+    """MuJoCo's adapter reports point accelerations (mj_objectAcceleration: the classical
+    acceleration of each body frame, from forward's mj_rnePostConstraint): the point mass
+    released at rest from the horizontal falls freely at t = 0 (the massless link carries
+    no force yet), a_y = -g (MuJoCo's cacc is relative to -gravity: added back), and over
+    the run it follows natcoord's (measured 5.7e-8 m/s^2).
+    An engine that reports none: tests/test_channels.py."""
     from natcoord.engines.base import initial_body_states as init
     from natcoord.suite.worker import Job, run_job
 
@@ -443,8 +487,9 @@ def test_an_acceleration_channel_mujoco_does_not_compute_leaves_the_run_ok(case_
     case = load_case(path)
     res, _ = run_job(Job(case, init(case), "mujoco"))
     assert res.status.value == "ok", res.reason
-    assert np.all(np.isnan(res.table["ay"])) and np.all(np.isfinite(res.table["theta"]))
-    assert any("not computed by mujoco: ay" in n for n in res.notes)
+    assert not any("not computed" in n for n in res.notes)
     nat, _ = run_job(Job(case, init(case), "natcoord"))
     assert nat.status.value == "ok" and np.all(np.isfinite(nat.table["ay"]))
     assert nat.table["ay"].iloc[0] == pytest.approx(-9.81, rel=1e-9)
+    assert res.table["ay"].iloc[0] == pytest.approx(-9.81, rel=1e-9)
+    assert float(np.max(np.abs(res.table["ay"] - nat.table["ay"]))) < 1e-6

@@ -58,6 +58,7 @@ UNITS = {
     "rad/s^2": (1.0, "angular acceleration"), "deg/s^2": (math.pi / 180, "angular acceleration"),
     "N": (1.0, "force"), "N m": (1.0, "torque"), "Nm": (1.0, "torque"),
     "kg m^2": (1.0, "inertia"), "J": (1.0, "energy"),
+    "kg m/s": (1.0, "momentum"), "kg m^2/s": (1.0, "angular momentum"),
     "N/m": (1.0, "stiffness"), "N s/m": (1.0, "damping"),
     "N m/rad": (1.0, "torsional stiffness"),
 }
@@ -562,7 +563,10 @@ def _kind_dim(key: str, channels) -> str:
     kind = key if key in CHANNEL_KINDS else next(c.kind for c in channels if c.name == key)
     return {"angle": "angle", "position": "length", "velocity": "velocity",
             "reaction": "force", "energy": "energy", "acceleration": "acceleration",
-            "driver": "torque", "axial": "force", "combination": "force"}[kind]
+            "driver": "torque", "axial": "force", "combination": "force",
+            "loop_gap": "length", "angular_velocity": "angular velocity",
+            "angular_momentum": "angular momentum", "momentum": "momentum",
+            "vector_angle": "angle"}[kind]
 
 
 def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
@@ -733,11 +737,39 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
-        if kind == "acceleration" and dim == 3:
-            r.fail(f"{p}.kind", "acceleration channels are planar only: no engine adapter "
-                   "computes 3-D point accelerations yet (use velocity channels)")
         body = point = joint = axis = driver = rod = points = relative_to = None
-        plane, of, work = "xy", (), False
+        plane, of, work, gap_joints = "xy", (), False, ()
+        if kind == "loop_gap":  # joints = [...]: the joints it measures (default every one)
+            names = r.get(c, "joints", p, required=False, default=list(jnames))
+            if (not isinstance(names, list) or not names
+                    or not all(isinstance(n, str) and n in jnames for n in names)):
+                r.fail(f"{p}.joints", f"must be a non-empty list of joint names; joints are "
+                       f"{', '.join(jnames) or 'none'}, got {_short(names)}")
+            gap_joints = tuple(names)
+        frame, about = "world", ()
+        if kind in ("angular_velocity", "angular_momentum", "momentum"):
+            body = r.string(c, "body", p, required=kind == "angular_velocity")
+            if body is not None and body not in bodies:
+                r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
+            axis = r.string(c, "axis", p, choices=axes if kind == "momentum"
+                            else ("x", "y", "z") if dim == 3 else ("z",))
+        if kind == "angular_velocity":
+            frame = r.string(c, "frame", p, required=False, default="world",
+                             choices=("world", "body"))
+        vectors = ()
+        if kind == "vector_angle":  # vectors = [[body, p, q], [body, p, q]]
+            v = r.get(c, "vectors", p)
+            if not (isinstance(v, list) and len(v) == 2 and all(
+                    isinstance(x, list) and len(x) == 3 and all(isinstance(n, str) for n in x)
+                    and x[0] in points_of and x[1] in points_of[x[0]]
+                    and x[2] in points_of[x[0]] and x[1] != x[2] for x in v)):
+                r.fail(f"{p}.vectors", "must be two [body, p, q] lists (r_q - r_p, two "
+                       f"different points of that body or of ground), got {_short(v)}")
+            vectors = tuple(tuple(x) for x in v)
+        if kind == "angular_momentum":
+            about = r.get(c, "about", p, required=False, default=[0.0] * dim)
+            if about != "com":
+                about = tuple(r.vector(about, f"{p}.about", dim, "length"))
         if kind == "energy":  # work = true: the energy balance (minus non-conservative work)
             work = r.get(c, "work", p, required=False, default=False)
             if not isinstance(work, bool):
@@ -769,11 +801,15 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
             joint = r.string(c, "joint", p)
             if joint not in jnames:
                 r.fail(f"{p}.joint", f"unknown joint {joint!r}; joints are {', '.join(jnames)}")
-            axis = r.string(c, "axis", p, choices=(*axes, "normal"))
+            axis = r.string(c, "axis", p, choices=(*axes, "normal", "along", "across"))
             jt = joints[jnames.index(joint)]
             if axis == "normal" and (jt.type != "prismatic" or dim != 2):
                 r.fail(f"{p}.axis", f"'normal' needs a 2-D prismatic joint; {joint!r} is a "
                        f"{dim}-D {jt.type} joint")
+            if axis in ("along", "across") and (
+                    dim != 3 or jt.type not in ("prismatic", "cylindrical", "revolute")):
+                r.fail(f"{p}.axis", f"{axis!r} needs a 3-D prismatic, cylindrical or revolute "
+                       f"joint (one with an axis); {joint!r} is a {dim}-D {jt.type} joint")
         if kind == "driver":
             driver = r.string(c, "driver", p)
             if driver not in drivers:
@@ -797,7 +833,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                 r.fail(f"{p}.of", "must not be empty")
             of = tuple((t, float(v)) for t, v in terms.items())
         out.append(Channel(name, kind, body, point, joint, axis, driver, rod, points, plane,
-                           of, relative_to, work))
+                           of, relative_to, work, gap_joints, frame, about, vectors))
     if not out:
         r.fail("channels", "must define at least one channel")
     return tuple(out)

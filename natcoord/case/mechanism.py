@@ -33,7 +33,8 @@ JOINT_TYPES = ("revolute", "prismatic", "spherical", "universal", "cylindrical")
 PLANAR_JOINTS = ("revolute", "prismatic")  # the joint types a 2-D case can have
 FORCE_TYPES = ("torque", "force")
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
-                 "driver", "axial", "combination")
+                 "driver", "axial", "combination", "loop_gap", "angular_velocity",
+                 "angular_momentum", "momentum", "vector_angle")
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
@@ -141,12 +142,21 @@ class Channel:
     its first axis towards its second; with ``relative_to`` that angle minus the angle
     channel ``relative_to``: a joint angle between two bodies),
     ``position``/``velocity``/``acceleration`` (body, point, axis x|y|z), ``reaction``
-    (joint, axis x|y|z|normal), ``energy`` (kinetic + gravitational + spring, J; with
-    ``work`` that minus the work done since t = 0 by applied loads, dampers and drivers:
-    the energy balance, constant in exact physics, see :func:`natcoord.outputs.result.work`),
+    (joint, axis x|y|z|normal (2-D prismatic)|along|across (3-D joint with an axis: the
+    component along it, the size of the rest)), ``energy`` (kinetic + gravitational +
+    spring, J; with ``work`` that minus the work done since t = 0 by applied loads,
+    dampers and drivers: the energy balance, constant in exact physics, see
+    :func:`natcoord.outputs.result.work`),
     ``driver`` (the effort a driver applies: N m for an angle driver, N for a coordinate),
     ``axial`` (tension of rod or spring ``rod``, N), ``combination``
-    (``sum(c * channel)`` over ``of``, in the unit of its terms).
+    (``sum(c * channel)`` over ``of``, in the unit of its terms), ``loop_gap`` (the largest
+    distance between the points the ``joints`` hold together, every joint when empty, m:
+    see :func:`natcoord.outputs.result.loop_gap`), ``angular_velocity`` (body, axis; ``frame``
+    world or body axes, rad/s), ``angular_momentum`` (of ``body``, or the system when it is
+    None, about the world point ``about`` or ``"com"`` its centre of mass, world axis,
+    kg m^2/s), ``momentum`` (linear, of ``body`` or the system, world axis, kg m/s); the
+    angular ones take axis ``z`` in 2-D; ``vector_angle`` (the angle in [0, pi] between
+    r_q - r_p of the two ``vectors`` (body, p, q), rad).
     """
 
     name: str
@@ -162,12 +172,18 @@ class Channel:
     of: tuple[tuple[str, float], ...] = ()
     relative_to: str | None = None
     work: bool = False
+    joints: tuple[str, ...] = ()  # loop_gap: the joints it measures (empty: every joint)
+    frame: str = "world"  # angular_velocity: "world" or "body" axes
+    about: str | tuple[float, ...] = ()  # angular_momentum: a world point (m), or "com"
+    vectors: tuple[tuple[str, str, str], ...] = ()  # vector_angle: two (body, p, q)
 
     @property
     def unit(self) -> str:
         return {"angle": "rad", "position": "m", "velocity": "m/s", "reaction": "N",
                 "energy": "J", "acceleration": "m/s^2", "driver": "N m", "axial": "N",
-                "combination": "N"}[self.kind]
+                "combination": "N", "loop_gap": "m", "angular_velocity": "rad/s",
+                "angular_momentum": "kg m^2/s", "momentum": "kg m/s",
+                "vector_angle": "rad"}[self.kind]
 
 
 @dataclass(frozen=True)

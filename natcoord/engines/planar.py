@@ -84,7 +84,8 @@ def plane_normal(case: Case) -> np.ndarray | None:
 class Samples:
     """What an engine that simulates in 3-D, world axes, sampled: body -> origin (T, 3) m,
     rotation (T, 3, 3), velocity (T, 3) m/s, omega (T, 3) rad/s; joint -> force on its
-    second body (T, 3) N; rod or spring -> tension (T,) N."""
+    second body (T, 3) N; rod or spring -> tension (T,) N; optional: body -> acceleration
+    of the origin (T, 3) m/s^2 and alpha (T, 3) rad/s^2 (empty: not reported)."""
 
     origin: dict
     rotation: dict
@@ -92,6 +93,8 @@ class Samples:
     omega: dict
     forces: dict
     rod_force: dict
+    acceleration: dict = dataclasses.field(default_factory=dict)
+    alpha: dict = dataclasses.field(default_factory=dict)
 
     @classmethod
     def empty(cls, case: Case, T: int) -> Samples:

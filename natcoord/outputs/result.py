@@ -85,10 +85,17 @@ def point_velocity(case: Case, motion: Motion, body: str, point: np.ndarray) -> 
 
 
 def point_acceleration(case: Case, motion: Motion, body: str, point: np.ndarray) -> np.ndarray:
-    """World acceleration (T, 2) of a body-frame point: a_O + alpha x (R p) - omega^2 R p."""
+    """World acceleration (T, d) of a body-frame point: a_O + alpha x (R p) + omega x
+    (omega x R p) (2-D: - omega^2 R p); NaN where the engine reports no accelerations."""
+    if body == GROUND:
+        return np.zeros((len(motion.t), len(point)))
     if body not in motion.acceleration or body not in motion.alpha:
-        return np.full((len(motion.t), 2), np.nan)
-    rp = _rot(motion.angle[body]) @ point
+        return np.full((len(motion.t), len(point)), np.nan)
+    rp = motion.R(body) @ point
+    if case.dimension == 3:
+        w = motion.omega[body]
+        return (motion.acceleration[body] + np.cross(motion.alpha[body], rp)
+                + np.cross(w, np.cross(w, rp)))
     w, a = motion.omega[body][:, None], motion.alpha[body][:, None]
     return motion.acceleration[body] + a * np.stack([-rp[:, 1], rp[:, 0]], -1) - w * w * rp
 
@@ -121,10 +128,13 @@ def work(case: Case, motion: Motion) -> np.ndarray:
 
     Exact from the samples where the work is a function of the position: a constant force F
     at a point P does F . (r_P(t) - r_P(0)), a constant 2-D torque tau does
-    tau (angle(t) - angle(0)). The rest is the time integral of a power sampled at the
-    output times (:func:`cumulative_integral`): a 3-D torque's tau . omega; a damper's
-    -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times the rate of
-    its driven coordinate, rate + accel t (NaN where the engine reports no effort).
+    tau (angle(t) - angle(0)). A constant 3-D torque does tau . (integral of omega), from
+    the rotations at the samples (:func:`_turn`: exact while the body turns about a fixed
+    axis, whatever its rate; else fourth order in the output step). The rest is the time
+    integral of a power sampled at the output times (:func:`cumulative_integral`): a
+    damper's -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times
+    the rate of its driven coordinate, rate + accel t (NaN where the engine reports no
+    effort).
     """
     t = motion.t
     w = np.zeros_like(t)
@@ -137,7 +147,11 @@ def work(case: Case, motion: Motion) -> np.ndarray:
             a = np.unwrap(motion.angle[f.body])
             w += float(f.value) * (a - a[0])
         else:
-            power += motion.omega[f.body] @ np.asarray(f.value, float)
+            turn = _turn(motion, f.body)
+            if turn is None:  # turning too fast between samples to tell the rotation
+                power += motion.omega[f.body] @ np.asarray(f.value, float)
+            else:
+                w += turn @ np.asarray(f.value, float)
     for s in case.springs:
         if s.damping:
             (ba, pa), (bb, pb) = s.ends
@@ -155,6 +169,69 @@ def work(case: Case, motion: Motion) -> np.ndarray:
     return w
 
 
+def _turn(motion: Motion, body: str, max_step: float = 1.0) -> np.ndarray | None:
+    """The integral of a 3-D body's angular velocity (world axes) from t[0] to every sample,
+    (T, 3) rad. Over each sample interval: along the interval's rotation vector r (that of
+    R(t + h) R(t)^T less the Magnus expansion's second and third terms,
+    :func:`_magnus23`), r itself, which is exact when the axis stays fixed whatever the
+    rate; across r, the integral of the cubic spline through omega (zero for a fixed axis).
+    None when the samples are not finite or the body turns more than ``max_step`` rad over
+    an interval (the rotation vector would be ambiguous near pi)."""
+    R, w, t = motion.R(body), motion.omega[body], motion.t
+    if len(t) < 2:
+        return np.zeros((len(t), 3))
+    if not (np.all(np.isfinite(R)) and np.all(np.isfinite(w))):
+        return None
+    speed = np.linalg.norm(w, axis=1)
+    if np.max(np.maximum(speed[1:], speed[:-1]) * np.diff(t)) > max_step:
+        return None
+    from scipy.interpolate import CubicSpline  # imported when used: start-up time
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_matrix(R[1:] @ np.swapaxes(R[:-1], 1, 2)).as_rotvec() - _magnus23(w, t)
+    P = CubicSpline(t, w, axis=0).antiderivative()
+    step = P(t[1:]) - P(t[:-1])
+    size = np.linalg.norm(r, axis=1)
+    n = np.divide(r, size[:, None], out=np.zeros_like(r), where=size[:, None] > 0)
+    step += (size - np.sum(step * n, axis=1))[:, None] * n
+    return np.concatenate([np.zeros((1, 3)), np.cumsum(step, 0)])
+
+
+def _magnus23(w: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The Magnus expansion's second and third terms over each sample interval (T - 1, 3),
+    omega the cubic spline through the samples (world axes, rad/s); with P(s) the integral
+    of omega over the interval up to s:
+
+    Omega2 = 1/2 int omega x P,
+    Omega3 = 1/6 int (omega1 x Q1 + M1 omega1 - (m1) omega1), Q, M, m the running integrals
+    of omega x P, omega P^T, P . omega (from the triple integral of [A1, [A2, A3]] +
+    [A3, [A2, A1]]). Polynomial integrands: nested Gauss-Legendre (6 points outside, 4
+    inside) is exact. Both vanish when omega keeps its direction."""
+    from scipy.interpolate import CubicSpline
+
+    spline = CubicSpline(t, w, axis=0)
+    anti = spline.antiderivative()
+    h, t0 = np.diff(t)[:, None], t[:-1]
+
+    def at(s):  # omega and P at local times s (K, ...) from each interval's start
+        idx = (slice(None),) + (None,) * (s.ndim - 1)
+        return spline(t0[idx] + s), anti(t0[idx] + s) - anti(t0)[idx]
+
+    xo, go = np.polynomial.legendre.leggauss(6)
+    xi, gi = np.polynomial.legendre.leggauss(4)
+    so = 0.5 * h * (xo + 1)  # (K, 6) outer nodes
+    si = 0.5 * so[:, :, None] * (xi + 1)  # (K, 6, 4) inner nodes on [0, so]
+    wo, Po = at(so)  # (K, 6, 3)
+    wi, Pi = at(si)  # (K, 6, 4, 3)
+    half = 0.5 * so[:, :, None]  # inner weights' scale (K, 6, 1)
+    Q = half * np.einsum("b,kabi->kai", gi, np.cross(wi, Pi))
+    M = half[..., None] * np.einsum("b,kabi,kabj->kaij", gi, wi, Pi)
+    m = half[..., 0] * np.einsum("b,kabi,kabi->ka", gi, wi, Pi)
+    f2 = 0.5 * np.cross(wo, Po)
+    f3 = (np.cross(wo, Q) + np.einsum("kaij,kaj->kai", M, wo) - m[..., None] * wo) / 6
+    return 0.5 * h * np.einsum("a,kai->ki", go, f2 + f3)
+
+
 def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The integral of y from t[0] to every sample (T,): the not-a-knot cubic spline through
     the samples, integrated exactly (error O(dt^4) at every sample for a smooth y; a
@@ -168,6 +245,92 @@ def cumulative_integral(y: np.ndarray, t: np.ndarray) -> np.ndarray:
     elif n > 1:
         from scipy.interpolate import CubicSpline  # imported when used: start-up time
         out[:n] = CubicSpline(t[:n], y[:n]).antiderivative()(t[:n])
+    return out
+
+
+def loop_gap(case: Case, motion: Motion, joints=()) -> np.ndarray:
+    """The largest distance (T,), m, between the points the ``joints`` (every joint when
+    empty) hold together, from the body poses the engine reports: a revolute, spherical or
+    universal joint's two joint points; a prismatic or cylindrical joint's second point from
+    the line through its first point along its axis (only the part across the axis: sliding
+    along it is motion). Zero in exact physics; an engine that closes a loop softly (a
+    penalty, a stabilised constraint) shows how far it lets the loop open. The joints'
+    angular conditions (a hinge's axis) are not in it."""
+    gap = np.zeros_like(motion.t)
+    for name in joints or [j.name for j in case.joints]:
+        j = case.joint(name)
+        (ba, bb), (pa, pb) = j.bodies, j.points
+        d = (point_position(case, motion, bb, _point(case, bb, pb))
+             - point_position(case, motion, ba, _point(case, ba, pa)))
+        if j.type in ("prismatic", "cylindrical"):
+            u = joint_axis(case, motion, name)  # (T, d) unit, world axes
+            d = d - np.sum(d * u, axis=-1, keepdims=True) * u
+        gap = np.maximum(gap, np.linalg.norm(d, axis=1))
+    return gap
+
+
+def vector_angle(case: Case, motion: Motion, a, b) -> np.ndarray:
+    """The angle (T,) in [0, pi], rad, between two body vectors, each (body, p, q): r_q - r_p
+    in world axes (by atan2 of |u x v| and u . v: accurate near 0 and pi)."""
+    def vec(body, p, q):
+        return (point_position(case, motion, body, _point(case, body, q))
+                - point_position(case, motion, body, _point(case, body, p)))
+
+    u, v = vec(*a), vec(*b)
+    cross = _cross(u, v)
+    size = np.abs(cross) if cross.ndim == 1 else np.linalg.norm(cross, axis=1)
+    return np.arctan2(size, np.sum(u * v, axis=1))
+
+
+def angular_velocity(case: Case, motion: Motion, body: str, frame: str = "world"
+                     ) -> np.ndarray:
+    """Angular velocity of ``body``, rad/s: (T, 3) in world axes, or body axes with
+    ``frame = "body"`` (R^T omega); (T,) about z in 2-D (both frames)."""
+    w = motion.omega[body]
+    if case.dimension == 2 or frame == "world":
+        return w
+    return np.einsum("tji,tj->ti", motion.R(body), w)
+
+
+def momentum(case: Case, motion: Motion, body: str | None = None) -> np.ndarray:
+    """Linear momentum (T, d), kg m/s, of ``body`` or of every body (None): sum m v_G."""
+    out = np.zeros((len(motion.t), case.dimension))
+    for b in case.bodies if body is None else [case.body(body)]:
+        out += b.mass * point_velocity(case, motion, b.name, b.com)
+    return out
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b row by row: (T, 3), or its z component (T,) for 2-D vectors."""
+    return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0] if a.shape[1] == 2 else np.cross(a, b)
+
+
+def angular_momentum(case: Case, motion: Motion, body: str | None = None,
+                     about=()) -> np.ndarray:
+    """Angular momentum, kg m^2/s, of ``body`` or of every body (None) about a point: the
+    world point ``about`` (m, default the origin; a fixed point) or ``"com"``, the centre
+    of mass of what is measured (moving). Sum of m (r_G - P) x v_G + R I R^T omega: (T, 3)
+    world axes, (T,) about z in 2-D."""
+    bodies = case.bodies if body is None else [case.body(body)]
+    T, d = len(motion.t), case.dimension
+    rg = {b.name: point_position(case, motion, b.name, b.com) for b in bodies}
+    if isinstance(about, str):  # "com": sum m r_G / sum m
+        mass = sum(b.mass for b in bodies)
+        P = sum(b.mass * rg[b.name] for b in bodies) / mass
+    else:
+        P = np.broadcast_to(np.asarray(about, float) if len(about) else np.zeros(d), (T, d))
+    out = np.zeros((T, 3)) if d == 3 else np.zeros(T)
+    for b in bodies:
+        vg = point_velocity(case, motion, b.name, b.com)
+        out = out + b.mass * _cross(rg[b.name] - P, vg)
+        w = motion.omega.get(b.name)
+        if w is None or not np.any(b.inertia):
+            continue
+        if d == 3:  # R I R^T omega, I in body axes
+            R = motion.R(b.name)
+            out = out + np.einsum("tij,jk,tlk,tl->ti", R, b.inertia, R, w)
+        else:
+            out = out + b.inertia * w
     return out
 
 
@@ -216,6 +379,18 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
             v = motion.rod_force.get(ch.rod, np.full_like(motion.t, np.nan))
         elif ch.kind == "combination":
             v = sum(c * cols[name] for name, c in ch.of)
+        elif ch.kind == "vector_angle":
+            v = vector_angle(case, motion, *ch.vectors)
+        elif ch.kind == "loop_gap":
+            v = loop_gap(case, motion, ch.joints)
+        elif ch.kind in ("angular_velocity", "angular_momentum", "momentum"):
+            if ch.kind == "momentum":
+                v = momentum(case, motion, ch.body)
+            elif ch.kind == "angular_velocity":
+                v = angular_velocity(case, motion, ch.body, ch.frame)
+            else:
+                v = angular_momentum(case, motion, ch.body, ch.about)
+            v = v if v.ndim == 1 else v[:, axis_index[ch.axis]]
         else:  # reaction
             f = motion.joint_force.get(ch.joint)
             if f is None:
@@ -224,6 +399,11 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
                 j = case.joint(ch.joint)
                 n = normal_direction(case, motion, j.name)
                 v = np.sum(f * n, axis=1)
+            elif ch.axis in ("along", "across"):  # 3-D: the joint's axis, turned with its
+                u = joint_axis(case, motion, ch.joint)  # first body
+                along = np.sum(f * u, axis=1)
+                v = along if ch.axis == "along" else np.linalg.norm(
+                    f - along[:, None] * u, axis=1)
             else:
                 v = f[:, axis_index[ch.axis]]
         if ch.relative_to is not None:  # a joint angle: both unwrapped from t = 0
@@ -244,6 +424,15 @@ def methods_table(case: Case, run) -> pd.DataFrame:
             if ch.kind in FORCE_KINDS:
                 cols[f"{ch.name}@{method}"] = table[ch.name].to_numpy()
     return pd.DataFrame(cols)
+
+
+def joint_axis(case: Case, motion: Motion, joint: str) -> np.ndarray:
+    """(T, d) unit world direction of a joint's ``axis`` (given in its first body's frame)."""
+    j = case.joint(joint)
+    u = np.asarray(j.axis, float) / np.linalg.norm(j.axis)
+    if j.bodies[0] == GROUND:
+        return np.broadcast_to(u, (len(motion.t), len(u)))
+    return motion.R(j.bodies[0]) @ u
 
 
 def normal_direction(case: Case, motion: Motion, joint: str) -> np.ndarray:

@@ -168,18 +168,21 @@ class Spatial:
     @staticmethod
     def sensors(build: Build, b: Body) -> list[int]:
         OV = build.exu.OutputVariableType
-        return [build.node_sensor(b.name, v) for v in (OV.Position, OV.Velocity,
-                                                       OV.RotationMatrix, OV.AngularVelocity)]
+        return [build.node_sensor(b.name, v) for v in (
+            OV.Position, OV.Velocity, OV.RotationMatrix, OV.AngularVelocity,
+            OV.Acceleration, OV.AngularAcceleration)]
 
     @staticmethod
     def read(get, b: Body, sensors: list[int]) -> dict[str, np.ndarray]:
-        """The body frame's motion: origin, velocity, omega (T, 3), R = rotation
-        (T, 3, 3)."""
-        ps, vs, rs, ws = (get(x) for x in sensors)
+        """The body frame's motion: origin, velocity, omega, acceleration, alpha (T, 3),
+        R = rotation (T, 3, 3). The accelerations are those generalized-alpha solves the
+        equations of motion for at each step."""
+        ps, vs, rs, ws, acs, als = (get(x) for x in sensors)
         R = rs.reshape(-1, 3, 3)
         rc = R @ b.com
         return {"origin": ps - rc, "velocity": vs - np.cross(ws, rc), "omega": ws, "R": R,
-                "rotation": R}
+                "rotation": R, "alpha": als,
+                "acceleration": acs - np.cross(als, rc) - np.cross(ws, np.cross(ws, rc))}
 
 
 ELEMENTS = {2: Planar, 3: Spatial}  # the element set of a case, by its dimension

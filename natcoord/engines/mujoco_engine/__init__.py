@@ -187,5 +187,5 @@ def run(case: Case, init, settings: dict) -> EngineRun:
                            f"{s['tolerance']}, contacts disabled, dt {dt} s"]
     out = sampler.out
     motion = drop(case, times, out.origin, out.rotation, out.velocity, out.omega, out.forces,
-                  rod_force=out.rod_force)
+                  rod_force=out.rod_force, acceleration=out.acceleration, alpha=out.alpha)
     return EngineRun(motion, build, wall, n_steps, s, counters, notes)
