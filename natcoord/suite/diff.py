@@ -261,8 +261,12 @@ def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: 
         word = "nothing ran"
     else:
         word = HEADINGS.get(code, str(code))
-    lines = [f"## natcoord suite: {word} (exit {code})", "",
-             "| outcome | cells |", "| --- | --- |"]
+    quick = summary.get("mode") == "quick"  # `suite --quick`: a first look, no nightly
+    lines = [f"## natcoord suite{' --quick' if quick else ''}: {word} (exit {code})", ""]
+    if quick:
+        lines += ["Quick: a first look, not a nightly (a few engines, no sweeps, no speed "
+                  "gate, not in the history).", ""]
+    lines += ["| outcome | cells |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in sorted(counts.items())]
     bad = [r for r in summary["records"] if r.get("verdict") == "fail"
            or r["status"] == "failed"]
