@@ -649,8 +649,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                       f"{', '.join(names)}, one bench sample of natcoord, no sweeps, no speed "
                       "gate; not recorded in the history, reports/latest not moved")
         phases = {"start": clock.clock()}
+        first = {(c, e): t for (k, c, e), t in clock.expected.items() if k == "run"}
         summary = run_suite(selected, names, staging, references=references,
-                            timeout_s=timeout, jobs=n, scheduler=scheduler,
+                            timeout_s=timeout, jobs=n, scheduler=scheduler, first=first,
                             progress=_progress_printer(total, where, _ticker(clock, "run")))
         if quick:
             summary["mode"] = "quick"
