@@ -26,11 +26,11 @@ def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
                           (BENCH, (bench or {}).get("records", []))):
         for r in records:
             t = r.get("process_time_s")
-            if isinstance(t, (int, float)) and not r.get("reused"):
+            if isinstance(t, (int, float)) and "reused" not in r:
                 out[(kind, r.get("case"), r.get("engine"))] = float(t)
     for p in (bench or {}).get("work_precision", []):
         t = p.get("process_time_s")
-        if isinstance(t, (int, float)) and not p.get("reused"):
+        if isinstance(t, (int, float)) and "reused" not in p:
             key = (SWEEP, p.get("case"), p.get("engine"))
             out[key] = out.get(key, 0.0) + float(t)
     return out

@@ -168,4 +168,4 @@ def likely_reused(previous: dict | None, digests: dict[str, str],
 def measured_only(result: dict) -> dict:
     """A bench result holding only tonight's measurements (the same record objects): what
     the speed gate judges and the history records."""
-    return {**result, "records": [r for r in result.get("records", []) if not r.get("reused")]}
+    return {**result, "records": [r for r in result.get("records", []) if "reused" not in r]}
