@@ -626,7 +626,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     # a subset is not nightly
     nightly = out_dir is None and not cases and engines is None and not quick
     machine = machine_info()["fingerprint"]
-    prev_dir, prev_bench, prev_summary = policy.last_suite(history, machine)
+    prev_bench, prev_summary = policy.earlier(history, machine)
     with publishing(target, "suite") as staging:
         selected = _cases(cases, cases_dir)
         _check_references(selected, references)
@@ -661,10 +661,10 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         if repeats:
             reuse, kept, why = ({}, [], {(j.case.name, e): "quick" for j in selected
                                         for e in bench_engines}) if quick else policy.plan(
-                summary, prev_bench, prev_dir, names, repeats=repeats, machine=machine)
+                summary, prev_bench, names, repeats=repeats, machine=machine)
             clock.add({(k, c, e): 0.0 for (c, e) in reuse for k in ("bench", "sweep")})
             out.print(f"[bold]bench[/]: {repeats} calibrated sample(s) per measured cell; "
-                      + _policy_line(why, reuse, prev_dir))
+                      + _policy_line(why, reuse))
             bench_result = bench.bench(
                 selected, bench_engines, repeats=repeats, timeout_s=timeout,
                 references=references, reuse=reuse, cold=not quick,
@@ -766,7 +766,7 @@ def _ticker(clock, kind: str):
     return left
 
 
-def _policy_line(why: dict, reuse: dict, origin) -> str:
+def _policy_line(why: dict, reuse: dict) -> str:
     """What the bench policy chose: cells measured (and why, counted), cells reused."""
     from collections import Counter
 
@@ -775,7 +775,7 @@ def _policy_line(why: dict, reuse: dict, origin) -> str:
         f"{v}: {k}" for k, v in counts.most_common(4)) + ")"
     if reuse:
         dates = sorted(r["measured"][:10] for r in reuse.values())
-        text += (f", {len(reuse)} reused from {escape(str(origin))} (measured "
+        text += (f", {len(reuse)} reused from earlier suites (measured "
                  f"{dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''})")
     return text
 
@@ -791,8 +791,9 @@ def _nightly_sweeps(result: dict, catalogue, names, references, timeout, reuse, 
     per = {(j.case.name, e): len(policy.NIGHTLY_SWEEPS.get(e, [])) for j in catalogue
            for e in names if (j.case.name, e) not in skip}
     total = sum(per.values())
+    names_in = {j.case.name for j in catalogue}
     out.print(f"[bold]work-precision[/]: {total} point(s) measured on {len(catalogue)} "
-              f"catalogue case(s), {len(skip & set(per) | skip)} cell(s) reused")
+              f"catalogue case(s), {sum(c in names_in for c, _ in skip)} cell(s) reused")
     seen: dict = {}
 
     def left(key: str) -> float:
@@ -803,7 +804,6 @@ def _nightly_sweeps(result: dict, catalogue, names, references, timeout, reuse, 
             clock.done(("sweep", case, engine))
         return clock.left()
 
-    names_in = {j.case.name for j in catalogue}
     points = bench.work_precision(catalogue, names, references=references, repeats=3,
                                   timeout_s=timeout, sweeps=policy.NIGHTLY_SWEEPS,
                                   skip=skip, progress=_progress_printer(

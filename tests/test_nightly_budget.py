@@ -31,8 +31,9 @@ def _plan(old: dict, tonight: dict | None = None, *, machine="m", repeats=7):
                             "engine_version": "3.1", "case_hash": "h1"} | (tonight or {}),
                            {"case": "c", "engine": "natcoord", "status": "ok"}]}
     previous = {"machine": {"fingerprint": "m"}, "records": [old, _rec("natcoord")],
-                "work_precision": [{"case": "c", "engine": "mujoco", "error": 1e-3}]}
-    return policy.plan(summary, previous, "prev", ["natcoord", "mujoco"],
+                "work_precision": [{"case": "c", "engine": "mujoco", "error": 1e-3}],
+                "origins": {"c/mujoco": "prev", "c/natcoord": "prev"}}
+    return policy.plan(summary, previous, ["natcoord", "mujoco"],
                        repeats=repeats, machine=machine, when=NOW)
 
 
@@ -56,6 +57,43 @@ def test_an_external_cell_is_reused_until_something_changes(monkeypatch):
         reuse, points, why = _plan(old, tonight, machine=machine)
         assert not reuse and not points, reason
         assert reason in why[("c", "mujoco")], (why, reason)
+
+
+def test_a_one_case_suite_does_not_hide_the_nights_before_it(tmp_path):
+    """earlier(): each cell's newest record over the recorded suites on this machine, with
+    the folder it comes from; a vanished folder and another machine's suites are skipped."""
+    from natcoord.suite import history
+    from natcoord.suite.io import write_json
+
+    db = tmp_path / "history.db"
+
+    def night(name, cases, machine="m"):
+        folder = tmp_path / name
+        bench = {"generated": name, "machine": {"fingerprint": machine},
+                 "records": [_rec(case=c, measured=name) for c in cases],
+                 "work_precision": [{"case": c, "engine": "mujoco", "error": 1.0}
+                                    for c in cases]}
+        summary = {"generated": name, "machine": {"fingerprint": machine},
+                   "records": [{"case": c, "engine": "mujoco", "status": "ok",
+                                "process_time_s": 2.0} for c in cases]}
+        write_json(folder / "bench.json", bench)
+        write_json(folder / "summary.json", summary)
+        history.record(db, kind="suite", summary=summary, bench=bench,
+                       results_dir=str(folder))
+        return folder
+
+    night("n1", ["a", "b"])
+    night("n2", ["a"])
+    gone = night("n3", ["b"])
+    night("n4", ["a", "b"], machine="other")
+    (gone / "bench.json").unlink()
+    bench, summary = policy.earlier(db, "m")
+    assert {(r["case"], r["measured"]) for r in bench["records"]} == {("a", "n2"),
+                                                                     ("b", "n1")}
+    assert bench["origins"] == {"a/mujoco": str(tmp_path / "n2"),
+                                "b/mujoco": str(tmp_path / "n1")}
+    assert len(bench["work_precision"]) == 2 and len(summary["records"]) == 2
+    assert policy.earlier(tmp_path / "none.db", "m") == (None, None)
 
 
 def test_the_adapter_digest_follows_the_adapter_files():
@@ -113,7 +151,7 @@ def test_the_second_night_reuses_the_external_cell_and_judges_only_natcoord(two_
     tmp, db, first, second = two_nights
     assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
     assert "2 cell(s) measured" in first.stdout and "s left in the suite" in second.stdout
-    assert "1 reused from" in second.stdout, second.stdout
+    assert "1 reused from earlier suites" in second.stdout, second.stdout
     a = json.loads((tmp / "a" / "bench.json").read_text())
     b = json.loads((tmp / "b" / "bench.json").read_text())
     old = {r["engine"]: r for r in a["records"]}

@@ -62,30 +62,48 @@ def adapter_digest(engine: str) -> str:
     return h.hexdigest()[:16]
 
 
-def last_suite(db: Path, machine: str) -> tuple[Path | None, dict | None, dict | None]:
-    """The newest recorded suite on this machine whose folder still holds a readable
-    ``bench.json``: (folder, its bench.json, its summary.json or None); (None, None, None)
-    when there is none. A damaged file there is skipped (it is measured again)."""
+def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict | None]:
+    """The newest measurement of every cell over the last ``last`` recorded suites on this
+    machine whose folders still hold a readable ``bench.json`` (a one-case suite does not
+    hide the nights before it): a bench-like ``{"machine", "records", "work_precision",
+    "origins": {"case/engine": folder}}`` and a summary-like ``{"records"}`` (for the
+    durations), or (None, None). A damaged or vanished file is skipped (measured again)."""
     with history.reading(db) as con:
         if con is None:
-            return None, None, None
+            return None, None
         rows = con.execute("SELECT results_dir FROM runs WHERE kind = 'suite' AND machine = ? "
-                           "AND IFNULL(results_dir, '') != '' ORDER BY id DESC LIMIT 20",
-                           (machine,)).fetchall()
+                           "AND IFNULL(results_dir, '') != '' ORDER BY id DESC LIMIT ?",
+                           (machine, last)).fetchall()
+    bench_, runs, origins, machine_info = [], {}, {}, None
+    points: list = []
     for (folder,) in rows:
         path = Path(folder) / "bench.json"
         try:
-            bench = check_bench(path, read_json(path)) if path.is_file() else None
+            data = check_bench(path, read_json(path)) if path.is_file() else None
         except (NatcoordError, OSError):
-            bench = None
-        if bench is None:
+            data = None
+        if data is None:
             continue
         try:
             summary = read_json(Path(folder) / "summary.json")
         except (NatcoordError, OSError):
             summary = None
-        return Path(folder), bench, summary if isinstance(summary, dict) else None
-    return None, None, None
+        machine_info = machine_info or data.get("machine")
+        for r in data.get("records", []):
+            key = f"{r['case']}/{r['engine']}"
+            if key not in origins:
+                origins[key] = str(folder)
+                bench_.append(r)
+                points += [p for p in data.get("work_precision", [])
+                           if isinstance(p, dict) and f"{p.get('case')}/{p.get('engine')}"
+                           == key]
+        for r in (summary or {}).get("records", []) if isinstance(summary, dict) else []:
+            if isinstance(r, dict):
+                runs.setdefault((r.get("case"), r.get("engine")), r)
+    if not origins:
+        return None, None
+    return ({"machine": machine_info or {}, "records": bench_, "work_precision": points,
+             "origins": origins}, {"records": list(runs.values())})
 
 
 def stale(old: dict | None, *, engine_version: str, case_hash: str, adapter: str,
@@ -112,13 +130,13 @@ def stale(old: dict | None, *, engine_version: str, case_hash: str, adapter: str
     return ""
 
 
-def plan(summary: dict, previous: dict | None, origin: Path | None, engines, *,
+def plan(summary: dict, previous: dict | None, engines, *,
          repeats: int, machine: str, when: dt.datetime | None = None
          ) -> tuple[dict, list, dict]:
     """Per case x engine of tonight's accuracy run (``summary``) that ran: the bench records
     to reuse ``{(case, engine): record marked reused}``, the work-precision points that go
     with them (marked too), and why each other cell is measured ``{(case, engine):
-    reason}``. ``previous``: the last suite's bench.json (or None), from folder ``origin``."""
+    reason}``. ``previous``: the earlier measurements (:func:`earlier`, or None)."""
     when = when or dt.datetime.now(dt.UTC)
     old = {(r["case"], r["engine"]): r for r in (previous or {}).get("records", [])}
     old_machine = ((previous or {}).get("machine") or {}).get("fingerprint", "")
@@ -140,7 +158,8 @@ def plan(summary: dict, previous: dict | None, origin: Path | None, engines, *,
         if why:
             measure[key] = why
             continue
-        mark = {"measured": old[key]["measured"], "from": str(origin)}
+        mark = {"measured": old[key]["measured"],
+                "from": previous.get("origins", {}).get("/".join(key), "")}
         reuse[key] = {**old[key], "reused": mark}
         kept += [{**p, "reused": mark} for p in points.get(key, [])]
     return reuse, kept, measure
