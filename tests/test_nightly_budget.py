@@ -205,3 +205,15 @@ def test_quick_is_marked_and_leaves_the_history_alone(two_nights):
     assert [len(r["samples_s"]) for r in b["records"]] == [1]
     with sqlite3.connect(db) as con:
         assert con.execute("SELECT COUNT(*) FROM runs").fetchone() == before
+
+
+def test_a_reused_cell_is_not_judged_as_a_new_measurement(tmp_path):
+    from natcoord.suite import diff, speed
+
+    fresh, reused = _rec(case="a"), _rec(case="b") | {"reused": {"measured": "x"}}
+    bench = {"machine": {"fingerprint": "m"}, "records": [fresh, reused]}
+    judged = diff.against_history(bench, tmp_path / "history.db")
+    assert [(s.case, s.n_base) for s in judged] == [("a", 0)]
+    slow = {"records": [r | {"samples_s": [3 * s for s in r["samples_s"]]}
+                        for r in (fresh, reused)]}
+    assert [s.case for s in speed.compare_bench({"records": [fresh, reused]}, slow)] == ["a"]
