@@ -604,7 +604,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     history), record history; reports/latest then points at it. Exits with the gate's code
     (4: a significant slowdown). Bench policy: natcoord measured every night, another
     engine's cell measured again only when its version, the case file, its adapter or the
-    machine changed or its measurement is a week old (else reused from the last suite,
+    machine changed or its measurement is a week old (else reused from earlier suites,
     marked so)."""
     from .report.html import write_report
     from .suite import bench, diff, gate, policy
@@ -642,7 +642,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                                    catalogue, prev_bench, prev_summary, n))
         out.print(f"[bold]natcoord suite{' --quick' if quick else ''}[/]: {len(selected)} "
                   f"cases x {len(names)} engines, {where} -> {escape(str(target))}"
-                  + (f"; about {clock.left():.0f} s (the last suite's durations)"
+                  + (f"; about {clock.left():.0f} s (earlier suites' durations)"
                      if prev_summary else ""))
         if quick:
             out.print("[bold yellow]quick[/]: a first look, not a nightly: engines "

@@ -1,4 +1,4 @@
-"""The suite's time-left estimate, from the durations of the last suite on this machine.
+"""The suite's time-left estimate, from the durations of earlier suites on this machine.
 
 Every piece of work (an accuracy run, a bench cell, a work-precision point) is expected to
 take what the same piece took last time (its engine process's time, s; the accuracy runs

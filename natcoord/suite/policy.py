@@ -1,14 +1,14 @@
 """The nightly's bench policy: which bench cells a suite measures tonight and which it takes
-from the last suite's ``bench.json``.
+from earlier suites' ``bench.json``.
 
 * natcoord's cells are measured every night (calibrated samples), with a short
   work-precision sweep (:data:`NIGHTLY_SWEEPS`).
 * An external engine's cell (its bench record and its work-precision points) is measured
   again only when its engine version (tonight's accuracy run says which), the case file
   (sha256), its adapter's code (sha256 of the adapter's files), the machine (fingerprint)
-  or the samples asked for changed, when it is older than :data:`MAX_AGE`, or when the last
-  suite has no record of it. Otherwise it is reused, marked ``reused`` with the time it was
-  measured and the folder it comes from.
+  or the samples asked for changed, when it is older than :data:`MAX_AGE`, or when no
+  earlier suite (:func:`earlier`) has a record of it. Otherwise it is reused, marked
+  ``reused`` with the time it was measured and the folder it comes from.
 * A reused cell is not a new measurement: the history does not record its samples again and
   the speed gate does not judge it.
 """
@@ -167,7 +167,7 @@ def plan(summary: dict, previous: dict | None, engines, *,
 
 def likely_reused(previous: dict | None, digests: dict[str, str],
                   when: dt.datetime | None = None) -> set[tuple]:
-    """The (case, engine) cells of the last suite's bench.json that tonight will probably
+    """The (case, engine) cells of the earlier measurements that tonight will probably
     reuse (same case file, young enough; engine versions are known only after tonight's
     accuracy run): for the time estimate before it."""
     when = when or dt.datetime.now(dt.UTC)
