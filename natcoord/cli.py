@@ -188,10 +188,11 @@ def _out_dir(given: Path | None, kind: str) -> Path:
     return given if given is not None else stamped(resolve(None, "reports/runs"), kind)
 
 
-def _progress_printer(total: int, where: str = "here"):
-    """A line per finished run with the time left (from the runs so far); during a silent
-    stretch of more than 30 s a line says that runs are still going (a first numba compile
-    of natcoord's kernels takes about 30 s on a new machine)."""
+def _progress_printer(total: int, where: str = "here", left=None):
+    """A line per finished run with the time left (from the runs so far, or ``left(key)``:
+    the whole suite's, see :mod:`natcoord.suite.eta`); during a silent stretch of more than
+    30 s a line says that runs are still going (a first numba compile of natcoord's kernels
+    takes about 30 s on a new machine)."""
     import threading
     import time
 
@@ -215,8 +216,12 @@ def _progress_printer(total: int, where: str = "here"):
         if done[0] >= total:
             stop.set()
         elapsed = last[0] - start
-        left = elapsed / done[0] * (total - done[0])
-        eta = f"~{left:4.0f} s left" if done[0] < total else f"{elapsed:5.0f} s total"
+        if left is not None:
+            when = f"~{left(key):4.0f} s left in the suite"
+        elif done[0] < total:
+            when = f"~{elapsed / done[0] * (total - done[0]):4.0f} s left"
+        else:
+            when = f"{elapsed:5.0f} s total"
         status, verdict = rec.get("status", "?"), rec.get("verdict", "")
         cost = rec.get("us_per_step")
         cost = f"{cost:9.2f} us/step " if isinstance(cost, (int, float)) else " " * 17
@@ -224,7 +229,7 @@ def _progress_printer(total: int, where: str = "here"):
         out.print(Text.assemble(f"[{done[0]:>3}/{total}] {key:<30} ",
                                 (f"{status:<12}", style.get(status, "")),
                                 (f"{verdict:<10}", verdict_style.get(verdict, "")),
-                                cost, (f"{eta}  ", "dim"), (reason[:90], "dim")))
+                                cost, (f"{when}  ", "dim"), (reason[:90], "dim")))
     return show
 
 
@@ -589,23 +594,39 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               timeout: Timeout = DEFAULT_TIMEOUT_S, jobs: Jobs = None,
               scheduler: Scheduler = None, cases: CaseArgs = None,
               cases_dir: CasesDir = None, references: RefDir = None,
-              history: HistoryDb = None):
+              history: HistoryDb = None,
+              quick: Annotated[bool, typer.Option(
+                  "--quick", help="A first look: natcoord, mujoco and pinocchio (or "
+                  "--engines), one bench sample of natcoord only, no work-precision sweeps, "
+                  "no speed gate; not recorded in the history, reports/latest not "
+                  "moved.")] = False):
     """The nightly job: run all, bench, report, gate (accuracy, and speed against the
     history), record history; reports/latest then points at it. Exits with the gate's code
-    (4: a significant slowdown)."""
+    (4: a significant slowdown). Bench policy: natcoord measured every night, another
+    engine's cell measured again only when its version, the case file, its adapter or the
+    machine changed or its measurement is a week old (else reused from earlier suites,
+    marked so)."""
     from .report.html import write_report
-    from .suite import bench, diff, gate
+    from .suite import bench, diff, gate, policy
+    from .suite import eta as eta_
     from .suite import history as hist
+    from .suite.io import write_json
     from .suite.outdir import publishing
-    from .suite.runner import run_suite
+    from .suite.runner import machine_info, run_suite
 
     names = _engines(engines)
+    if quick:
+        names = [e for e in names if e in policy.QUICK_ENGINES] if engines is None else names
+        repeats = min(repeats, 1)
     references = resolve(references, "references")
     history = resolve(history, "reports/history.db")
     hist.check(history, write=True)  # damaged, foreign or read-only: exit 2 before running
     hist.import_jsonl(history, history.with_suffix(".jsonl"))
-    target = _out_dir(out_dir, "suite")
-    nightly = out_dir is None and not cases and engines is None  # a subset is not nightly
+    target = _out_dir(out_dir, "suite-quick" if quick else "suite")
+    # a subset is not nightly
+    nightly = out_dir is None and not cases and engines is None and not quick
+    machine = machine_info()["fingerprint"]
+    prev_bench, prev_summary = policy.earlier(history, machine)
     with publishing(target, "suite") as staging:
         selected = _cases(cases, cases_dir)
         _check_references(selected, references)
@@ -615,21 +636,55 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             _fail(str(e))
         total = len(selected) * len(names)
         n, where = _where(jobs, scheduler)
-        out.print(f"[bold]natcoord suite[/]: {len(selected)} cases x {len(names)} engines, "
-                  f"{where} -> {escape(str(target))}")
+        bench_engines = [e for e in names if e in policy.ALWAYS] if quick else names
+        catalogue = [] if quick or not repeats else [j for j in selected if j.case.benchmark]
+        clock = eta_.Eta(_expected(selected, names, bench_engines if repeats else [],
+                                   catalogue, prev_bench, prev_summary, n))
+        out.print(f"[bold]natcoord suite{' --quick' if quick else ''}[/]: {len(selected)} "
+                  f"cases x {len(names)} engines, {where} -> {escape(str(target))}"
+                  + (f"; about {clock.left():.0f} s (earlier suites' durations)"
+                     if prev_summary else ""))
+        if quick:
+            out.print("[bold yellow]quick[/]: a first look, not a nightly: engines "
+                      f"{', '.join(names)}, one bench sample of natcoord, no sweeps, no speed "
+                      "gate; not recorded in the history, reports/latest not moved")
+        phases = {"start": clock.clock()}
+        first = {(c, e): t for (k, c, e), t in clock.expected.items() if k == "run"}
         summary = run_suite(selected, names, staging, references=references,
-                            timeout_s=timeout, progress=_progress_printer(total, where),
-                            jobs=n, scheduler=scheduler)
+                            timeout_s=timeout, jobs=n, scheduler=scheduler, first=first,
+                            progress=_progress_printer(total, where, _ticker(clock, "run")))
+        if quick:
+            summary["mode"] = "quick"
+            write_json(staging / "summary.json", summary)
+        phases["accuracy runs"] = clock.clock()
         bench_result, speed = None, []
         if repeats:
-            out.print(f"[bold]bench[/]: {repeats} calibrated samples per cell, every one kept")
-            bench_result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
-                                       progress=_progress_printer(total, "serial, one core"),
-                                       references=references)
-            speed = diff.slower_rechecked(
-                bench_result, selected, repeats, timeout, history,
-                say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower than "
-                                        "their history"))
+            reuse, kept, why = ({}, [], {(j.case.name, e): "quick" for j in selected
+                                        for e in bench_engines}) if quick else policy.plan(
+                summary, prev_bench, names, repeats=repeats, machine=machine)
+            clock.add({(k, c, e): 0.0 for (c, e) in reuse for k in ("bench", "sweep")})
+            out.print(f"[bold]bench[/]: {repeats} calibrated sample(s) per measured cell; "
+                      + _policy_line(why, reuse))
+            bench_result = bench.bench(
+                selected, bench_engines, repeats=repeats, timeout_s=timeout,
+                references=references, reuse=reuse, cold=not quick,
+                progress=_progress_printer(len(selected) * len(bench_engines),
+                                           "serial, one core", _ticker(clock, "bench")))
+            bench_result["policy"] = {
+                "mode": "quick" if quick else "nightly", "always": list(policy.ALWAYS),
+                "max_age_days": policy.MAX_AGE.days,
+                "reused": sorted("/".join(k) for k in reuse),
+                "measured": {"/".join(k): v for k, v in sorted(why.items())}}
+            phases["bench"] = clock.clock()
+            if catalogue:
+                _nightly_sweeps(bench_result, catalogue, names, references, timeout,
+                                reuse, kept, clock)
+                phases["work-precision"] = clock.clock()
+            if not quick:
+                speed = diff.slower_rechecked(
+                    policy.measured_only(bench_result), selected, repeats, timeout, history,
+                    say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower "
+                                            "than their history"))
             # the dated copy only for the nightly suite, under the project's reports/
             bench.store(bench_result, staging,
                         resolve(None, "reports/bench") if nightly else None)
@@ -640,25 +695,35 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower] + diff.speed_notes(speed, history)
+        if quick:
+            verdict.lines.append("quick suite: speed not judged (one sample, natcoord only); "
+                                 "not recorded in the history")
         write_report(staging, references, history)
+        phases["speed gate, report"] = clock.clock()
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
                                         target / "index.html", verdict.lines)
-    if out_dir is None:
+    marks = list(phases.items())
+    out.print(f"suite{' --quick' if quick else ''} took {marks[-1][1] - marks[0][1]:.0f} s: "
+              + ", ".join(f"{k} {t - marks[i][1]:.0f} s" for i, (k, t) in
+                          enumerate(marks[1:])))
+    if out_dir is None and not quick:
         _point_latest(target)
     for line in verdict.lines:
         err.print(escape(line), highlight=False)
     code, faults = verdict.code, []
     try:  # the results are published: a fault from here on is reported, not fatal
-        hist.record(history, kind="suite", summary=summary, bench=bench_result,
-                    gate=verdict.code, results_dir=str(target.resolve()),
-                    commit=hist.git_commit(resolve(None, ".")))
+        if not quick:  # a first look is no nightly: no history, no speed baseline
+            hist.record(history, kind="suite", summary=summary,
+                        bench=bench_result and policy.measured_only(bench_result),
+                        gate=verdict.code, results_dir=str(target.resolve()),
+                        commit=hist.git_commit(resolve(None, ".")))
     except NatcoordError as e:
         faults.append((e, ENVIRONMENT if isinstance(e, EnvironmentFault) else 2))
     try:
         diff.append_step_summary(ci_text)
     except NatcoordError as e:
         faults.append((e, ENVIRONMENT))
-    out.print(counts_line(summary["records"]))
+    out.print(counts_line(summary["records"]) + (" (quick)" if quick else ""))
     out.print(f"report: {(target / 'index.html').resolve()}")
     out.print("[green]gate passed[/]" if verdict.code == 0
               else f"[bold red]gate failed[/] (exit {verdict.code})")
@@ -667,6 +732,90 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                   f"{escape(str(target))})", highlight=False)
         code = code or c
     raise typer.Exit(code)
+
+
+def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summary,
+              jobs: int) -> dict:
+    """Each piece of a suite's work and its expected seconds (:mod:`natcoord.suite.eta`):
+    the accuracy runs shared over ``jobs`` cores; a bench cell or sweep of an engine the
+    policy would reuse (same case file, last measured within its age) 0 s."""
+    from .suite import eta, policy
+    from .suite.worker import cannot_run
+
+    known = eta.durations(prev_summary, prev_bench)
+    cells = [(j.case, e) for j in selected for e in names]
+    out = {k: t / jobs for k, t in eta.expect(
+        [("run", c.name, e) for c, e in cells], known).items()}
+    fresh = policy.likely_reused(prev_bench, {c.name: c.digest for c, _ in cells})
+    sweep = {(j.case.name, e) for j in catalogue for e in names}
+    pieces = [("bench", c.name, e) for c, e in cells if e in bench_engines]
+    pieces += [("sweep", c, e) for c, e in sweep]
+    out |= {k: 0.0 if (k[1], k[2]) in fresh else t
+            for k, t in eta.expect(pieces, known).items()}
+    cannot = {(c.name, e) for c, e in cells if cannot_run(c, e)}  # no engine process
+    return {k: 0.0 if (k[1], k[2]) in cannot else t for k, t in out.items()}
+
+
+def _ticker(clock, kind: str):
+    """``left(key)`` for a progress printer: marks the piece ``key`` ('case/engine') of
+    ``kind`` done and returns the suite's time left."""
+    def left(key: str) -> float:
+        case, _, engine = key.partition("/")
+        clock.done((kind, case, engine))
+        return clock.left()
+    return left
+
+
+def _policy_line(why: dict, reuse: dict) -> str:
+    """What the bench policy chose: cells measured (and why, counted), cells reused."""
+    from collections import Counter
+
+    counts = Counter(why.values())
+    text = f"{len(why)} cell(s) measured (" + "; ".join(
+        f"{v}: {k}" for k, v in counts.most_common(4)) + ")"
+    if reuse:
+        dates = sorted(r["measured"][:10] for r in reuse.values())
+        text += (f", {len(reuse)} reused from earlier suites (measured "
+                 f"{dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''})")
+    return text
+
+
+def _nightly_sweeps(result: dict, catalogue, names, references, timeout, reuse, kept,
+                    clock) -> None:
+    """The suite's work-precision points (policy.NIGHTLY_SWEEPS on the catalogue cases;
+    reused cells' points kept), time to accuracy and the benchmark scoring, into
+    ``result`` as `natcoord bench --work-precision` writes them."""
+    from .suite import bench, policy
+
+    skip = set(reuse)
+    per = {(j.case.name, e): len(policy.NIGHTLY_SWEEPS.get(e, [])) for j in catalogue
+           for e in names if (j.case.name, e) not in skip}
+    total = sum(per.values())
+    names_in = {j.case.name for j in catalogue}
+    out.print(f"[bold]work-precision[/]: {total} point(s) measured on {len(catalogue)} "
+              f"catalogue case(s), {sum(c in names_in for c, _ in skip)} cell(s) reused")
+    seen: dict = {}
+
+    def left(key: str) -> float:
+        cell = key.split(" ")[0]
+        case, _, engine = cell.partition("/")
+        seen[(case, engine)] = seen.get((case, engine), 0) + 1
+        if seen[(case, engine)] >= per.get((case, engine), 0):
+            clock.done(("sweep", case, engine))
+        return clock.left()
+
+    points = bench.work_precision(catalogue, names, references=references, repeats=3,
+                                  timeout_s=timeout, sweeps=policy.NIGHTLY_SWEEPS,
+                                  skip=skip, progress=_progress_printer(
+                                      total, "serial, one core", left))
+    points += [p for p in kept if p.get("case") in names_in]
+    for j in catalogue:  # an engine that cannot run a case: its sweep is done at once
+        for e in names:
+            if (j.case.name, e) not in seen:
+                clock.done(("sweep", j.case.name, e))
+    result["work_precision"] = points
+    result["time_to_accuracy"] = bench.time_to_accuracy(points)
+    result["scoring"] = bench.scoring(catalogue, result["records"], points)
 
 
 @app.command("history")

@@ -166,9 +166,13 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
     case = job.case
     job = dataclasses.replace(as_job(job), truncate=FIT_FRACTION)
     (run,) = timed_runs(job, engine, tmp, timeout_s, repeats)
+    from .policy import adapter_digest, now
+
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
            "status": run["status"], "reason": run.get("reason", ""),
-           "engine_version": run.get("engine_version", "")}
+           "engine_version": run.get("engine_version", ""), "measured": now(),
+           "adapter_hash": adapter_digest(engine), "requested_repeats": repeats,
+           "process_time_s": run.get("process_time_s")}
     if run["status"] == "ok" and run.get("wall_time_s"):
         samples = run.get("samples_s") or [run["wall_time_s"]]
         best = min(samples)
@@ -270,22 +274,26 @@ def cold_start(job, tmp: Path, repeats: int = COLD_REPEATS, timeout_s: float = 6
 
 def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
           timeout_s: float = 600.0, progress: Callable[[str, dict], None] | None = None,
-          references: Path | None = None) -> dict:
+          references: Path | None = None, reuse: dict | None = None,
+          cold: bool = True) -> dict:
     """Benchmark and return ``{"records": [...], "machine": ..., "generated": ...}`` (and
-    ``cold_start`` when natcoord is benchmarked)."""
-    records, cold = [], None
+    ``cold_start`` when natcoord is benchmarked and ``cold``). ``reuse``: ``{(case, engine):
+    record}`` taken as they are instead of measured (:mod:`natcoord.suite.policy`)."""
+    records, cold_rec = [], None
     jobs = [as_job(c) for c in cases]
+    reuse = reuse or {}
     with tempfile.TemporaryDirectory(prefix="natcoord-bench-") as tmp:
         for job in jobs:
             for engine in engines:
-                rec = measure(job, engine, repeats, timeout_s, Path(tmp), references)
+                rec = reuse.get((job.case.name, engine)) or measure(
+                    job, engine, repeats, timeout_s, Path(tmp), references)
                 records.append(rec)
                 if progress:
                     progress(f"{job.case.name}/{engine}", rec)
-        if "natcoord" in engines and jobs:  # after the runs above: the kernel cache is warm
+        if cold and "natcoord" in engines and jobs:  # after the runs above: kernels cached
             ran = [j for j in jobs if any(r["case"] == j.case.name and r["engine"] ==
                                           "natcoord" and r["status"] == "ok" for r in records)]
-            cold = cold_start((ran or jobs)[0], Path(tmp), timeout_s=timeout_s)
+            cold_rec = cold_start((ran or jobs)[0], Path(tmp), timeout_s=timeout_s)
     by_key = {(r["case"], r["engine"]): r for r in records}
     for r in records:
         ref = by_key.get((r["case"], "natcoord"), {})
@@ -294,8 +302,8 @@ def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
     out = {"generated": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
            "natcoord_version": __version__, "machine": machine_info(), "repeats": repeats,
            "records": records}
-    if cold is not None:
-        out["cold_start"] = cold
+    if cold_rec is not None:
+        out["cold_start"] = cold_rec
     return out
 
 
@@ -311,7 +319,9 @@ def store(result: dict, out: Path, history_dir: Path | None = None) -> Path:
 def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                    references: Path = Path("references"), repeats: int = 5,
                    timeout_s: float = 600.0,
-                   progress: Callable[[str, dict], None] | None = None) -> list[dict]:
+                   progress: Callable[[str, dict], None] | None = None,
+                   sweeps: dict[str, list[dict]] | None = None,
+                   skip: set | frozenset = frozenset()) -> list[dict]:
     """Error of the first angle channel (``error``) and, for a case with a ``[benchmark]``,
     the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep:
     every sweep point timed as a bench cell (:func:`timed_runs`: ``repeats`` calibrated
@@ -319,7 +329,12 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
 
     Returns one record per case x engine x setting, and per case x engine the time to
     reach each error in TARGETS (the cheapest point at or below it; None if none does).
+    ``sweeps``: the settings per engine (default :data:`SWEEPS`); ``skip``: (case, engine)
+    pairs not swept.
     """
+    from .policy import now
+
+    sweeps = SWEEPS if sweeps is None else sweeps
     points = []
     with tempfile.TemporaryDirectory(prefix="natcoord-wp-") as tmp:
         for job in map(as_job, cases):
@@ -329,12 +344,15 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
             if ref is None or (angle is None and not case.benchmark):
                 continue
             for engine in engines:
-                for setting in SWEEPS.get(engine, []):
+                if (case.name, engine) in skip:
+                    continue
+                for setting in sweeps.get(engine, []):
                     runs = timed_runs(job, engine, Path(tmp), timeout_s, repeats, setting)
                     ok = [r for r in runs if r["status"] == "ok"]
                     rec = {"case": case.name, "engine": engine, "setting": setting,
                            "variant": variant(setting), "channel": angle,
-                           "status": runs[-1]["status"]}
+                           "status": runs[-1]["status"], "measured": now(),
+                           "process_time_s": runs[-1].get("process_time_s")}
                     if ok:
                         csv = Path(tmp) / "results" / case.name / f"{engine}.csv"
                         run = pd.read_csv(csv)

@@ -173,7 +173,7 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
     machine = bench.get("machine", {}).get("fingerprint", "")
     out = []
     for r in bench.get("records", []):
-        if not r.get("samples_s"):
+        if not r.get("samples_s") or "reused" in r:  # reused: no new measurement to judge
             continue
         key = (db, r["case"], r["engine"], r.get("case_hash", ""), machine)
         past, counters = history.past_samples(*key, exclude_dir=exclude_dir)
@@ -261,8 +261,12 @@ def markdown(summary: dict, code: int, slower: list[speed.SpeedChange], report: 
         word = "nothing ran"
     else:
         word = HEADINGS.get(code, str(code))
-    lines = [f"## natcoord suite: {word} (exit {code})", "",
-             "| outcome | cells |", "| --- | --- |"]
+    quick = summary.get("mode") == "quick"  # `suite --quick`: a first look, no nightly
+    lines = [f"## natcoord suite{' --quick' if quick else ''}: {word} (exit {code})", ""]
+    if quick:
+        lines += ["Quick: a first look, not a nightly (a few engines, no sweeps, no speed "
+                  "gate, not in the history).", ""]
+    lines += ["| outcome | cells |", "| --- | --- |"]
     lines += [f"| {k} | {v} |" for k, v in sorted(counts.items())]
     bad = [r for r in summary["records"] if r.get("verdict") == "fail"
            or r["status"] == "failed"]

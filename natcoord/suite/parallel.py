@@ -28,8 +28,11 @@ def cells(jobs, engines) -> list[tuple]:
     return [(job, engine) for job in jobs for engine in engines]
 
 
-def local(jobs, engines, out: Path, timeout_s: float, workers: int) -> Iterator[tuple]:
-    """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time."""
+def local(jobs, engines, out: Path, timeout_s: float, workers: int,
+          first: dict | None = None) -> Iterator[tuple]:
+    """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
+    ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
+    no long run is left to the end while the other cores idle)."""
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
@@ -38,8 +41,10 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int) -> Iterator[
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
     pool = ThreadPoolExecutor(max_workers=workers)
-    futures = {pool.submit(run_subprocess, job, engine, out, timeout_s): i
-               for i, (job, engine) in enumerate(todo)}
+    order = sorted(range(len(todo)), key=lambda i: -(first or {}).get(
+        (todo[i][0].case.name, todo[i][1]), 0.0))
+    futures = {pool.submit(run_subprocess, todo[i][0], todo[i][1], out, timeout_s): i
+               for i in order}
     try:
         for f in as_completed(futures):
             yield futures[f], f.result()

@@ -1,0 +1,77 @@
+"""The suite's time-left estimate, from the durations of earlier suites on this machine.
+
+Every piece of work (an accuracy run, a bench cell, a work-precision point) is expected to
+take what the same piece took last time (its engine process's time, s; the accuracy runs
+shared over ``jobs`` cores), a piece never seen as long as the median of the same engine's
+pieces of that kind (else of every piece of that kind, else :data:`UNKNOWN_S`). The time
+left is the expected time of what is left, scaled by how tonight's finished pieces compare
+with their expectation (tonight's load), fully so once a tenth of the work is done.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Iterable
+
+UNKNOWN_S = 5.0  # a piece of a kind never measured on this machine
+RUN, BENCH, SWEEP = "run", "bench", "sweep"
+
+
+def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
+    """``{(kind, case, engine): seconds}`` from a suite's summary.json and bench.json (a
+    sweep: the sum of its points)."""
+    out: dict[tuple, float] = {}
+    for kind, records in ((RUN, (summary or {}).get("records", [])),
+                          (BENCH, (bench or {}).get("records", []))):
+        for r in records:
+            t = r.get("process_time_s")
+            if isinstance(t, (int, float)) and "reused" not in r:
+                out[(kind, r.get("case"), r.get("engine"))] = float(t)
+    for p in (bench or {}).get("work_precision", []):
+        t = p.get("process_time_s")
+        if isinstance(t, (int, float)) and "reused" not in p:
+            key = (SWEEP, p.get("case"), p.get("engine"))
+            out[key] = out.get(key, 0.0) + float(t)
+    return out
+
+
+def expect(pieces: Iterable[tuple], known: dict[tuple, float]) -> dict[tuple, float]:
+    """Each piece ``(kind, case, engine)``'s expected seconds (see the module's rule)."""
+    by_engine: dict[tuple, list] = {}
+    by_kind: dict[str, list] = {}
+    for (kind, _, engine), t in known.items():
+        by_engine.setdefault((kind, engine), []).append(t)
+        by_kind.setdefault(kind, []).append(t)
+    out = {}
+    for p in pieces:
+        kind, _, engine = p
+        similar = by_engine.get((kind, engine)) or by_kind.get(kind)
+        out[p] = known.get(p, statistics.median(similar) if similar else UNKNOWN_S)
+    return out
+
+
+class Eta:
+    """Time left of a suite: ``expected`` seconds per piece (wall time: a parallel piece
+    already divided by the cores it shares); :meth:`done` as pieces finish."""
+
+    def __init__(self, expected: dict[tuple, float], clock=time.monotonic):
+        self.expected, self.clock = dict(expected), clock
+        self.start, self.finished = clock(), set()
+
+    def add(self, expected: dict[tuple, float]) -> None:
+        """More pieces (a later phase whose pieces are known only now)."""
+        self.expected.update(expected)
+
+    def done(self, piece: tuple) -> None:
+        self.finished.add(piece)
+
+    def left(self) -> float:
+        total = sum(self.expected.values())
+        done = sum(t for p, t in self.expected.items() if p in self.finished)
+        rest = total - done
+        if total <= 0 or done <= 0:
+            return rest
+        w = min(1.0, done / total / 0.1)  # trust tonight's pace once a tenth is done
+        pace = (self.clock() - self.start) / done
+        return rest * ((1 - w) + w * pace)

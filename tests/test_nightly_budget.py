@@ -1,0 +1,219 @@
+"""The nightly within a night: the bench policy (natcoord measured every night, another
+engine's cell reused until something changed), the suite's own work-precision points and
+scoring, `suite --quick`, and the time-left estimate."""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import sqlite3
+import subprocess
+import sys
+
+import pytest
+
+from natcoord.suite import eta, policy
+
+NOW = dt.datetime(2026, 11, 26, 12, tzinfo=dt.UTC)
+
+
+def _rec(engine="mujoco", **kw) -> dict:
+    r = {"case": "c", "engine": engine, "status": "ok", "samples_s": [1.0, 1.1, 1.0],
+         "engine_version": "3.1", "case_hash": "h1", "adapter_hash": "a1",
+         "requested_repeats": 7, "measured": (NOW - dt.timedelta(days=1)).isoformat()}
+    return r | kw
+
+
+def _plan(old: dict, tonight: dict | None = None, *, machine="m", repeats=7):
+    """plan() with one external cell, its adapter digest pinned to 'a1'."""
+    summary = {"records": [{"case": "c", "engine": "mujoco", "status": "ok",
+                            "engine_version": "3.1", "case_hash": "h1"} | (tonight or {}),
+                           {"case": "c", "engine": "natcoord", "status": "ok"}]}
+    previous = {"machine": {"fingerprint": "m"}, "records": [old, _rec("natcoord")],
+                "work_precision": [{"case": "c", "engine": "mujoco", "error": 1e-3}],
+                "origins": {"c/mujoco": "prev", "c/natcoord": "prev"}}
+    return policy.plan(summary, previous, ["natcoord", "mujoco"],
+                       repeats=repeats, machine=machine, when=NOW)
+
+
+def test_an_external_cell_is_reused_until_something_changes(monkeypatch):
+    monkeypatch.setattr(policy, "adapter_digest", lambda e: "a1")
+    reuse, points, why = _plan(_rec())
+    assert list(reuse) == [("c", "mujoco")] and why == {("c", "natcoord"):
+                                                        "measured every night"}
+    mark = reuse[("c", "mujoco")]["reused"]
+    assert mark == {"measured": _rec()["measured"], "from": "prev"}
+    assert points == [{"case": "c", "engine": "mujoco", "error": 1e-3, "reused": mark}]
+    for old, tonight, machine, reason in [
+            (_rec(), {"engine_version": "3.2"}, "m", "engine version 3.1 -> 3.2"),
+            (_rec(), {"case_hash": "h2"}, "m", "case file changed"),
+            (_rec(adapter_hash="a0"), {}, "m", "adapter code changed"),
+            (_rec(), {}, "other", "another machine"),
+            (_rec(measured=(NOW - dt.timedelta(days=8)).isoformat()), {}, "m",
+             "over 7 days ago"),
+            (_rec(requested_repeats=3), {}, "m", "other sample count"),
+            (_rec(status="failed", samples_s=[]), {}, "m", "no earlier measurement")]:
+        reuse, points, why = _plan(old, tonight, machine=machine)
+        assert not reuse and not points, reason
+        assert reason in why[("c", "mujoco")], (why, reason)
+
+
+def test_a_one_case_suite_does_not_hide_the_nights_before_it(tmp_path):
+    """earlier(): each cell's newest record over the recorded suites on this machine, with
+    the folder it comes from; a vanished folder and another machine's suites are skipped."""
+    from natcoord.suite import history
+    from natcoord.suite.io import write_json
+
+    db = tmp_path / "history.db"
+
+    def night(name, cases, machine="m"):
+        folder = tmp_path / name
+        bench = {"generated": name, "machine": {"fingerprint": machine},
+                 "records": [_rec(case=c, measured=name) for c in cases],
+                 "work_precision": [{"case": c, "engine": "mujoco", "error": 1.0}
+                                    for c in cases]}
+        summary = {"generated": name, "machine": {"fingerprint": machine},
+                   "records": [{"case": c, "engine": "mujoco", "status": "ok",
+                                "process_time_s": 2.0} for c in cases]}
+        write_json(folder / "bench.json", bench)
+        write_json(folder / "summary.json", summary)
+        history.record(db, kind="suite", summary=summary, bench=bench,
+                       results_dir=str(folder))
+        return folder
+
+    night("n1", ["a", "b"])
+    night("n2", ["a"])
+    gone = night("n3", ["b"])
+    night("n4", ["a", "b"], machine="other")
+    (gone / "bench.json").unlink()
+    bench, summary = policy.earlier(db, "m")
+    assert {(r["case"], r["measured"]) for r in bench["records"]} == {("a", "n2"),
+                                                                     ("b", "n1")}
+    assert bench["origins"] == {"a/mujoco": str(tmp_path / "n2"),
+                                "b/mujoco": str(tmp_path / "n1")}
+    assert len(bench["work_precision"]) == 2 and len(summary["records"]) == 2
+    assert policy.earlier(tmp_path / "none.db", "m") == (None, None)
+
+
+def test_the_adapter_digest_follows_the_adapter_files():
+    a, b = policy.adapter_digest("mujoco"), policy.adapter_digest("pinocchio")
+    assert len(a) == 16 and a != b and a == policy.adapter_digest("mujoco")
+    assert policy.adapter_digest("no-such-engine") == ""
+
+
+def test_time_left_comes_from_the_last_durations_and_tonights_pace():
+    """Deterministic: a fake clock. Pieces known from the last suite take their time, an
+    unknown piece the median of its engine's; tonight runs at twice the pace, which the
+    estimate follows fully once a tenth of the work is done."""
+    known = eta.durations({"records": [{"case": f"c{i}", "engine": "e",
+                                        "process_time_s": 1.0 + i} for i in range(3)]},
+                          {"records": [], "work_precision": [
+                              {"case": "c0", "engine": "e", "process_time_s": 2.0},
+                              {"case": "c0", "engine": "e", "process_time_s": 3.0},
+                              {"case": "c0", "engine": "x", "process_time_s": 9.0,
+                               "reused": {}}]})
+    assert known[("sweep", "c0", "e")] == 5.0 and ("sweep", "c0", "x") not in known
+    pieces = [("run", f"c{i}", "e") for i in range(4)] + [("bench", "c0", "e")]
+    exp = eta.expect(pieces, known)
+    assert exp[("run", "c3", "e")] == 2.0  # median of its engine's accuracy runs
+    assert exp[("bench", "c0", "e")] == eta.UNKNOWN_S  # no bench piece ever measured
+    now = [0.0]
+    clock = eta.Eta({("run", f"c{i}", "e"): 1.0 for i in range(20)}, clock=lambda: now[0])
+    assert clock.left() == 20.0
+    for i in range(2):  # a tenth, at twice the expected pace
+        now[0] += 2.0
+        clock.done(("run", f"c{i}", "e"))
+    assert clock.left() == pytest.approx(36.0)  # 18 pieces x 2 s
+    clock.add({("bench", "c0", "e"): 0.0})  # a reused cell costs nothing
+    assert clock.left() == pytest.approx(36.0)
+
+
+def _suite(*args, timeout=1200):
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", "suite", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "NO_COLOR": "1"})
+
+
+@pytest.fixture(scope="module")
+def two_nights(tmp_path_factory):
+    """Two real suites of the spatial slider-crank (a catalogue case) in natcoord and MuJoCo
+    against one fresh history: the first measures both, the second only natcoord."""
+    tmp = tmp_path_factory.mktemp("nights")
+    db = tmp / "history.db"
+    args = ("slider_crank_3d", "--engines", "natcoord,mujoco", "--history", db)
+    first = _suite(*args, "--out", tmp / "a")
+    second = _suite(*args, "--out", tmp / "b")
+    return tmp, db, first, second
+
+
+def test_the_second_night_reuses_the_external_cell_and_judges_only_natcoord(two_nights):
+    tmp, db, first, second = two_nights
+    assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
+    assert "2 cell(s) measured" in first.stdout and "s left in the suite" in second.stdout
+    assert "1 reused from earlier suites" in second.stdout, second.stdout
+    a = json.loads((tmp / "a" / "bench.json").read_text())
+    b = json.loads((tmp / "b" / "bench.json").read_text())
+    old = {r["engine"]: r for r in a["records"]}
+    new = {r["engine"]: r for r in b["records"]}
+    assert "reused" not in old["mujoco"] and "reused" not in new["natcoord"]
+    assert new["mujoco"]["reused"]["measured"] == old["mujoco"]["measured"]
+    assert new["mujoco"]["samples_s"] == old["mujoco"]["samples_s"]
+    assert new["natcoord"]["measured"] > old["natcoord"]["measured"]
+    assert b["policy"]["reused"] == ["slider_crank_3d/mujoco"]
+    # the speed gate judged natcoord's new samples only; the history holds each
+    # measurement once (mujoco's samples are not recorded a second time)
+    assert "speed judged for 1 cell(s)" in second.stderr, second.stderr
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT engine, COUNT(*) FROM bench GROUP BY engine").fetchall()
+    assert dict(rows) == {"natcoord": 2, "mujoco": 1}
+
+
+def test_the_suite_writes_work_precision_and_scoring_like_bench(two_nights):
+    tmp, *_ = two_nights
+    for night in ("a", "b"):
+        b = json.loads((tmp / night / "bench.json").read_text())
+        pts = b["work_precision"]
+        by = {e: [p for p in pts if p["engine"] == e] for e in ("natcoord", "mujoco")}
+        assert len(by["natcoord"]) == len(policy.NIGHTLY_SWEEPS["natcoord"])
+        assert len(by["mujoco"]) == len(policy.NIGHTLY_SWEEPS["mujoco"])
+        assert all(p["status"] == "ok" and p["benchmark_error"] >= 0 for p in pts)
+        assert all(("reused" in p) == (night == "b" and p["engine"] == "mujoco")
+                   for p in pts)
+        scores = {s["engine"]: s for s in b["scoring"]}
+        assert set(scores) == {"natcoord", "mujoco"}
+        for s in scores.values():  # every score within the benchmark's precision, 1 mm
+            assert s["precision"] == 1e-3 and s["error"] <= 1e-3
+            assert s["time_to_precision"] > 0 and s["reached_by"]
+        assert {r["engine"] for r in b["time_to_accuracy"]} >= {"natcoord (index1 dop853)",
+                                                                 "mujoco"}
+
+
+def test_quick_is_marked_and_leaves_the_history_alone(two_nights):
+    tmp, db, *_ = two_nights
+    with sqlite3.connect(db) as con:
+        before = con.execute("SELECT COUNT(*) FROM runs").fetchone()
+    p = _suite("slider_crank_3d", "--quick", "--history", db, "--out", tmp / "q")
+    assert p.returncode == 0, p.stderr
+    assert "natcoord suite --quick" in p.stdout and "(quick)" in p.stdout
+    assert "not recorded in the history" in p.stderr
+    assert (tmp / "q" / "summary.md").read_text().startswith("## natcoord suite --quick:")
+    assert json.loads((tmp / "q" / "summary.json").read_text())["mode"] == "quick"
+    b = json.loads((tmp / "q" / "bench.json").read_text())
+    assert b["policy"]["mode"] == "quick" and "work_precision" not in b
+    assert [r["engine"] for r in b["records"]] == ["natcoord"]
+    assert [len(r["samples_s"]) for r in b["records"]] == [1]
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT COUNT(*) FROM runs").fetchone() == before
+
+
+def test_a_reused_cell_is_not_judged_as_a_new_measurement(tmp_path):
+    from natcoord.suite import diff, speed
+
+    fresh, reused = _rec(case="a"), _rec(case="b") | {"reused": {"measured": "x"}}
+    bench = {"machine": {"fingerprint": "m"}, "records": [fresh, reused]}
+    judged = diff.against_history(bench, tmp_path / "history.db")
+    assert [(s.case, s.n_base) for s in judged] == [("a", 0)]
+    slow = {"records": [r | {"samples_s": [3 * s for s in r["samples_s"]]}
+                        for r in (fresh, reused)]}
+    assert [s.case for s in speed.compare_bench({"records": [fresh, reused]}, slow)] == ["a"]
