@@ -37,7 +37,7 @@ from ..mechanism import FORCE_KINDS
 from . import balance, redundant, speed, trends
 from .lazy import FigureStore
 from .look import style
-from .sampling import MAX_POINTS, envelope, f32, stride  # noqa: F401 (MAX_POINTS: tests)
+from .sampling import MAX_POINTS, envelope, minmax, series  # noqa: F401 (MAX_POINTS: tests)
 
 ENGINE_COLORS = {  # the first engines' colours stay as they were; the rest by the palette
     "natcoord": "#1f77b4",
@@ -323,20 +323,20 @@ def channel_figure(
         y = df[name].to_numpy(float)
         if not np.any(np.isfinite(y)):
             continue
-        i = stride(len(t))
+        x, y = minmax(t, y)
         add(
             go.Scatter(
-                x=f32(t[i]), y=f32(y[i]), name=eng, mode="lines", legendgroup=eng,
+                x=x, y=y, name=eng, mode="lines", legendgroup=eng,
                 line={"color": colors[eng], "width": 1.5},
                 hovertemplate=f"{eng}<br>t=%{{x:.4g}} s<br>%{{y:.4g}}<extra></extra>",
             ),
             1,
         )
     if has_ref:  # drawn last: its dashes stay visible over engines that agree with it
-        i = stride(len(ref_t))
+        x, y = minmax(ref_t, ref_y)
         add(
             go.Scatter(
-                x=f32(ref_t[i]), y=f32(ref_y[i]), name="reference", mode="lines",
+                x=x, y=y, name="reference", mode="lines",
                 legendgroup="reference",
                 line={"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
                 hovertemplate="reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>",
@@ -347,7 +347,7 @@ def channel_figure(
         te, ee = envelope(ref_t, e)
         add(
             go.Scatter(
-                x=f32(te), y=f32(ee), name=eng, mode="lines", legendgroup=eng,
+                x=series(te), y=series(ee), name=eng, mode="lines", legendgroup=eng,
                 showlegend=False, line={"color": colors[eng], "width": 1.2},
                 hovertemplate=f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>",
             ),
@@ -732,8 +732,25 @@ def _environment() -> jinja2.Environment:
     return env
 
 
+PLOTLY_BASIC = Path(__file__).with_name("vendor") / "plotly-basic.min.js"
+
+
+def plotly_js() -> str:
+    """plotly.js for the page: the basic bundle (scatter, bar, pie; 1.2 MB) shipped beside
+    this module, at the version of the plotly package's own bundle (4.8 MB), which is the
+    fallback when the versions differ or the file is missing."""
+    try:
+        basic = PLOTLY_BASIC.read_text(encoding="utf-8")
+    except OSError:
+        return plotly.offline.get_plotlyjs()
+    m = re.search(r"plotly\.js \(basic - minified\) v(\S+)", basic[:300])
+    if m is None or m.group(1) != plotly.offline.get_plotlyjs_version():
+        return plotly.offline.get_plotlyjs()
+    return basic
+
+
 def render(context: dict) -> str:
-    js = plotly.offline.get_plotlyjs()
+    js = plotly_js()
     if "</script" in js.lower():  # cannot happen with plotly's bundle; keep the page sound
         js = re.sub(r"</script", r"<\\/script", js, flags=re.IGNORECASE)
     template = _environment().get_template("report.html.j2")
