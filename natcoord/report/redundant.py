@@ -94,7 +94,8 @@ def methods_figure(name: str, unit: str, methods: pd.DataFrame | None,
     fig.update_layout(template="none", height=height, margin={"l": 64, "r": 14, "t": 20,
                                                               "b": 96},
                       legend={"orientation": "h", "y": -0.32, "font": {"size": 11}},
-                      yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]")
+                      yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]",
+                      yaxis_automargin=True)
     return fig
 
 
