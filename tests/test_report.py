@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import gzip
 import json
 import math
 import re
@@ -181,7 +182,7 @@ def test_every_case_and_engine_shown(report):
 
 def test_verdict_cells(report):
     _, html = report
-    cells = re.findall(r'<td class="cell (\w+)"', html)
+    cells = re.findall(r'<td class="cell (\w+)[ "]', html)
     assert len(cells) == len(PLAN) * len(ENGINES)
     assert sorted(set(cells)) == ["fail", "failed", "pass", "skipped", "unsupported"]
     # reasons on hover and in text
@@ -202,8 +203,11 @@ def test_self_contained(report):
     assert '<script src="http' not in html
     assert not re.search(r"""<(script|link|img|iframe)[^>]+(src|href)\s*=\s*["']?(https?:)?//""",
                          html)
-    assert html.count("<script>/**\n* plotly.js") == 1  # plotly.js embedded once, inline
-    assert "cdn.plot.ly" not in html.split("* plotly.js", 1)[0]
+    # plotly.js embedded once, inline (gzip, base64)
+    blob = re.findall(r'<script type="application/octet-stream" id="nc-plotly"[^>]*>([^<]+)<', html)
+    assert len(blob) == 1
+    assert gzip.decompress(base64.b64decode(blob[0])).startswith(b"/**\n* plotly.js")
+    assert "cdn.plot.ly" not in html
 
 
 def test_text_is_escaped(report):

@@ -6,6 +6,8 @@ the front page in the test's tmp folder (and in $NATCOORD_SCREENSHOTS when set).
 
 from __future__ import annotations
 
+import base64
+import gzip
 import json
 import os
 import re
@@ -18,7 +20,7 @@ import numpy as np
 import pytest
 
 from natcoord.report import write_report
-from natcoord.report.front import colour, worst_motion
+from natcoord.report.front import colour, equal_accuracy, worst_motion
 from natcoord.report.lazy import LEVELS, decoded, encode
 from natcoord.suite.history import record
 
@@ -69,6 +71,36 @@ def test_worst_motion_takes_gated_motion_channels_only():
         "l1": {"kind": "position", "max_rel": 9e-1, "tolerance": 1.0, "determined": False}}}
     assert worst_motion(rec) == (3e-8, "x")
     assert worst_motion({"channels": {}}) == (None, "")
+
+
+def test_equal_accuracy_takes_each_engines_best_variant():
+    """From sweep points as ``natcoord bench --work-precision`` writes them: per case and
+    engine the least time to each target over its variants, the ratio to the fastest, and
+    'not reached' / 'not swept' where so; without a sweep the reason."""
+    from natcoord.suite.bench import time_to_accuracy
+
+    pts = [{"case": "c", "engine": e, "variant": v, "channel": "theta", "error": err,
+            "wall_time_s": w}
+           for e, v, err, w in (("natcoord", "index1 dop853", 1e-7, 0.010),
+                                ("natcoord", "index1 dop853", 1e-10, 0.020),
+                                ("natcoord", "index3 trapezoidal", 1e-7, 0.004),
+                                ("mujoco", "", 5e-7, 0.012),
+                                ("mujoco", "", 1e-5, 0.001))]
+    bench = {"records": [], "time_to_accuracy": time_to_accuracy(pts)}
+    fmt_t = lambda v: f"{v * 1e3:.3g} ms"  # noqa: E731
+    fmt_r = lambda v: f"{v:.3g}×"  # noqa: E731
+    out = equal_accuracy(bench, ["c"], ["natcoord", "mujoco", "dart"], lambda *a: "-".join(a),
+                         fmt_t, fmt_r)
+    assert out["targets"] == ["1e-6", "1e-9"] and not out["missing"]
+    nat, muj, dart = out["rows"][0]["cells"]
+    assert [ln["text"] for ln in nat["lines"]] == ["4 ms (1×)", "20 ms (1×)"]
+    assert nat["lines"][0]["best"] and nat["lines"][1]["best"]
+    assert [ln["text"] for ln in muj["lines"]] == ["12 ms (3×)", "not reached"]
+    assert dart["lines"] == []  # not swept
+    assert "no work-precision sweep" in equal_accuracy({"records": []}, ["c"], ["natcoord"],
+                                                       str, fmt_t, fmt_r)["missing"]
+    assert "no benchmark" in equal_accuracy(None, ["c"], ["natcoord"], str, fmt_t,
+                                            fmt_r)["missing"]
 
 
 # ---------------------------------------------------------------- a real run
@@ -156,7 +188,8 @@ def test_light(front_page):
     """A two-case, two-engine report was 4.9 MB (4.8 MB of it plotly.js)."""
     path, html = front_page
     assert path.stat().st_size < 1_500_000, path.stat().st_size
-    assert html.count("* plotly.js (basic - minified) v") == 1
+    blob = re.search(r'id="nc-plotly"[^>]*>([^<]+)<', html)[1]
+    assert gzip.decompress(base64.b64decode(blob)).startswith(b"/**\n* plotly.js (basic")
 
 
 # ---------------------------------------------------------------- in a browser

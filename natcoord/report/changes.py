@@ -8,6 +8,7 @@ a median bench time grown past 1.5x; the same factors the other way are listed a
 
 from __future__ import annotations
 
+import sqlite3
 import statistics
 from pathlib import Path
 
@@ -40,6 +41,25 @@ def _median_now(bench: dict | None) -> dict[tuple[str, str], float]:
     return out
 
 
+def _green(history: Path, results_dir: Path) -> tuple:
+    """(run row, worst per cell, median time per cell, engine versions) of the newest
+    suite in ``history`` whose gate passed, this results folder's own record aside;
+    (None, ...) when there is none."""
+    this = str(results_dir.resolve())
+    with hist.reading(history) as db:
+        if db is None:
+            return None, {}, {}, {}
+        green = db.execute(
+            "SELECT id, generated, git_commit FROM runs WHERE kind = 'suite' AND gate = 0 "
+            "AND results_dir IS NOT ? ORDER BY id DESC LIMIT 1", (this,)).fetchone()
+        if green is None:
+            return None, {}, {}, {}
+        versions = {e: v for e, v in db.execute(
+            "SELECT DISTINCT engine, engine_version FROM results WHERE run_id = ?",
+            (green[0],)) if v}
+        return green, _worst(db, green[0]), _median_s(db, green[0]), versions
+
+
 def section(history: Path | None, results_dir: Path, summary: dict,
             bench: dict | None, fmt_when, fmt_num, fmt_time) -> dict:
     """``{"message"}`` when there is nothing to compare with, else ``{"green": {when,
@@ -47,20 +67,13 @@ def section(history: Path | None, results_dir: Path, summary: dict,
     ``{"cell", "what", "before", "after"}``."""
     if history is None or not Path(history).exists():
         return {"message": "No history database: nothing to compare with."}
-    this = str(Path(results_dir).resolve())
-    with hist.reading(Path(history)) as db:
-        if db is None:
-            return {"message": "No history database: nothing to compare with."}
-        green = db.execute(
-            "SELECT id, generated, git_commit FROM runs WHERE kind = 'suite' AND gate = 0 "
-            "AND results_dir IS NOT ? ORDER BY id DESC LIMIT 1", (this,)).fetchone()
-        if green is None:
-            return {"message": "No earlier suite in the history passed its gate: nothing "
-                               "to compare with yet."}
-        then, t_then = _worst(db, green[0]), _median_s(db, green[0])
-        v_then = {e: v for e, v in db.execute(
-            "SELECT DISTINCT engine, engine_version FROM results WHERE run_id = ?",
-            (green[0],)) if v}
+    try:
+        green, then, t_then, v_then = _green(Path(history), Path(results_dir))
+    except (sqlite3.Error, ValueError, KeyError, TypeError) as exc:
+        return {"message": f"History unreadable ({history}): {exc}"}
+    if green is None:
+        return {"message": "No earlier suite in the history passed its gate: nothing "
+                           "to compare with yet."}
     records = [r for r in summary.get("records") or [] if isinstance(r, dict)]
     now, t_now = _worst_now(records), _median_now(bench)
     worse, better = [], []

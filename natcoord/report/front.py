@@ -11,8 +11,8 @@ from .speed import TARGET_KEY, _num, targets_of
 
 MOTION_KINDS = ("angle", "position", "velocity", "acceleration")
 # log10 of the relative error -> colour: viridis (perceptually uniform, colour-blind safe),
-# yellow for 1e-14 and below, dark violet for 1e-1 and above
-LOG_RANGE = (-14.0, -1.0)
+# yellow for 1e-14 and below, dark violet for 1e-2 and above, a colour per two decades
+LOG_RANGE = (-14.0, -2.0)
 VIRIDIS = ("#fde725", "#90d743", "#35b779", "#21918c", "#31688e", "#443983", "#440154")
 
 
@@ -149,6 +149,6 @@ def profiles(records: list[dict], bench: dict | None, engines: list[str],
             "passed": sum(str(r.get("verdict")) == "pass" for r in ran),
             "median_error": fmt_num(statistics.median(errs)) if errs else "—",
             "speed": (fmt_ratio(statistics.median(ratios)) if ratios and e != "natcoord"
-                      else "1×" if ratios else "no benchmark"),
+                      else "1×" if ratios else "no benchmark time"),
             "n_speed": len(ratios)})
     return out
