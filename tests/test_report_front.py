@@ -199,7 +199,9 @@ PROBE = """() => {
                width: window.innerWidth, wide: [], wrapped: [], clipped: [], drawn: 0};
   for (const t of document.querySelectorAll("main table")) {
     if (!t.offsetParent) continue;
-    if (t.getBoundingClientRect().width > document.querySelector("main").clientWidth)
+    const box = t.parentElement.classList.contains("table-wrap") ? t.parentElement : t;
+    if (t.getBoundingClientRect().width > box.clientWidth + 1 ||
+        t.getBoundingClientRect().width > document.querySelector("main").clientWidth)
       out.wide.push(t.className + ": " + Math.round(t.getBoundingClientRect().width) + " px");
     for (const cell of t.querySelectorAll("td, th")) {
       const walker = document.createTreeWalker(cell, NodeFilter.SHOW_TEXT);
