@@ -19,7 +19,7 @@ import pandas as pd
 import plotly.graph_objects as go
 
 from .look import style
-from .sampling import envelope, f32
+from .sampling import envelope
 
 REFERENCE_COLOR = "#222222"
 HEIGHT = 420  # px
@@ -66,7 +66,7 @@ def figure(name: str, series: dict[str, tuple[np.ndarray, np.ndarray]],
         te, ee = envelope(t, e)
         ref = who == "reference"
         fig.add_trace(go.Scatter(
-            x=f32(te), y=f32(ee), name=who, mode="lines",
+            x=te, y=ee, name=who, mode="lines",
             line={"color": REFERENCE_COLOR if ref else colors.get(who, "#7f7f7f"),
                   "width": 1.8 if ref else 1.4, **({"dash": "dash"} if ref else {})},
             hovertemplate=f"{who}<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>"))

@@ -16,6 +16,8 @@ many cases it has.
 
 from __future__ import annotations
 
+import base64
+import gzip
 import json
 import math
 import re
@@ -34,22 +36,28 @@ from plotly.subplots import make_subplots
 
 from ..case.mechanism import FORCE_KINDS
 from ..engines import engine_names
-from . import balance, redundant, speed, trends
+from . import balance, changes, front, redundant, speed, trends
 from .lazy import FigureStore
 from .look import style
-from .sampling import MAX_POINTS, envelope, f32, stride  # noqa: F401 (MAX_POINTS: tests)
+from .sampling import MAX_POINTS, envelope, minmax, series  # noqa: F401 (MAX_POINTS: tests)
 
-ENGINE_COLORS = {  # the first engines' colours stay as they were; the rest by the palette
-    "natcoord": "#1f77b4",
-    "mujoco": "#e07b00",
-    "pinocchio": "#2ca02c",
-    "exudyn": "#d62728",
-    "dart": "#9467bd",
+# Okabe & Ito's colour-blind-safe palette (its black left to the reference, its yellow too
+# pale for a line on white), then Tol's "muted" colours, in the registry's engine order
+ENGINE_COLORS = {
+    "natcoord": "#0072B2",   # blue
+    "mujoco": "#E69F00",     # orange
+    "pinocchio": "#009E73",  # bluish green
+    "exudyn": "#D55E00",     # vermillion
+    "dart": "#CC79A7",       # reddish purple
+    "simbody": "#56B4E9",    # sky blue
+    "drake": "#882255",      # wine (Tol)
+    "pybullet": "#999933",   # olive (Tol)
 }
-# simbody takes the first: cyan, far from Exudyn's red (a brown was hard to tell from it)
-_EXTRA_COLORS = ["#17becf", "#e377c2", "#bcbd22", "#8c564b", "#7f7f7f"]
+_EXTRA_COLORS = ["#332288", "#44AA99", "#DDCC77", "#AA4499", "#7f7f7f"]
 REFERENCE_COLOR = "#222222"
 FIG_HEIGHT = 480  # px, every channel figure (grid rows line up)
+ON_REFERENCE = 1e-3  # an engine within this fraction of the reference's range is drawn with
+# the reference's samples (a pixel of a figure's height; its error panel shows the rest)
 KIND_ORDER = {"angle": 0, "position": 1, "velocity": 2, "energy": 3, "reaction": 4}
 PLOT_CONFIG = {
     "displaylogo": False,
@@ -323,20 +331,27 @@ def channel_figure(
         y = df[name].to_numpy(float)
         if not np.any(np.isfinite(y)):
             continue
-        i = stride(len(t))
+        hover = f"{eng}<br>t=%{{x:.4g}} s<br>%{{y:.4g}}<extra></extra>"
+        err = errors.get(eng)
+        if err is not None and np.nanmax(err) <= ON_REFERENCE * np.ptp(ref_y[np.isfinite(ref_y)]):
+            # closer to the reference than a line is wide: drawn with the reference's
+            # samples (stored once), its error in the panel below
+            t, y = ref_t, ref_y
+            hover = (f"{eng}: within {fmt_num(np.nanmax(err), unit)} of the reference"
+                     "<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>")
+        x, y = minmax(t, y)
         add(
             go.Scatter(
-                x=f32(t[i]), y=f32(y[i]), name=eng, mode="lines", legendgroup=eng,
-                line={"color": colors[eng], "width": 1.5},
-                hovertemplate=f"{eng}<br>t=%{{x:.4g}} s<br>%{{y:.4g}}<extra></extra>",
+                x=x, y=y, name=eng, mode="lines", legendgroup=eng,
+                line={"color": colors[eng], "width": 1.5}, hovertemplate=hover,
             ),
             1,
         )
     if has_ref:  # drawn last: its dashes stay visible over engines that agree with it
-        i = stride(len(ref_t))
+        x, y = minmax(ref_t, ref_y)
         add(
             go.Scatter(
-                x=f32(ref_t[i]), y=f32(ref_y[i]), name="reference", mode="lines",
+                x=x, y=y, name="reference", mode="lines",
                 legendgroup="reference",
                 line={"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
                 hovertemplate="reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>",
@@ -347,7 +362,7 @@ def channel_figure(
         te, ee = envelope(ref_t, e)
         add(
             go.Scatter(
-                x=f32(te), y=f32(ee), name=eng, mode="lines", legendgroup=eng,
+                x=series(te), y=series(ee), name=eng, mode="lines", legendgroup=eng,
                 showlegend=False, line={"color": colors[eng], "width": 1.2},
                 hovertemplate=f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>",
             ),
@@ -357,7 +372,7 @@ def channel_figure(
     axis = {
         "showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
         "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
-        "exponentformat": "power",
+        "exponentformat": "power", "automargin": True,  # tick labels are never clipped
     }
     fig.update_layout(
         template="none",
@@ -420,8 +435,7 @@ def _channel_cell(ch: dict | None, rec: dict) -> dict:
     sub = []
     if tol is not None:
         sub.append(f"tol {fmt_num(tol, unit)}")
-    if rel is not None:
-        sub.append(f"rel {fmt_num(rel)}")
+    rel_text = f"; relative to the channel's range {fmt_num(rel)}" if rel is not None else ""
     if ch.get("determined") is False:
         css, title = "undet", "undetermined redundant reaction: shown, not gated"
         sub.append("not gated")
@@ -431,7 +445,7 @@ def _channel_cell(ch: dict | None, rec: dict) -> dict:
         css, title = "fail", "outside tolerance"
     else:
         css, title = "na", "no tolerance or no reference: not gated"
-    return {"css": css, "text": text, "sub": " · ".join(sub), "title": title}
+    return {"css": css, "text": text, "sub": " · ".join(sub), "title": title + rel_text}
 
 
 def _sim_time(rec: dict, run: pd.DataFrame | None) -> float | None:
@@ -691,6 +705,17 @@ def build_context(results_dir: Path, references: Path = Path("references"),
     bench, bench_error = _read_bench(results_dir)
     speed_ctx = _speed_context(bench, bench_error, by_key, case_names, speed_groups, colors,
                                figures)
+    amap = front.accuracy_map(by_key, case_names, engines, cell_for, anchor, fmt_num)
+    for row, mrow in zip(amap, matrix, strict=True):
+        for cell, mcell in zip(row["cells"], mrow["cells"], strict=True):
+            cell["note"] = mcell["note"]
+    front_ctx = {
+        "map": amap, "legend": front.legend(),
+        "equal": front.equal_accuracy(bench, case_names, engines, anchor, fmt_time, fmt_ratio),
+        "profiles": front.profiles(records, bench, engines, fmt_num, fmt_ratio),
+        "changes": changes.section(history, results_dir, summary, bench, fmt_when, fmt_num,
+                                   fmt_time),
+    }
     trend = trends.section(history, results_dir, summary, bench, case_names, _engine_order,
                            colors, style, anchor, fmt_num, fmt_time, fmt_when)
     for g in trend["groups"]:
@@ -710,6 +735,7 @@ def build_context(results_dir: Path, references: Path = Path("references"),
         "footnotes": footnotes,
         "cases": cases,
         "speed": speed_ctx,
+        "front": front_ctx,
         "bench": bench is not None or bool(bench_error),
         "trends": trend,
         "shared_arrays": figures.shared(),
@@ -732,12 +758,29 @@ def _environment() -> jinja2.Environment:
     return env
 
 
+PLOTLY_BASIC = Path(__file__).with_name("vendor") / "plotly-basic.min.js"
+
+
+def plotly_js() -> str:
+    """plotly.js for the page: the basic bundle (scatter, bar, pie; 1.2 MB) shipped beside
+    this module, at the version of the plotly package's own bundle (4.8 MB), which is the
+    fallback when the versions differ or the file is missing."""
+    try:
+        basic = PLOTLY_BASIC.read_text(encoding="utf-8")
+    except OSError:
+        return plotly.offline.get_plotlyjs()
+    m = re.search(r"plotly\.js \(basic - minified\) v(\S+)", basic[:300])
+    if m is None or m.group(1) != plotly.offline.get_plotlyjs_version():
+        return plotly.offline.get_plotlyjs()
+    return basic
+
+
 def render(context: dict) -> str:
-    js = plotly.offline.get_plotlyjs()
-    if "</script" in js.lower():  # cannot happen with plotly's bundle; keep the page sound
-        js = re.sub(r"</script", r"<\\/script", js, flags=re.IGNORECASE)
+    """The page; plotly.js travels gzip-compressed in base64 (1.2 MB -> 0.53 MB), unpacked
+    by the browser's DecompressionStream when the page loads (report.js.j2)."""
+    gz = gzip.compress(plotly_js().encode("utf-8"), compresslevel=9, mtime=0)
     template = _environment().get_template("report.html.j2")
-    return template.render(plotlyjs=Markup(js), **context)
+    return template.render(plotly_gz=base64.b64encode(gz).decode("ascii"), **context)
 
 
 def write_report(results_dir: Path, references: Path = Path("references"),

@@ -5,7 +5,8 @@ from __future__ import annotations
 import plotly.graph_objects as go
 
 AXIS = {"showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
-        "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True, "exponentformat": "power"}
+        "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True, "exponentformat": "power",
+        "automargin": True}  # long or negative tick labels widen the margin, never clipped
 FONT = {"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12}
 
 

@@ -15,7 +15,7 @@ import pandas as pd
 import plotly.graph_objects as go
 
 from ..case.mechanism import FORCE_KINDS
-from .sampling import f32, stride
+from .sampling import minmax
 
 METHOD_DASHES = ("dash", "dot", "dashdot", "longdash", "longdashdot")
 
@@ -80,23 +80,22 @@ def methods_figure(name: str, unit: str, methods: pd.DataFrame | None,
     fig = go.Figure()
     for eng, df in runs.items():
         if name in df.columns and np.any(np.isfinite(df[name].to_numpy(float))):
-            i = stride(len(df))
-            fig.add_trace(go.Scatter(x=f32(df["t"].to_numpy()[i]),
-                                     y=f32(df[name].to_numpy()[i]), name=eng, mode="lines",
+            x, y = minmax(df["t"].to_numpy(), df[name].to_numpy())
+            fig.add_trace(go.Scatter(x=x, y=y, name=eng, mode="lines",
                                      line={"color": colors.get(eng, "#444"), "width": 1.4}))
     if methods is not None:
         cols = [c for c in methods.columns if c.startswith(f"{name}@")]
-        i = stride(len(methods))
         for k, c in enumerate(cols):
-            fig.add_trace(go.Scatter(x=f32(methods["t"].to_numpy()[i]),
-                                     y=f32(methods[c].to_numpy()[i]),
+            x, y = minmax(methods["t"].to_numpy(), methods[c].to_numpy())
+            fig.add_trace(go.Scatter(x=x, y=y,
                                      name=f"natcoord {c.split('@', 1)[1]}", mode="lines",
                                      line={"color": "#222", "width": 1.6,
                                            "dash": METHOD_DASHES[k % len(METHOD_DASHES)]}))
     fig.update_layout(template="none", height=height, margin={"l": 64, "r": 14, "t": 20,
                                                               "b": 96},
                       legend={"orientation": "h", "y": -0.32, "font": {"size": 11}},
-                      yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]")
+                      yaxis_title=f"{name} [{unit}]" if unit else name, xaxis_title="t [s]",
+                      yaxis_automargin=True)
     return fig
 
 

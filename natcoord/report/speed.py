@@ -66,7 +66,7 @@ def _spread_text(rec: dict, ss: list[float], fmt_time: Callable) -> tuple[str, s
     if ss:
         lo, hi = min(ss), max(ss)
         title = "every repeat: " + ", ".join(fmt_time(s) for s in sorted(ss))
-        return f"{fmt_time(lo)}–{fmt_time(hi)} (+{100 * (hi - lo) / lo:.0f} %)", title
+        return f"+{100 * (hi - lo) / lo:.0f} %", f"{fmt_time(lo)}–{fmt_time(hi)}; {title}"
     sp = rec.get("wall_spread")
     if isinstance(sp, int | float) and np.isfinite(sp):
         return f"+{100 * sp:.0f} % (max over best)", "bench.json without samples_s"
@@ -254,6 +254,9 @@ def cost_explained(bench: dict, cases_order: list[str],
                     f"{fmt_time(p.get('wall_s'))}"
                     + (f" ({fmt_time(us * 1e-6)}/step)" if (us := _num(p.get("us_per_step")))
                        else "") for p in pts) or "—",
+                "points_short": " · ".join(
+                    f"{_num(p.get('duration_s')) or 0:g} s {fmt_time(p.get('wall_s'))}"
+                    for p in pts) or "—",
                 "superlinear": (_num(fit.get("free_fixed_s")) or 0.0) < 0,
                 "undetermined": bool(pts) and fit.get("determined") is False,
             })
