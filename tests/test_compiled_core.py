@@ -259,10 +259,9 @@ def test_generated_forces_equal_the_generic_ones(name):
         ks.accelerations(plan.kernel_args, ks.NO_GK, frc, q, qd, ref,
                          ks.workspace(plan.kernel_args), cnt, True)
     else:
-        from natcoord.compiled.general import acc_general, workspace
+        from natcoord.compiled.general import acc_general, general, workspace
         ref = np.zeros(n)
-        acc_general(con.k, con.i, con.j, con.v, M, 1e-9, frc, q, qd, ref,
-                    workspace(n, con.m), cnt)
+        acc_general(general(con, M, 1e-9), frc, q, qd, ref, workspace(n, con.m), cnt)
     assert np.max(np.abs(ref)) > 1.0
     assert np.max(np.abs(out - ref)) < 1e-10 * np.max(np.abs(ref))
 

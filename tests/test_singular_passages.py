@@ -17,9 +17,9 @@ import pytest
 
 from natcoord.case.casefile import load_case
 from natcoord.derivations import exact
-from natcoord.dynamics.integrators import singular_hint
 from natcoord.engines import adapter
 from natcoord.engines.base import initial_body_states
+from natcoord.model.kinematics import singular_hint
 from natcoord.outputs.result import evaluate_channels
 from tests.conftest import CASES, REFERENCES
 

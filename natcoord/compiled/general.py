@@ -27,6 +27,7 @@ on rows ``toff[t]:toff[t+1]``, torques ``tau`` (nt, 3) (2-D: tau[:, 0]), spring 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -307,11 +308,11 @@ def min_norm(W, th, piv, r, b, x):
 
 
 @njit(cache=True)
-def acc_nullspace(W, th, piv, r, M, F, c, qdd, Z, MZ, Kf, w, y):
-    """qdd (n,) of Eq. (6) from the factorization, forces F (n,), c (m,); False when
-    Z M Z^T is not positive definite (ker M and ker Phi_q meet: Eq. (37) fails).
-
-    Work: Z (n, n), MZ (n, n), Kf (n, n), w (n,), y (n,)."""
+def acc_nullspace(wg, r, M, F, c, qdd):
+    """qdd (n,) of Eq. (6) from the factorization of rank r in ``wg`` (:func:`workspace`:
+    W, th, piv), forces F (n,), c (m,); False when Z M Z^T is not positive definite (ker M
+    and ker Phi_q meet: Eq. (37) fails). Work: wg's Z, MZ, K (n, n) and two (n,)."""
+    W, th, piv, Z, MZ, Kf, w, y = wg[4], wg[5], wg[6], wg[10], wg[11], wg[12], wg[13], wg[14]
     n = qdd.shape[0]
     f = n - r
     min_norm(W, th, piv, r, c, qdd)
@@ -366,9 +367,11 @@ def workspace(n, m):
 
 
 @njit(cache=True)
-def acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt):
-    """qdd (n,) of Eq. (6) in the null-space form (as ``Index1`` qr mode), reusing the QR a
-    velocity projection left for this q; OK or ERR_MASS (Eq. (37) fails)."""
+def acc_general(gen, frc, q, qd, qdd, wg, cnt):
+    """qdd (n,) of Eq. (6) in the null-space form (as ``Index1`` qr mode) for ``gen`` =
+    (k, i, j, v, M, rank_tol) (:class:`General`), reusing the QR a velocity projection left
+    for this q; OK or ERR_MASS (Eq. (37) fails)."""
+    kk, ii, jj, vv, M, rank_tol = gen
     J, c, F = wg[0], wg[2], wg[3]
     cnt[C_RHS] += 1
     _gamma(kk, ii, jj, vv, qd, c)
@@ -379,8 +382,7 @@ def acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt):
         cnt[C_FACT] += 1
         _jac(kk, ii, jj, vv, q, J)
         r = pqr(J, rank_tol, wg[4], wg[5], wg[6], wg[7], wg[8], wg[9])
-    if acc_nullspace(wg[4], wg[5], wg[6], r, M, F, c, qdd, wg[10], wg[11], wg[12], wg[13],
-                     wg[14]):
+    if acc_nullspace(wg, r, M, F, c, qdd):
         return OK
     return ERR_MASS
 
@@ -431,13 +433,14 @@ def project_general(kk, ii, jj, vv, rank_tol, q, qd, tol, wg, cnt):
 
 
 @njit(cache=True)
-def _evaluate(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, ptol, wg):
+def _evaluate(gen, frc, q, qd, qdd, ptol, wg):
     cnt = np.zeros(N_COUNTERS)
     if ptol > 0.0:
+        kk, ii, jj, vv, _, rank_tol = gen
         st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
         if st != OK:
             return st
-    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
+    return acc_general(gen, frc, q, qd, qdd, wg, cnt)
 
 
 def evaluate(con, frc, M, q, qd, *, rank_tol: float = 1e-9, ptol: float = 0.0):
@@ -445,9 +448,8 @@ def evaluate(con, frc, M, q, qd, *, rank_tol: float = 1e-9, ptol: float = 0.0):
     projected first when ``ptol`` > 0; ``con`` the constraint triplets, M (n, n), frc of
     :func:`pack_forces`. Returns None when a status is not OK."""
     q, qd, qdd = np.array(q, float), np.array(qd, float), np.zeros(len(q))
-    st = _evaluate(np.asarray(con.k, np.int64), np.asarray(con.i, np.int64),
-                   np.asarray(con.j, np.int64), np.asarray(con.v, float), as_f64(M, 2),
-                   float(rank_tol), frc, q, qd, qdd, float(ptol), workspace(len(q), int(con.m)))
+    st = _evaluate(general(con, M, rank_tol), frc, q, qd, qdd, float(ptol),
+                   workspace(len(q), int(con.m)))
     return (q, qd, qdd) if st == OK else None
 
 
@@ -461,6 +463,26 @@ def jacobian(con, q: np.ndarray, J: np.ndarray) -> None:
 def as_f64(x, ndim: int) -> np.ndarray:
     """x as a C-contiguous float64 array; None as an empty array of ``ndim`` dims."""
     return np.ascontiguousarray(np.zeros((0,) * ndim) if x is None else x, float)
+
+
+class General(NamedTuple):
+    """What the general path (pivoted-QR null space) evaluates: the constraint triplets over
+    qh = [q, 1] (k, i, j int64, v float), M (n, n) kg and the relative rank tolerance of
+    Phi_q (on |R_kk| / |R_00|)."""
+
+    k: np.ndarray
+    i: np.ndarray
+    j: np.ndarray
+    v: np.ndarray
+    M: np.ndarray
+    rank_tol: float
+
+
+def general(con, M, rank_tol: float) -> General:
+    """The :class:`General` tuple of constraints ``con``, M (n, n; None: empty) and
+    ``rank_tol``."""
+    k, i, j, v, _ = pack_constraints(con)
+    return General(k, i, j, v, as_f64(M, 2), float(rank_tol))
 
 
 def pack_constraints(con) -> tuple:

@@ -29,6 +29,7 @@ import hashlib
 import math
 from pathlib import Path
 from types import SimpleNamespace
+from typing import NamedTuple
 
 import numpy as np
 
@@ -45,7 +46,7 @@ except ImportError:  # pragma: no cover - numba is a dependency, but stay import
             return args[0]
         return lambda f: f
 
-from ..dynamics.integrators import singular_hint
+from ..model.kinematics import singular_hint
 from . import general as kernels_general
 from . import sparse as kernels_sparse
 from . import sparsity, stepcontrol
@@ -131,19 +132,18 @@ ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 def _accel_general(gen, frc, y, qdd, wg, cnt):
     """qdd (n,) at the state y = [q, qd] on the general path, ``gen`` = (k, i, j, v, M,
     rank_tol); a status code."""
-    kk, ii, jj, vv, M, rank_tol = gen
     n = qdd.shape[0]
-    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, y[:n], y[n:], qdd, wg, cnt)
+    return acc_general(gen, frc, y[:n], y[n:], qdd, wg, cnt)
 
 
 @njit(cache=True)
 def _settle_general(gen, frc, q, qd, qdd, ptol, wg, cnt):
     """Project (q, qd) in place and evaluate qdd there on the general path; a status code."""
-    kk, ii, jj, vv, M, rank_tol = gen
+    kk, ii, jj, vv, _, rank_tol = gen
     st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
     if st != OK:
         return st
-    return acc_general(kk, ii, jj, vv, M, rank_tol, frc, q, qd, qdd, wg, cnt)
+    return acc_general(gen, frc, q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
@@ -187,9 +187,12 @@ def _combine(y, h, C, row, s, K, out):
 
 
 @njit(cache=True)
-def _stages(P, gk, frc, gen, wg, ws, cnt, y, h, A, lo, hi, K, ys, qdd):
-    """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]) (ys,
-    qdd: scratch); a status code. Written without slices (see acc_state)."""
+def _stages(sp, gen, wg, cnt, y, h, lo, hi, rk):
+    """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]), ``rk``
+    = (A, K, ys, qdd) (ys, qdd: scratch); ``sp``, ``gen``, ``wg`` as in :func:`run_index1`;
+    a status code. Written without slices (see acc_state)."""
+    P, gk, frc, ws, _ = sp
+    A, K, ys, qdd = rk
     n = qdd.shape[0]
     for st in range(lo, hi):
         _combine(y, h, A, st, st, K, ys)
@@ -250,20 +253,20 @@ def expand(dep, X, XD, XDD, Q, QD, QDD):
 
 
 @njit(cache=True)
-def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
+def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
     on the constraints first: adaptive (embedded pair, steps cross the samples, dense
     output) or fixed steps (landing on every sample).
 
-    ``wg`` None: the sparse Schur path on the work array ``ws`` and its vector ``w``
-    (:mod:`natcoord.compiled.sparse`), by the generic kernels on the plan ``P`` = (I, F, O)
-    or, P None, by the model's generated kernels ``gk`` (addresses,
-    :mod:`natcoord.compiled.codegen`;
-    ``NO_GK`` with a plan); else the general path on ``gen`` = (k, i, j, v, M, rank_tol)
-    with ``wg`` its work arrays (:func:`kernels_general.workspace`), None off that path;
-    ``frc``: :func:`pack_forces`, None with generated kernels (they carry the forces). What
-    a path does not use goes as None: a tuple's arrays cost time at every call, and numba
-    compiles the None branches away. ``tab`` =
+    ``wg`` None: the sparse Schur path ``sp`` = (P, gk, frc, ws, w): the work array ``ws``
+    and its vector ``w`` (:mod:`natcoord.compiled.sparse`), by the generic kernels on the
+    plan ``P`` = (I, F, O) or, P None, by the model's generated kernels ``gk`` (addresses,
+    :mod:`natcoord.compiled.codegen`; ``NO_GK`` with a plan); else the general path on
+    ``gen`` (:class:`~natcoord.compiled.general.General`) with ``wg`` its work arrays
+    (:func:`kernels_general.workspace`), None off that path; ``frc``: :func:`pack_forces`,
+    None with generated kernels (they carry the forces). What a path does not use goes as
+    None: a tuple's arrays cost time at every call, and numba compiles the None branches
+    away (which is why ``wg`` is an argument of its own). ``tab`` =
     (A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal): the method's tableau
     (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
     control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
@@ -275,6 +278,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
     Q, QD, QDD, cnt, tfail = out
+    frc = sp[2]  # the forces (None with generated kernels)
     fixed = h_fixed > 0.0
     n = q0.shape[0]
     N = 2 * n
@@ -299,12 +303,13 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
     qs = np.zeros(n)
     qds = np.zeros(n)
     qdd = np.zeros(n)
+    rk = (Aall, K, ys, qdd)  # what the stages work on
     y[:n] = q0
     y[n:] = qd0
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = (kernels_sparse.settle(P, gk, frc, y[:n], y[n:], qdd, ptol, ws, w, cnt, False)
+    st_code = (kernels_sparse.settle(sp, y[:n], y[n:], qdd, ptol, cnt, False)
                if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
     if st_code != OK:
         return st_code
@@ -338,7 +343,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
             hh = min(h, tend - t)
         # stages
         K[0] = f0
-        st_code = _stages(P, gk, frc, gen, wg, ws, cnt, y, hh, Aall, 1, s_st, K, ys, qdd)
+        st_code = _stages(sp, gen, wg, cnt, y, hh, 1, s_st, rk)
         if st_code != OK:
             return st_code
         if fsal:  # the last stage is at the new point
@@ -388,13 +393,12 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
         tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
         inner = k_out < T_out and times[k_out] < t1 - tol_t
         if dop853 and inner:
-            st_code = _stages(P, gk, frc, gen, wg, ws, cnt, y, hh, Aall, s_st,
-                              s_st + n_ext, K, ys, qdd)
+            st_code = _stages(sp, gen, wg, cnt, y, hh, s_st, s_st + n_ext, rk)
             if st_code != OK:
                 return st_code
             stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
         st_code = (  # a last stage at yn (fsal) factored there: Newton from it
-            kernels_sparse.settle(P, gk, frc, yn[:n], yn[n:], qdd, ptol, ws, w, cnt, fsal)
+            kernels_sparse.settle(sp, yn[:n], yn[n:], qdd, ptol, cnt, fsal)
             if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
@@ -426,7 +430,7 @@ def run_index1(P, gk, ws, w, gen, wg, frc, tab, ctl, dep, times, q0, qd0, out):
                 st_code = (  # true Newton from the sample: the M-orthogonal projection
                     # (a factorization from elsewhere lands it elsewhere on the manifold,
                     # which near a singular position shows in the reactions)
-                    kernels_sparse.settle(P, gk, frc, qs, qds, qdd, ptol, ws, w, cnt, False)
+                    kernels_sparse.settle(sp, qs, qds, qdd, ptol, cnt, False)
                     if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
                 if st_code != OK:
                     return st_code
@@ -486,8 +490,7 @@ def warm_up(path: str) -> None:
     kern = codegen.load(plan, frc) if path == "generated" else None
     for name, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005)):
         Q, QD, _ = run(name, con, frc, times, np.array([1.0, 0.0]), np.zeros(2),
-                       plan=args, kern=kern, M=np.eye(2), rtol=1e-6, atol=1e-8,
-                       ptol=1e-13, cnt=None, h=h)
+                       Steps(rtol=1e-6, atol=1e-8, h=h), Route(args, kern, np.eye(2)))
     if path == "sparse":
         sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
             max_phi=0.0, max_phi_dot=0.0), args)
@@ -498,21 +501,42 @@ def warm_up(path: str) -> None:
     expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
 
 
-def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
-        rank_tol: float = 1e-9, rtol, atol, ptol, cnt, h=None, h0: float = 0.0,
-        max_steps: int = 10_000_000, dep=None):
-    """Integrate with the compiled loop; returns (Q, QD, QDD) (T, n) (n of the model when
-    ``dep`` is given). Raises RuntimeError.
+class Steps(NamedTuple):
+    """Step control of a compiled index-1 run: ``rtol``/``atol`` of adaptive steps, or a
+    fixed step ``h`` (s; None: adaptive), the projection tolerance ``ptol`` (on |Phi|, m),
+    the first step ``h0`` (s; 0: Hairer's initial step) and a step budget."""
 
-    ``frc`` from :func:`pack_forces`. ``plan`` (the ``kernel_args`` of
-    :func:`natcoord.compiled.sparsity.schur_plan`, for a regular M) selects the sparse Schur path;
-    without it the general path runs on ``M`` (n, n) and ``rank_tol`` (relative, on
-    |R_kk| / |R_00|). ``kern``: the plan's generated kernels
-    (:func:`natcoord.compiled.codegen.load`), None for the generic ones. ``h``: a fixed step
-    (s) for rk4 or dopri5, else adaptive
-    steps at ``rtol``/``atol``. ``dep``: an elimination's coordinates
-    (:attr:`natcoord.compiled.elimination.Elimination.dep_map`: the loop runs on the kept ones, its
-    error norm and samples cover all), None for none."""
+    rtol: float = 0.0
+    atol: float = 0.0
+    ptol: float = 1e-13
+    h: float | None = None
+    h0: float = 0.0
+    max_steps: int = 10_000_000
+
+
+class Route(NamedTuple):
+    """Which linear algebra the loop runs: ``plan`` (the ``kernel_args`` of
+    :func:`natcoord.compiled.sparsity.schur_plan`, for a regular M) selects the sparse Schur
+    path, with ``kern`` its generated kernels (:func:`natcoord.compiled.codegen.load`; None:
+    the generic ones); without a plan the general path runs on ``M`` (n, n) and
+    ``rank_tol`` (relative, on |R_kk| / |R_00|). ``dep``: an elimination's coordinates
+    (:attr:`natcoord.compiled.elimination.Elimination.dep_map`: the loop runs on the kept
+    ones, its error norm and samples cover all), None for none."""
+
+    plan: tuple | None = None
+    kern: object | None = None
+    M: np.ndarray | None = None
+    rank_tol: float = 1e-9
+    dep: tuple | None = None
+
+
+def run(name: str, con, frc, times, q0, qd0, steps: Steps, route: Route | None = None,
+        cnt=None):
+    """Integrate with the compiled loop by method ``name``; returns (Q, QD, QDD) (T, n) (n
+    of the model when ``route.dep`` is given). ``frc`` from :func:`pack_forces`; ``cnt``:
+    counters added to. Raises RuntimeError."""
+    rtol, atol, ptol, h, h0, max_steps = steps
+    plan, kern, M, rank_tol, dep = route or Route()
     A, B, C, E5, E3, expo, Aext, Cext, D, fsal = tableau(name)
     tab = (A, B, C, E5, E3, expo, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
@@ -524,9 +548,7 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
                np.arange(n, dtype=np.int64), np.zeros(0, np.int64))
     Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
-    gen = None if plan is not None else (
-        *pack_constraints(con)[:4], as_f64(np.zeros((0, 0)) if M is None else M, 2),
-        float(rank_tol))
+    gen = None if plan is not None else kernels_general.general(con, M, rank_tol)
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
@@ -534,11 +556,10 @@ def run(name: str, con, frc, times, q0, qd0, *, plan=None, kern=None, M=None,
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
     generated = kern is not None and plan is not None  # they serve the sparse path
-    status = run_index1(None if generated else args,
-                        kern if generated else kernels_sparse.NO_GK, ws, w, gen, wg,
-                        None if generated else frc, tab, ctl, dep,
-                        np.ascontiguousarray(times, float), np.array(q0, float),
-                        np.array(qd0, float), (Q, QD, QDD, c, tfail))
+    sp = (None if generated else args, kern if generated else kernels_sparse.NO_GK,
+          None if generated else frc, ws, w)
+    status = run_index1(sp, gen, wg, tab, ctl, dep, np.ascontiguousarray(times, float),
+                        np.array(q0, float), np.array(qd0, float), (Q, QD, QDD, c, tfail))
     add_counters(c, cnt)
     if status != OK:
         k = int(np.searchsorted(times, tfail[0], side="right")) - 1  # last sample reached

@@ -21,6 +21,7 @@ qh = [q, 1] (:class:`~natcoord.model.constraints.QuadraticConstraints`), forces 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -95,12 +96,15 @@ def _force_tangent(frc, K0, cols, h, q, qd, F, Fp, K, cnt):
 
 
 @njit(cache=True)
-def _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam, w, cnt):
-    """Newton on the step's equations from q = q0 + h qd0 + h^2/2 qdd0: q (n,) and lam
-    (m,) (lambda* on entry, updated) in place; False when it does not converge in 30
-    iterations or leaves the finite numbers. ``Kt`` = (K0 (n, n), cols (c,)): the forces'
-    tangent (:func:`force_tangent`; K0 (0, 0): none). ``w`` = (p (m,), J (m, n), F,
-    g (n,), Tg, JtJ (n, n), piv (n,) int, Fp (n,), K (n, n)) scratch."""
+def _newton(mdl, h, start, qhat, beta, newton_tol, q, lam, w, cnt):
+    """Newton on the step's equations from q = q0 + h qd0 + h^2/2 qdd0 (``start`` = (q0,
+    qd0, qdd0)): q (n,) and lam (m,) (lambda* on entry, updated) in place; False when it
+    does not converge in 30 iterations or leaves the finite numbers. ``mdl`` = (con, M,
+    frc, Kt) as in :func:`run_index3`, ``Kt`` = (K0 (n, n), cols (c,)) the forces' tangent
+    (:func:`force_tangent`; K0 (0, 0): none). ``w`` = (p (m,), J (m, n), F, g (n,), Tg, JtJ
+    (n, n), piv (n,) int, Fp (n,), K (n, n)) scratch."""
+    con, M, frc, Kt = mdl
+    q0, qd0, qdd0 = start
     kk, ii, jj, vv, m = con
     p, J, F, g, Tg, JtJ, piv, Fp, K = w
     K0, cols = Kt
@@ -209,6 +213,7 @@ def run_index3(con, M, frc, Kt, ctl, times, y0, out):
           np.empty((n, n)), np.empty(n, np.int64), np.empty(n), np.empty((n, n)))
     wp = (np.empty(n), np.empty(m))
     J, P, piv, zero = wn[1], wn[4], wn[6], np.zeros(m)
+    mdl, start = (con, M, frc, Kt), (q0, qd0, qdd0)  # the model; the step's start, in place
     Q[0], QD[0], QDD[0] = q0, qd0, qdd0
     for k in range(1, times.shape[0]):
         nsub = max(1, math.ceil((times[k] - times[k - 1]) / h_max - 1e-9))
@@ -220,8 +225,7 @@ def run_index3(con, M, frc, Kt, ctl, times, y0, out):
                 for a in range(n):
                     qhat[a] = q0[a] + h * qd0[a] + 0.25 * h * h * qdd0[a]
                 lam[:] = lam0
-                if _newton(con, M, frc, Kt, h, q0, qd0, qdd0, qhat, beta, newton_tol, q, lam,
-                           wn, cnt):
+                if _newton(mdl, h, start, qhat, beta, newton_tol, q, lam, wn, cnt):
                     break
                 if penalty >= PENALTY_MAX:
                     tfail[0] = times[k - 1] + (step + 1) * h
@@ -249,17 +253,27 @@ def run_index3(con, M, frc, Kt, ctl, times, y0, out):
     return OK
 
 
-def run(con, frc, M, times, y, *, h: float, penalty: float, mscale: float,
-        newton_tol: float, project_tol: float, cnt=None):
+class Steps(NamedTuple):
+    """The trapezoidal steps of a compiled index-3 run: at most ``h`` s, the ``penalty``
+    alpha h^2/4 relative to ``mscale`` (max|M_ii|, kg), Newton's and the projections'
+    tolerances (:class:`natcoord.dynamics.index3.Index3`)."""
+
+    h: float
+    penalty: float
+    mscale: float
+    newton_tol: float
+    project_tol: float
+
+
+def run(con, frc, M, times, y, steps: Steps, cnt=None):
     """Integrate with the compiled loop from ``y`` = [q, qd, qdd, lambda*] (3n + m,
     consistent, at times[0]); returns (Q, QD, QDD) (T, n). ``con``: the constraints
-    (``k, i, j, v, m``); ``frc``: :func:`pack_forces`; ``M`` (n, n) kg; ``h`` s; the
-    options as in :class:`natcoord.dynamics.index3.Index3`; ``cnt``: counters added to. Raises
-    RuntimeError when a step's Newton fails at every penalty."""
+    (``k, i, j, v, m``); ``frc``: :func:`pack_forces`; ``M`` (n, n) kg; ``cnt``: counters
+    added to. Raises RuntimeError when a step's Newton fails at every penalty."""
     n, T = M.shape[0], len(times)
     Q, QD, QDD = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n))
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
-    ctl = (float(h), float(penalty), float(mscale), float(newton_tol), float(project_tol))
+    ctl = tuple(float(x) for x in steps)
     Kt = force_tangent(frc, n)
     status = run_index3(pack_constraints(con), np.ascontiguousarray(M, float), frc,
                         (np.zeros((0, 0)), np.zeros(0, np.int64)) if Kt is None else Kt, ctl,
@@ -278,8 +292,7 @@ def warm_up() -> None:
     circle under gravity."""
     con, frc = warm_up_model()
     y = np.array([1.0, 0.0, 0.0, 0.0, -0.0, 0.0, 0.0])
-    run(con, frc, np.eye(2), np.linspace(0.0, 0.02, 3), y, h=0.005, penalty=1e4,
-        mscale=1.0, newton_tol=1e-13, project_tol=1e-13)
+    run(con, frc, np.eye(2), np.linspace(0.0, 0.02, 3), y, Steps(0.005, 1e4, 1.0, 1e-13, 1e-13))
 
 
 drop_stale_cache(globals(), __name__, (kernels_general,))

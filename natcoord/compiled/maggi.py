@@ -33,6 +33,7 @@ partial pivoting on the small blocks (r, r) and (f, f). Units: SI (m, s, kg, N).
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -342,8 +343,10 @@ def _post_step(con, part, ctl, y, ws, cnt):
 
 # ---- the loop ------------------------------------------------------------------------------
 @njit(cache=True)
-def _stages(con, Msp, frc, part, tol, y, h, A, lo, hi, K, ys, ws, cnt):
-    """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1; a status code."""
+def _stages(mdl, y, h, A, lo, hi, K, ys, ws, cnt):
+    """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
+    frc, part, tol) as in :func:`run_maggi`; a status code."""
+    con, Msp, frc, part, tol = mdl
     N = y.shape[0]
     for s in range(lo, hi):
         for a in range(N):
@@ -382,6 +385,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
     filled in place (tfail: the time of a failure). Returns a status code (0 = ok)."""
     rows, dep, indep = part
     rtol, atol, h_fixed, tol = ctl[0], ctl[1], ctl[2], ctl[3]
+    mdl = (con, Msp, frc, part, tol)  # what every evaluation reads
     A, B, C, E5, E3, expo, dop853, Aext, Cext, D, P = tab
     cnt, tfail = out[3], out[4]
     n, m = q0.shape[0], con[4]
@@ -417,7 +421,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
             hh = (t1 - t0) / nsub
             for i in range(nsub):
                 tfail[0] = t0 + i * hh
-                st = _stages(con, Msp, frc, part, tol, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+                st = _stages(mdl, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
                 if st != OK:
                     return st
                 _weights(B, K, s_st, yn, hh)
@@ -447,7 +451,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
     while k < T:
         hh = min(h, tend - t)
         tfail[0] = t
-        st = _stages(con, Msp, frc, part, tol, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+        st = _stages(mdl, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
         if st == ERR_NEWTON:  # the step is too long for the dependent positions
             if stepcontrol.underflow(hh * 1e-4, t):
                 return ERR_UNDERFLOW
@@ -481,8 +485,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
             if dop853 and not inner:
-                st = _stages(con, Msp, frc, part, tol, y, hh, Aall, s_st, s_st + n_ext, K,
-                             ys, ws, cnt)
+                st = _stages(mdl, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt)
                 if st != OK:
                     return st
                 stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
@@ -527,20 +530,33 @@ def _tab(method: str) -> tuple:
     return (A, B, C, E5, E3, expo, method == "dop853", Aext, Cext, D, P)
 
 
-def run(packed, frc, times, y, q, rows, dep, indep, *, method: str, rtol: float = 0.0,
-        atol: float = 0.0, h=None, newton_tol: float, rank_tol: float,
-        repartition_growth: float, cnt=None):
-    """Integrate with the compiled loop from y = [q^i, qd^i] (2f) at times[0] with q (n,)
-    the consistent positions there and their partition rows, dep (r,), indep (f,)
-    (``MaggiLoop.init``); returns (Q, QD, QDD) (T, n) at ``times`` (T,) s. ``packed``:
-    :func:`pack`; ``frc``: :func:`pack_forces`; ``h``: a fixed step (s) for rk4 or dopri5,
-    else adaptive dop853 or dopri5 at ``rtol``/``atol``; the options as in
-    :class:`natcoord.dynamics.maggi.Maggi`; ``cnt``: counters added to. Raises RuntimeError."""
+class Steps(NamedTuple):
+    """Step control and options of a compiled Maggi run: ``rtol``/``atol`` of adaptive
+    steps or a fixed step ``h`` (s; None: adaptive), and the options of
+    :class:`natcoord.dynamics.maggi.Maggi` (``newton_tol`` m, ``rank_tol`` relative,
+    ``repartition_growth``)."""
+
+    rtol: float = 0.0
+    atol: float = 0.0
+    h: float | None = None
+    newton_tol: float = 1e-13
+    rank_tol: float = 1e-9
+    repartition_growth: float = 1.5
+
+
+def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None):
+    """Integrate with the compiled loop by ``method`` from y = [q^i, qd^i] (2f) at times[0]
+    with q (n,) the consistent positions there and ``part`` = (rows, dep (r,), indep (f,))
+    their partition (``MaggiLoop.init``); returns (Q, QD, QDD) (T, n) at ``times`` (T,) s.
+    ``packed``: :func:`pack`; ``frc``: :func:`pack_forces`; ``steps``: a fixed step (s) for
+    rk4 or dopri5, else adaptive dop853 or dopri5; ``cnt``: counters added to. Raises
+    RuntimeError."""
+    rtol, atol, h, newton_tol, rank_tol, repartition_growth = steps
     con, Msp = packed
     n, T = len(q), len(times)
     Q, QD, QDD = np.zeros((T, n)), np.zeros((T, n)), np.zeros((T, n))
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
-    part = tuple(np.array(x, np.int64) for x in (rows, dep, indep))
+    part = tuple(np.array(x, np.int64) for x in part)
     ctl = (float(rtol), float(atol), 0.0 if h is None else float(h), float(newton_tol),
            float(rank_tol), float(repartition_growth))
     status = run_maggi(con, Msp, frc, part, ctl, _tab(method),
@@ -558,9 +574,8 @@ def warm_up() -> None:
     packed = pack(con, np.eye(2))
     q, part = np.array([0.8, -0.6]), ([0], [0], [1])
     for method, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005), ("dopri5", 0.005)):
-        run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, *part,
-            method=method, rtol=1e-6, atol=1e-8, h=h, newton_tol=1e-13, rank_tol=1e-9,
-            repartition_growth=1.5)
+        run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, part, method,
+            Steps(rtol=1e-6, atol=1e-8, h=h))
 
 
 drop_stale_cache(globals(), __name__, (kernels_general, stepcontrol))

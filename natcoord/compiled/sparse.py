@@ -409,12 +409,14 @@ def _newton_step(P, gk, ws, w, x):
 
 
 @njit(cache=True)
-def settle(P, gk, frc, q, qd, qdd, tol, ws, w, cnt, factored):
+def settle(sp, q, qd, qdd, tol, cnt, factored):
     """Project q on Phi = 0 by M-orthogonal simplified-Newton steps with the factorization
     in ``ws`` (``factored``: one made at q, by the last stage; else factor at q first;
     refreshed when the contraction is slow), factor once at the projected q, project qd on
-    Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``w`` (m,): the
-    work vector of ``ws`` (:func:`work_vector`)."""
+    Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``sp`` = (P, gk,
+    frc, ws, w): the Schur path (plan or generated kernels, forces, work array and its work
+    vector (m,), :func:`work_vector`)."""
+    P, gk, frc, ws, w = sp
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
     e = _phi_max(P, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)

@@ -172,10 +172,9 @@ class Index1Loop(FormulationLoop):
         con, frc, M = self._loop_model()
         return kernels.run(method, con, frc, times, q if e is None else q[e.keep],
                            qd if e is None else qd[e.keep],
-                           plan=self._plan_args, kern=self._kern, M=M,
-                           rank_tol=self.opt["rank_tol"],
-                           rtol=rtol, atol=atol, ptol=self.opt["project_tol"], cnt=self.cnt,
-                           h=h, dep=None if e is None else e.dep_map)
+                           kernels.Steps(rtol, atol, self.opt["project_tol"], h),
+                           kernels.Route(self._plan_args, self._kern, M, self.opt["rank_tol"],
+                                         None if e is None else e.dep_map), self.cnt)
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]

@@ -96,10 +96,9 @@ class Index3Loop(FormulationLoop):
         """The whole run in :func:`natcoord.compiled.index3.run`: (Q, QD, QDD) (T, n) at
         ``times``, the same steps as :meth:`step`."""
         from ..compiled import index3 as kernels_index3
-        return kernels_index3.run(self.cs.con, self._frc, self.M, times, y, h=h,
-                                  penalty=self.opt["penalty"], mscale=self.mscale,
-                                  newton_tol=self.opt["newton_tol"],
-                                  project_tol=self.opt["project_tol"], cnt=self.cnt)
+        steps = kernels_index3.Steps(h, self.opt["penalty"], self.mscale,
+                                     self.opt["newton_tol"], self.opt["project_tol"])
+        return kernels_index3.run(self.cs.con, self._frc, self.M, times, y, steps, self.cnt)
 
     def step(self, t, y, h):
         """One trapezoidal step. When Newton fails (near a singular position, where the

@@ -25,6 +25,7 @@ import numpy as np
 
 from ..compiled import stepcontrol as sc
 from ..errors import StepFailure
+from ..model.kinematics import singular_hint
 from .options import SCIPY_METHODS
 
 
@@ -237,27 +238,3 @@ def _underflow_message(form, t, y) -> str:
     except Exception:  # the message must not hide the failure
         return msg
     return msg + singular_hint(J, form.opt.get("rank_tol", 1e-9))
-
-
-def singular_hint(J: np.ndarray, rank_tol: float) -> str:
-    """What a failed step near a singular position should say, from Phi_q (m, n) there:
-    how close to a rank drop the constraints are and what to change; "" when they are
-    well conditioned (the failure has another cause)."""
-    try:
-        s = np.linalg.svd(np.asarray(J, float), compute_uv=False)
-    except (np.linalg.LinAlgError, ValueError):
-        return ""
-    if len(s) == 0 or not s[0] > 0:
-        return ""
-    live = s[s > rank_tol * s[0]]
-    ratio = float(live[-1] / s[0]) if len(live) else 0.0
-    if ratio >= 1e-2:
-        return ""
-    near = int(np.sum(s[:len(live)] < 1e-2 * s[0]))  # rows about to drop out of the rank
-    return (f": the mechanism is at or near a singular position (the smallest non-zero "
-            f"singular value of Phi_q is {ratio:.1e} of the largest; {near} of its "
-            f"{len(live)} independent rows are about to drop out), where a state a rounding "
-            "error off the constraint manifold turns sharply onto another branch and the "
-            "step control cannot follow it; change to coordinates = \"shared\" with "
-            "linsolve = \"schur\" (Phi summed in two doubles, projected to round-off), or a "
-            "fixed step (method = \"rk4\" with h)")

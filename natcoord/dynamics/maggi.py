@@ -67,11 +67,10 @@ class MaggiLoop(FormulationLoop):
         from ..compiled import maggi as kernels_maggi
         if not hasattr(self, "_packed"):
             self.prepare_compiled()
-        return kernels_maggi.run(
-            self._packed, self._frc, times, y, self.q, self.rows, self.dep, self.indep,
-            method=method, rtol=rtol, atol=atol, h=h, newton_tol=self.opt["newton_tol"],
-            rank_tol=self.opt["rank_tol"], repartition_growth=self.opt["repartition_growth"],
-            cnt=self.cnt)
+        steps = kernels_maggi.Steps(rtol, atol, h, self.opt["newton_tol"], self.opt["rank_tol"],
+                                    self.opt["repartition_growth"])
+        return kernels_maggi.run(self._packed, self._frc, times, y, self.q,
+                                 (self.rows, self.dep, self.indep), method, steps, self.cnt)
 
     def _partition(self, t, q):
         J = self.cs.jacobian(q, t)
