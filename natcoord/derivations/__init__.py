@@ -1,0 +1,1 @@
+"""Reference derivations that share nothing with the natural-coordinate model."""
