@@ -30,9 +30,10 @@ r_P' = v + w x (R s), r_P'' = a + alpha x R s + w x (w x R s)):
   prismatic: that and no turn about the axis (1 row);
 * massless rod: (|r_P2 - r_P1|^2 - L^2) / 2 = 0, its tension lam * L.
 
-Integration: scipy's ``solve_ivp`` (DOP853 at rtol 1e-12 by default) over each output
-interval, then the state is projected onto the constraints (positions by Gauss-Newton to
-1e-13 m, least-change; Euler parameters normalised; velocities by least squares), no
+Integration: scipy's ``solve_ivp`` (DOP853 at rtol 1e-12 by default) over CHUNK output
+intervals at a time; every output sample is projected onto the constraints (positions by
+Gauss-Newton to 1e-13 m, least-change; Euler parameters normalised; velocities by least
+squares) and the integration restarts from the projected state at the chunk's end; no
 Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
 
 Supported: 3-D cases of rigid bodies and uniform rods, the five joint types, rods,
