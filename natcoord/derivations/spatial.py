@@ -91,9 +91,10 @@ def supported(case: Case) -> str:
 def stiff(case: Case) -> str:
     """'' unless a spring-damper makes the case stiff (a rate sqrt(k / m) or c / m above
     STIFF_RATE, m the lighter body it moves): then the reason :func:`check` skips it.
-    Measured on parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg): DOP853 is held
-    to ~1e-4 s steps by stability, and scipy's Radau with its finite-difference Jacobian
-    took 354 s for the first 0.05 s at rtol 1e-10, on a shared 2-core machine."""
+    Measured on parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg), on a shared
+    2-core machine: DOP853 (steps held by stability) had not finished the first 0.03 s
+    after 8 min; scipy's Radau with its finite-difference Jacobian took 354 s for the
+    first 0.05 s at rtol 1e-10."""
     for s in case.springs:
         masses = [case.body(b).mass for b, _ in s.ends if b != GROUND]
         m = min(masses)
