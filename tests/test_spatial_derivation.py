@@ -181,3 +181,13 @@ def test_derivation_uses_no_natcoord_model():
     tree = ast.parse((CASES.parent / "natcoord" / "derivations" / "spatial.py").read_text())
     local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
     assert local <= {"errors", "mechanism", "estimates"}
+
+
+def test_report_shows_the_3d_agreement_as_for_planar_cases():
+    from natcoord.report.html import _independent_line
+    meta = json.loads((REFERENCES / "four_bar_3d.json").read_text())
+    line = _independent_line(meta, {"theta": "rad", "O_y": "N"})
+    assert line.startswith("independent check: body coordinates")
+    theta = meta["independent"]["max_abs_diff"]["theta"]
+    assert f"theta {theta:.2g} rad" in line and "O_y" in line
+    assert "O_x" not in line  # undetermined: never compared
