@@ -64,6 +64,7 @@ CHECK = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
 AXES = {"x": 0, "y": 1, "z": 2}
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 FORCE_KINDS = ("reaction", "axial", "combination")
+KINDS = ("angle", "position", "velocity", "acceleration", "energy", *FORCE_KINDS)
 PROJECT_TOL = 1e-13  # m: position projection's stop
 STIFF_RATE = 1e3  # 1/s: a spring-damper faster than this makes a case stiff (see stiff())
 CHUNK = 10  # output intervals integrated at once: the state is projected at their end
@@ -79,6 +80,8 @@ def supported(case: Case) -> str:
     if any(b.kind == "particle" for b in case.bodies):
         return "particles are not derived"
     for c in case.channels:
+        if c.kind not in KINDS:
+            return f"channel {c.name}: kind {c.kind} is not derived"
         if c.kind == "angle" and c.points is None:
             return f"channel {c.name}: a 3-D angle needs two points"
         if c.kind == "reaction" and c.axis not in AXES:
