@@ -84,23 +84,37 @@ def channel_errors(case: Case, engine: str, table: pd.DataFrame,
 
 
 
-def energy_scale(case: Case) -> float:
-    """The system's energy scale, J: the weight of every body times the size of the
-    mechanism (the largest distance between two of its points at t = 0)."""
+def mechanism_size(case: Case) -> float:
+    """The largest distance between two of the mechanism's points at t = 0, m."""
     pts = [np.asarray(x, float) for b in case.bodies for x in b.points.values()]
     pts += [np.asarray(x, float) for x in case.ground.values()]
-    size = max((float(np.linalg.norm(a - b)) for a in pts for b in pts), default=0.0)
-    return sum(b.mass for b in case.bodies) * float(np.linalg.norm(case.gravity)) * size
+    return max((float(np.linalg.norm(a - b)) for a in pts for b in pts), default=0.0)
+
+
+def energy_scale(case: Case) -> float:
+    """The system's energy scale, J: the weight of every body times the size of the
+    mechanism (:func:`mechanism_size`)."""
+    return sum(b.mass for b in case.bodies) * float(np.linalg.norm(case.gravity)) * \
+        mechanism_size(case)
+
+
+STILL = 1e-3  # a position or angle channel that moves less than this fraction of the
+# mechanism's size (of a radian) is relative to that: its range is no scale
 
 
 def _scale(case: Case, ch, ref: np.ndarray) -> tuple[float, str]:
     """What a channel's relative error is relative to: its range over the run; for energy,
     which a conservative system keeps constant (a range near zero), the larger of the
-    energy scale (:func:`energy_scale`), its range and its size."""
+    energy scale (:func:`energy_scale`), its range and its size; for a position or angle
+    that hardly moves, STILL of the mechanism's size or of a radian."""
     span = float(np.ptp(ref))
     if ch.kind == "energy":
         scale = max(energy_scale(case), span, float(np.max(np.abs(ref))))
         return (scale or 1.0), "energy scale (total weight x mechanism size)"
+    still = STILL * {"position": mechanism_size(case), "angle": 1.0}.get(ch.kind, 0.0)
+    if span < still:
+        return still, ("mechanism size / 1000" if ch.kind == "position" else "1 mrad") + \
+            " (the channel hardly moves)"
     return (span or float(np.max(np.abs(ref))) or 1.0), "range of the reference"
 
 

@@ -5,6 +5,9 @@
 constraint drift, an error estimate from a second run at a 100x looser tolerance and,
 for the cases :mod:`natcoord.derivations.independent` derives, ``independent``: how far a solution
 in joint coordinates (Kane's method) is from the reference, per channel.
+for the cases :mod:`natcoord.independent` (planar: Kane's method in joint coordinates) or
+:mod:`natcoord.derivations.spatial` (3-D: body coordinates, Newton-Euler) derives,
+``independent``: how far that solution is from the reference, per channel.
 References change only through ``natcoord reference update``.
 """
 
@@ -20,6 +23,7 @@ import pandas as pd
 from .. import __version__
 from ..case.mechanism import Case
 from ..derivations.independent import check as independent_check
+from ..derivations.spatial import check as spatial_check
 from ..engines.base import initial_body_states
 from ..engines.natcoord_engine import run as natcoord_run
 from ..estimates import estimated_error
@@ -90,7 +94,9 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
                      "python": platform.python_version()},
         "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"),
     }
-    independent = independent_check(case, table)  # None: the case is not derived there
+    # None: the case is not derived there
+    independent = (spatial_check(case, table, provenance["undetermined"])
+                   if case.dimension == 3 else independent_check(case, table))
     if independent is not None:
         provenance["independent"] = independent
     write_csv(Path(directory) / f"{case.name}.csv", table)

@@ -1,0 +1,654 @@
+"""An independent solution of a 3-D case: body coordinates, Newton-Euler, projection.
+
+It shares nothing with natcoord's formulation but the case data (:class:`Case`): no
+natural coordinates, no natcoord model, assembly, constraint or integrator code.
+
+Why this method: it is the textbook alternative to natural coordinates (Nikravesh,
+*Computer-Aided Analysis of Mechanical Systems*; Haug), it writes every joint straight from
+its definition, so a future case in the same format needs no new code, and it handles
+loops and redundant constraints without choosing a spanning tree or independent
+coordinates (Bricard's six revolutes, parallelogram_3d's six rods).
+
+Coordinates (per moving body, n of them): the centre of mass r (3,) and unit Euler
+parameters p (4,) of the body frame (the world frame at t = 0 in a reference-frame case);
+rates: the velocity v (3,) of the centre of mass and the angular velocity w (3,), world
+axes. Equations of motion (Newton-Euler, world axes)::
+
+    m a = F,   I_w alpha + w x I_w w = M,   I_w = R I R^T
+    [M  G^T] [nu']   [Q     ]
+    [G  0  ] [lam] = [-gamma],   G nu = d/dt Phi,   gamma = G' nu
+
+solved by least squares (the minimum-norm multipliers where constraints are redundant:
+their combinations the constraints leave undetermined are found and never compared).
+Every constraint row is a component of a vector expression or a dot product of two
+(points and body directions: rows, Jacobian and gamma follow from r_P = r + R s,
+r_P' = v + w x (R s), r_P'' = a + alpha x R s + w x (w x R s)):
+
+* spherical: r_P1 - r_P2 = 0 (3 rows); revolute: that and the axis a1 normal to two body-2
+  directions across it (2 rows); universal: that and a1 . a2 = 0 (1 row);
+* cylindrical: a1 parallel to a2 (2 rows) and r_P2 - r_P1 normal to a1 (2 rows);
+  prismatic: that and no turn about the axis (1 row);
+* massless rod: (|r_P2 - r_P1|^2 - L^2) / 2 = 0, its tension lam * L.
+
+Integration: scipy's ``solve_ivp`` (DOP853 at rtol 1e-12 by default) over CHUNK output
+intervals at a time; every output sample is projected onto the constraints (positions by
+Gauss-Newton to 1e-13 m, least-change; Euler parameters normalised; velocities by least
+squares) and the integration restarts from the projected state at the chunk's end; no
+Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
+
+Supported: 3-D cases of rigid bodies and uniform rods, the five joint types, rods,
+spring-dampers, constant forces and torques, gravity; channels ``angle`` (two points),
+``position``, ``velocity``, ``acceleration``, ``reaction`` (x, y, z), ``axial``,
+``energy`` (and its balance) and ``combination``. Drivers and particles raise
+:class:`natcoord.errors.Unsupported`. Stiff spring-dampers are derived, but too slowly for
+a reference run here: :func:`check` skips those cases (:func:`stiff` says why).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy.integrate import solve_ivp
+
+from ..case.mechanism import GROUND, Case
+from ..errors import Unsupported
+from ..estimates import estimated_error
+
+METHOD = ("body coordinates (centre of mass, Euler parameters), Newton-Euler, joint "
+          "constraints from their definitions, least-squares index-1 solve, projection at "
+          "every sample, {solver}")
+SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
+CHECK = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
+AXES = {"x": 0, "y": 1, "z": 2}
+PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
+FORCE_KINDS = ("reaction", "axial", "combination")
+KINDS = ("angle", "position", "velocity", "acceleration", "energy", *FORCE_KINDS)
+PROJECT_TOL = 1e-13  # m: position projection's stop
+STIFF_RATE = 1e3  # 1/s: a spring-damper faster than this makes a case stiff (see stiff())
+CHUNK = 10  # output intervals integrated at once: the state is projected at their end
+_I3 = np.eye(3)
+
+
+def supported(case: Case) -> str:
+    """'' when the case can be derived here, else the reason it cannot."""
+    if case.dimension != 3:
+        return "only spatial (3-D) cases"
+    if case.drivers:
+        return "drivers are not derived"
+    if any(b.kind == "particle" for b in case.bodies):
+        return "particles are not derived"
+    for c in case.channels:
+        if c.kind not in KINDS:
+            return f"channel {c.name}: kind {c.kind} is not derived"
+        if c.kind == "angle" and c.points is None:
+            return f"channel {c.name}: a 3-D angle needs two points"
+        if c.kind == "reaction" and c.axis not in AXES:
+            return f"channel {c.name}: reaction axis {c.axis}"
+        if c.kind == "driver" or c.relative_to is not None:
+            return f"channel {c.name} ({c.kind}) is not derived"
+    return ""
+
+
+def stiff(case: Case) -> str:
+    """'' unless a spring-damper makes the case stiff (a rate sqrt(k / m) or c / m above
+    STIFF_RATE, m the lighter body it moves): then the reason :func:`check` skips it.
+    Measured on parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg), on a shared
+    2-core machine: DOP853 (steps held by stability) had not finished the first 0.03 s
+    after 8 min; scipy's Radau with its finite-difference Jacobian took 354 s for the
+    first 0.05 s at rtol 1e-10."""
+    for s in case.springs:
+        masses = [case.body(b).mass for b, _ in s.ends if b != GROUND]
+        m = min(masses)
+        rate = max(np.sqrt(s.stiffness / m), s.damping / m)
+        if rate > STIFF_RATE:
+            return (f"spring {s.name}: rate {rate:.3g} /s (stiff): the explicit integrator's "
+                    "steps are held by stability and scipy's implicit ones with "
+                    "finite-difference Jacobians are too slow for a reference run")
+    return ""
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of two (3,) vectors (numpy's cross costs ~50x more on these)."""
+    return np.array([a[1]*b[2] - a[2]*b[1], a[2]*b[0] - a[0]*b[2], a[0]*b[1] - a[1]*b[0]])
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+
+
+def _rotation(p: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) of Euler parameters p = (e0, e1, e2, e3), normalised here."""
+    e0, e1, e2, e3 = p / np.linalg.norm(p)
+    return np.array([
+        [e0*e0 + e1*e1 - e2*e2 - e3*e3, 2*(e1*e2 - e0*e3), 2*(e1*e3 + e0*e2)],
+        [2*(e1*e2 + e0*e3), e0*e0 - e1*e1 + e2*e2 - e3*e3, 2*(e2*e3 - e0*e1)],
+        [2*(e1*e3 - e0*e2), 2*(e2*e3 + e0*e1), e0*e0 - e1*e1 - e2*e2 + e3*e3]])
+
+
+def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[0]*b[0] - a[1:] @ b[1:],
+                     *(a[0]*b[1:] + b[0]*a[1:] + _cross(a[1:], b[1:]))])
+
+
+def _rotvec_quat(d: np.ndarray) -> np.ndarray:
+    """Euler parameters of the rotation by the vector d (rad, world axes)."""
+    a = float(np.linalg.norm(d))
+    if a < 1e-300:
+        return np.array([1.0, 0.0, 0.0, 0.0])
+    return np.array([np.cos(a / 2), *(np.sin(a / 2) * d / a)])
+
+
+def _perpendiculars(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors normal to a and to each other."""
+    a = a / np.linalg.norm(a)
+    t = np.eye(3)[int(np.argmin(np.abs(a)))]
+    b = _cross(a, t)
+    b /= np.linalg.norm(b)
+    return b, _cross(a, b)
+
+
+@dataclass(frozen=True)
+class _Term:
+    """coef * (point or direction s of body ``body``); body n is the ground."""
+
+    body: int
+    s: np.ndarray  # body frame, relative to the centre of mass for a point (m)
+    point: bool
+    coef: float = 1.0
+
+
+class _Kin:
+    """The kinematic state of every body at one instant (ground last, at rest)."""
+
+    def __init__(self, model: SpatialModel, y: np.ndarray):
+        n = model.n
+        self.r = np.vstack([y[:3*n].reshape(n, 3), np.zeros((1, 3))])
+        p = y[3*n:7*n].reshape(n, 4)
+        self.p = p
+        self.R = [_rotation(q) for q in p] + [np.eye(3)]
+        nu = y[7*n:13*n].reshape(n, 2, 3)
+        self.v = np.vstack([nu[:, 0], np.zeros((1, 3))])
+        self.w = np.vstack([nu[:, 1], np.zeros((1, 3))])
+        self.nu = y[7*n:13*n]
+
+
+class SpatialModel:
+    """The case in body coordinates.
+
+    Attributes
+    ----------
+    n : number of moving bodies; their order is ``case.bodies``'
+    rows : constraint rows, each ("comp", E, k, c) or ("dot", E1, E2, c), E a list of _Term
+    joint_rows : joint or rod name -> (row indices, first body index, second body index)
+    y0 : (13 n + 1,) state at t = 0: r, p, v, w per body, the work W (J)
+    """
+
+    def __init__(self, case: Case):
+        reason = supported(case)
+        if reason:
+            raise Unsupported(f"spatial derivation: {reason}")
+        self.case = case
+        self.n = n = len(case.bodies)
+        self.index = {b.name: i for i, b in enumerate(case.bodies)}
+        self.index[GROUND] = n
+        self.mass = np.array([b.mass for b in case.bodies])
+        self.inertia = [np.asarray(b.inertia, float).reshape(3, 3) for b in case.bodies]
+        self.com = [np.asarray(b.com, float) for b in case.bodies] + [np.zeros(3)]
+        self.gravity = np.asarray(case.gravity, float)
+        self.rows: list = []
+        self.joint_rows: dict[str, tuple[list[int], int, int]] = {}
+        for j in case.joints:
+            self._joint(j)
+        for rod in case.rods:
+            (b1, p1), (b2, p2) = rod.ends
+            d = [self._point(b2, p2), self._point(b1, p1, -1.0)]
+            self._add(rod.name, b1, b2, [("dot", d, d, rod.length**2)])
+        self._tables()
+        self.y0 = self._initial_state()
+        self.keep = self._independent_rows()
+
+    # ---- constraint rows from the joints' definitions -------------------------------------
+    def _point(self, body: str, name: str, coef: float = 1.0) -> _Term:
+        i = self.index[body]
+        s = self.case.ground[name] if body == GROUND else self.case.body(body).points[name]
+        return _Term(i, np.asarray(s, float) - self.com[i], True, coef)
+
+    def _dir(self, body: str, s: np.ndarray) -> _Term:
+        return _Term(self.index[body], np.asarray(s, float), False)
+
+    def _add(self, name: str, b1: str, b2: str, rows: list) -> None:
+        start = len(self.rows)
+        self.rows.extend(rows)
+        self.joint_rows[name] = (list(range(start, len(self.rows))),
+                                 self.index[b1], self.index[b2])
+
+    def _joint(self, j) -> None:
+        (b1, b2), (p1, p2) = j.bodies, j.points
+        gap = [self._point(b2, p2), self._point(b1, p1, -1.0)]  # r_P2 - r_P1
+        coincide = [("comp", gap, k, 0.0) for k in range(3)]
+        a = None if j.axis is None else np.asarray(j.axis, float) / np.linalg.norm(j.axis)
+        rows = []
+        if j.type in ("revolute", "cylindrical", "prismatic"):
+            u, w = _perpendiculars(a)  # the frames are the world's at t = 0
+            parallel = [("dot", [self._dir(b1, a)], [self._dir(b2, u)], 0.0),
+                        ("dot", [self._dir(b1, a)], [self._dir(b2, w)], 0.0)]
+            if j.type == "revolute":
+                rows = coincide + parallel
+            else:
+                rows = parallel + [("dot", [self._dir(b1, u)], gap, 0.0),
+                                   ("dot", [self._dir(b1, w)], gap, 0.0)]
+                if j.type == "prismatic":
+                    rows.append(("dot", [self._dir(b1, u)], [self._dir(b2, w)], 0.0))
+        elif j.type == "spherical":
+            rows = coincide
+        elif j.type == "universal":
+            rows = coincide + [("dot", [self._dir(b1, a)], [self._dir(b2, j.axis2)], 0.0)]
+        else:
+            raise Unsupported(f"spatial derivation: joint {j.name}: type {j.type}")
+        self._add(j.name, b1, b2, rows)
+
+    # ---- vector expressions: value, velocity, gamma part, Jacobian ------------------------
+    def _expr(self, kin: _Kin, terms: list[_Term]):
+        """Value (3,), velocity (3,), w x (w x .) part of the acceleration (3,) and the
+        Jacobian (3, 6 (n + 1)) over (v, w) of every body, the ground's last."""
+        val, vel, acc = np.zeros(3), np.zeros(3), np.zeros(3)
+        jac = np.zeros((3, 6 * (self.n + 1)))
+        for t in terms:
+            d = kin.R[t.body] @ t.s
+            w = kin.w[t.body]
+            wd = _cross(w, d)
+            val += t.coef * (kin.r[t.body] + d if t.point else d)
+            vel += t.coef * (kin.v[t.body] + wd if t.point else wd)
+            acc += t.coef * _cross(w, wd)
+            c = 6 * t.body
+            if t.point:
+                jac[:, c:c + 3] += t.coef * _I3
+            jac[:, c + 3:c + 6] -= t.coef * _skew(d)
+        return val, vel, acc, jac
+
+    def _tables(self) -> None:
+        """The rows as arrays: every distinct term once, each expression a row of
+        coefficients over the terms, so :meth:`constraints` is a few array operations."""
+        terms, exprs, index = [], [], {}
+
+        def expr(e) -> int:
+            key = id(e)
+            if key not in index:
+                index[key] = len(exprs)
+                exprs.append(e)
+                for t in e:
+                    tk = (t.body, t.point, tuple(t.s))
+                    if tk not in terms:
+                        terms.append(tk)
+            return index[key]
+
+        comp, dot = [], []
+        for i, row in enumerate(self.rows):
+            if row[0] == "comp":
+                comp.append((i, expr(row[1]), row[2], row[3]))
+            else:
+                dot.append((i, expr(row[1]), expr(row[2]), row[3],
+                            0.5 if row[1] is row[2] else 1.0))
+        self._tb = np.array([t[0] for t in terms], int)
+        self._tp = np.array([t[1] for t in terms], float)
+        self._ts = np.array([t[2] for t in terms], float).reshape(-1, 3)
+        self._S = np.zeros((len(exprs), len(terms)))
+        for e, ts in enumerate(exprs):
+            for t in ts:
+                self._S[e, terms.index((t.body, t.point, tuple(t.s)))] += t.coef
+        self._comp = tuple(np.array(c) for c in zip(*comp, strict=True)) if comp else None
+        self._dot = tuple(np.array(c) for c in zip(*dot, strict=True)) if dot else None
+
+    def constraints(self, kin: _Kin):
+        """Phi (m,), its Jacobian G over every body's (v, w) (m, 6 (n + 1)) and gamma (m,)
+        with Phi'' = G nu' + gamma."""
+        m, T = len(self.rows), len(self._tb)
+        phi, gam = np.zeros(m), np.zeros(m)
+        jac = np.zeros((m, 6 * (self.n + 1)))
+        if not m:
+            return phi, jac, gam
+        R = np.array(kin.R)[self._tb]
+        d = np.einsum("tij,tj->ti", R, self._ts)
+        w = kin.w[self._tb]
+        wd = np.cross(w, d)
+        pt = self._tp[:, None]
+        S = self._S
+        val = S @ (pt * kin.r[self._tb] + d)
+        vel = S @ (pt * kin.v[self._tb] + wd)
+        acc = S @ np.cross(w, wd)
+        Jt = np.zeros((T, 3, 6 * (self.n + 1)))
+        sk = np.zeros((T, 3, 3))
+        sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
+        sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
+        ar = np.arange(T)[:, None, None]
+        cols = 6 * self._tb[:, None] + np.arange(3)
+        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :]] = pt[:, :, None] * _I3
+        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :] + 3] = -sk
+        J = np.einsum("et,tij->eij", S, Jt)
+        if self._comp is not None:
+            r, e, k, c = self._comp
+            phi[r], gam[r], jac[r] = val[e, k] - c, acc[e, k], J[e, k]
+        if self._dot is not None:
+            r, e1, e2, c, sc = self._dot
+            v1, v2 = val[e1], val[e2]
+            phi[r] = sc * (np.sum(v1 * v2, axis=1) - c)
+            gam[r] = sc * (np.sum(acc[e1] * v2 + v1 * acc[e2] + 2 * vel[e1] * vel[e2],
+                                  axis=1))
+            jac[r] = sc[:, None] * (np.einsum("ri,rij->rj", v1, J[e2])
+                                    + np.einsum("ri,rij->rj", v2, J[e1]))
+        return phi, jac, gam
+
+    # ---- dynamics ------------------------------------------------------------------------
+    def _springs(self, kin: _Kin):
+        """Per spring: tension (N), rate of length (m/s), ends (body, d, unit vector)."""
+        out = []
+        for s in self.case.springs:
+            (b1, p1), (b2, p2) = s.ends
+            e1, e2 = self._point(b1, p1), self._point(b2, p2)
+            x1, v1, _, _ = self._expr(kin, [e1])
+            x2, v2, _, _ = self._expr(kin, [e2])
+            length = float(np.linalg.norm(x2 - x1))
+            u = (x2 - x1) / length
+            ldot = float(u @ (v2 - v1))
+            tension = s.stiffness * (length - s.length) + s.damping * ldot
+            out.append((s, tension, ldot, e1, e2, u, x1, x2))
+        return out
+
+    def loads(self, kin: _Kin):
+        """Generalised forces Q (6 n,): force and moment about the centre of mass per body
+        (gravity, applied loads, springs, gyroscopic), and the power (W) of the applied
+        loads and dampers."""
+        n = self.n
+        Q = np.zeros((n + 1, 6))
+        power = 0.0
+        for i in range(n):
+            Q[i, :3] += self.mass[i] * self.gravity
+            Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
+            Q[i, 3:] -= _cross(kin.w[i], Iw @ kin.w[i])
+        for f in self.case.forces:
+            i = self.index[f.body]
+            val = np.asarray(f.value, float)
+            if f.type == "torque":
+                Q[i, 3:] += val
+                power += val @ kin.w[i]
+            else:
+                d = kin.R[i] @ (np.asarray(self.case.body(f.body).points[f.point], float)
+                                - self.com[i])
+                Q[i, :3] += val
+                Q[i, 3:] += _cross(d, val)
+                power += val @ (kin.v[i] + _cross(kin.w[i], d))
+        for s, tension, ldot, e1, e2, u, _, _ in self._springs(kin):
+            for e, f in ((e1, tension * u), (e2, -tension * u)):
+                d = kin.R[e.body] @ e.s
+                Q[e.body, :3] += f
+                Q[e.body, 3:] += _cross(d, f)
+            power -= s.damping * ldot**2
+        return Q[:n].ravel(), power
+
+    def mass_matrix(self, kin: _Kin) -> np.ndarray:
+        n = self.n
+        M = np.zeros((6 * n, 6 * n))
+        for i in range(n):
+            M[6*i:6*i + 3, 6*i:6*i + 3] = self.mass[i] * np.eye(3)
+            M[6*i + 3:6*i + 6, 6*i + 3:6*i + 6] = kin.R[i] @ self.inertia[i] @ kin.R[i].T
+        return M
+
+    def _independent_rows(self) -> np.ndarray:
+        """Indices of a maximal set of independent constraint rows at t = 0 (QR with column
+        pivoting of G^T): the redundant ones add nothing to the motion."""
+        from scipy.linalg import qr
+        _, G, _ = self.constraints(_Kin(self, self.y0))
+        G = G[:, :6 * self.n]
+        if not G.shape[0]:
+            return np.zeros(0, int)
+        _, r, piv = qr(G.T, mode="economic", pivoting=True)
+        d = np.abs(np.diag(r))
+        return np.sort(piv[:int(np.sum(d > d[0] * 1e-10))])
+
+    def solve_acc(self, kin: _Kin, every_row: bool = False):
+        """nu' (6 n,), the multipliers (m,), G (m, 6 (n+1)) and the power of applied loads
+        and dampers (W). The motion uses the independent rows (a square solve); with
+        ``every_row``, every row by least squares: the minimum-norm multipliers."""
+        _, G, gam = self.constraints(kin)
+        Q, power = self.loads(kin)
+        M = self.mass_matrix(kin)
+        k = 6 * self.n
+        rows = np.arange(G.shape[0]) if every_row else self.keep
+        m = len(rows)
+        A = np.zeros((k + m, k + m))
+        A[:k, :k], A[:k, k:], A[k:, :k] = M, G[rows, :k].T, G[rows, :k]
+        b = np.concatenate([Q, -gam[rows]])
+        if every_row:
+            x, *_ = np.linalg.lstsq(A, b, rcond=None)
+            lam = x[k:]
+        else:
+            x = np.linalg.solve(A, b)
+            lam = np.zeros(G.shape[0])
+            lam[rows] = x[k:]
+        return x[:k], lam, G, power
+
+    def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
+        n = self.n
+        kin = _Kin(self, y)
+        acc, _, _, power = self.solve_acc(kin)
+        pdot = np.concatenate([0.5 * _quat_mul(np.array([0.0, *kin.w[i]]), kin.p[i])
+                               for i in range(n)])
+        return np.concatenate([kin.v[:n].ravel(), pdot, acc, [power]])
+
+    # ---- projection and the initial state ------------------------------------------------
+    def project(self, y: np.ndarray) -> np.ndarray:
+        """y moved onto Phi = 0 (least change, Gauss-Newton) and G nu = 0."""
+        n, y = self.n, y.copy()
+        for p in y[3*n:7*n].reshape(n, 4):
+            p /= np.linalg.norm(p)
+        for _ in range(50):
+            kin = _Kin(self, y)
+            phi, G, _ = self.constraints(kin)
+            if np.max(np.abs(phi), initial=0.0) < PROJECT_TOL:
+                break
+            dx, *_ = np.linalg.lstsq(G[:, :6*n], -phi, rcond=None)
+            dx = dx.reshape(n, 2, 3)
+            y[:3*n] += dx[:, 0].ravel()
+            p = y[3*n:7*n].reshape(n, 4)
+            for i in range(n):
+                p[i] = _quat_mul(_rotvec_quat(dx[i, 1]), p[i])
+                p[i] /= np.linalg.norm(p[i])
+        else:
+            raise Unsupported(f"spatial derivation: constraints not met: |Phi| {phi.max():.3g}")
+        kin = _Kin(self, y)
+        _, G, _ = self.constraints(kin)
+        Gn = G[:, :6*n]
+        dv, *_ = np.linalg.lstsq(Gn, -Gn @ kin.nu, rcond=None)
+        y[7*n:13*n] += dv
+        return y
+
+    def _initial_state(self) -> np.ndarray:
+        n, case = self.n, self.case
+        y = np.zeros(13 * n + 1)
+        y[:3*n] = np.concatenate(self.com[:n])
+        y[3*n:7*n] = np.tile([1.0, 0.0, 0.0, 0.0], n)
+        y = self.project(y)
+        if not case.velocity:
+            return y
+        kin = _Kin(self, y)
+        _, G, _ = self.constraints(kin)
+        rows, rhs = [G[:, :6*n]], [np.zeros(G.shape[0])]
+        for name, rate in case.velocity.items():
+            rows.append(self._rate_row(kin, case.channel(name))[None, :6*n])
+            rhs.append([float(rate)])
+        A, b = np.vstack(rows), np.concatenate(rhs)
+        nu, *_ = np.linalg.lstsq(A, b, rcond=None)  # rates left free: minimum norm
+        if np.max(np.abs(A @ nu - b)) > 1e-9 * max(1.0, np.max(np.abs(b))):
+            raise Unsupported("spatial derivation: the [initial] velocities contradict "
+                              "the joints")
+        y[7*n:13*n] = nu
+        return y
+
+    def _rate_row(self, kin: _Kin, ch) -> np.ndarray:
+        """d(channel)/dt = row @ nu for an angle or position channel."""
+        if ch.kind == "position":
+            _, _, _, J = self._expr(kin, [self._point(ch.body, ch.point)])
+            return J[AXES[ch.axis]]
+        if ch.kind == "angle" and ch.points is not None:
+            e = [self._point(ch.body, ch.points[1]), self._point(ch.body, ch.points[0], -1.0)]
+            d, _, _, J = self._expr(kin, e)
+            i, j = PLANES[ch.plane]
+            return (d[i] * J[j] - d[j] * J[i]) / (d[i]**2 + d[j]**2)
+        raise Unsupported(f"spatial derivation: initial rate of channel {ch.name} ({ch.kind})")
+
+    # ---- integration and channels -------------------------------------------------------
+    def integrate(self, times: np.ndarray, settings: dict | None = None) -> np.ndarray:
+        """States (T, 13 n + 1) at ``times`` (each projected). The integrator runs over
+        CHUNK output intervals at a time (its dense output gives the samples inside) and
+        restarts from the projected state at the chunk's end."""
+        s = {**SETTINGS, **(settings or {})}
+        out = [self.y0]
+        y = self.y0
+        for k in range(0, len(times) - 1, CHUNK):
+            span = times[k:k + CHUNK + 1]
+            sol = solve_ivp(self.rhs, (span[0], span[-1]), y, method=s["method"],
+                            rtol=s["rtol"], atol=s["atol"], t_eval=span[1:])
+            if not sol.success:
+                raise RuntimeError(f"spatial derivation: {sol.message} at t = {span[0]:g} s")
+            out.extend(self.project(x) for x in sol.y.T)
+            y = out[-1]
+        return np.array(out)
+
+    def forces(self, kin: _Kin):
+        """Joint reactions (force on the second body, world axes, N), rod and spring
+        tensions (N) and which reaction components the constraints leave undetermined."""
+        acc, lam, G, _ = self.solve_acc(kin, every_row=True)
+        k = 6 * self.n
+        if G.shape[0]:
+            _, s, vt = np.linalg.svd(G[:, :k].T)
+            null = vt[int(np.sum(s > s[0] * 1e-9)):].T  # ker G^T: self-equilibrating sets
+        else:
+            null = np.zeros((0, 0))
+        react, free = {}, {}
+        for name, (rows, b1, b2) in self.joint_rows.items():
+            J = G[rows][:, 6 * b2:6 * b2 + 3]
+            if b2 == self.n:  # the ground: the reaction on it, by action and reaction
+                J = -G[rows][:, 6 * b1:6 * b1 + 3]
+            react[name] = -J.T @ lam[rows]
+            free[name] = -J.T @ null[rows] if null.size else np.zeros((3, 0))
+        tension = {}
+        for rod in self.case.rods:
+            rows, _, _ = self.joint_rows[rod.name]
+            tension[rod.name] = lam[rows[0]] * rod.length
+            free[rod.name] = (null[rows[0]] * rod.length if null.size else np.zeros(0))
+        for sp, t, *_ in self._springs(kin):
+            tension[sp.name] = t
+        return acc, react, tension, free
+
+    def energy(self, kin: _Kin) -> float:
+        e = 0.0
+        for i in range(self.n):
+            Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
+            e += 0.5 * self.mass[i] * kin.v[i] @ kin.v[i] + 0.5 * kin.w[i] @ Iw @ kin.w[i]
+            e -= self.mass[i] * kin.r[i] @ self.gravity
+        for s, _, _, _, _, _, x1, x2 in self._springs(kin):
+            e += 0.5 * s.stiffness * (np.linalg.norm(x2 - x1) - s.length) ** 2
+        return e
+
+    def channels(self, times: np.ndarray, ys: np.ndarray):
+        """The case's channels (DataFrame: t, then each channel) and the set of force
+        channels the redundant constraints leave undetermined."""
+        case = self.case
+        cols: dict[str, list] = {"t": list(times)}
+        cols.update({c.name: [] for c in case.channels})
+        undetermined = set()
+        rng = np.random.default_rng(0)
+        for y in ys:
+            kin = _Kin(self, y)
+            acc, react, tension, free = self.forces(kin)
+            nu_dot = acc.reshape(self.n, 2, 3)
+            shift = {}  # each force channel moved along a random self-equilibrating set
+            c = None
+            for ch in case.channels:
+                if ch.kind == "angle":
+                    e = [self._point(ch.body, ch.points[1]),
+                         self._point(ch.body, ch.points[0], -1.0)]
+                    d = self._expr(kin, e)[0]
+                    i, j = PLANES[ch.plane]
+                    v = np.arctan2(d[j], d[i])
+                elif ch.kind in ("position", "velocity", "acceleration"):
+                    t = self._point(ch.body, ch.point)
+                    x, xd, w2, _ = self._expr(kin, [t])
+                    if ch.kind == "acceleration":
+                        d = kin.R[t.body] @ t.s
+                        xd = nu_dot[t.body, 0] + _cross(nu_dot[t.body, 1], d) + w2
+                    v = (x if ch.kind == "position" else xd)[AXES[ch.axis]]
+                elif ch.kind == "reaction":
+                    f = free[ch.joint]
+                    if c is None:
+                        c = rng.standard_normal(f.shape[1]) if f.shape[1] else np.zeros(0)
+                    v = react[ch.joint][AXES[ch.axis]]
+                    shift[ch.name] = (f @ c)[AXES[ch.axis]] if f.size else 0.0
+                elif ch.kind == "axial":
+                    v = tension[ch.rod]
+                    f = free.get(ch.rod)
+                    if f is not None and f.size:
+                        if c is None:
+                            c = rng.standard_normal(f.shape[0])
+                        shift[ch.name] = f @ c
+                elif ch.kind == "energy":
+                    v = self.energy(kin) - (y[-1] if ch.work else 0.0)
+                else:  # combination
+                    v = sum(k * cols[name][-1] for name, k in ch.of)
+                    shift[ch.name] = sum(k * shift.get(name, 0.0) for name, k in ch.of)
+                cols[ch.name].append(v)
+            scale = max([abs(cols[n][-1]) for n in shift] + [1.0])
+            undetermined |= {n for n, s in shift.items() if abs(s) > 1e-6 * scale}
+        for ch in case.channels:
+            if ch.kind == "angle":
+                cols[ch.name] = np.unwrap(cols[ch.name])
+        return pd.DataFrame({k: np.asarray(v, float) for k, v in cols.items()}), undetermined
+
+
+def solve(case: Case, settings: dict | None = None):
+    """The case's channels at its sample times (DataFrame) and the undetermined force
+    channels (set of names)."""
+    model = SpatialModel(case)
+    return model.channels(case.times, model.integrate(case.times, settings))
+
+
+def describe(settings: dict) -> str:
+    return METHOD.format(solver=f"{settings['method']} rtol {settings['rtol']:g}")
+
+
+def compare(case: Case, mine: pd.DataFrame, reference: pd.DataFrame,
+            undetermined: set) -> dict:
+    """max |reference - mine| per channel both determine, and for force channels that
+    relative to the channel's largest |reference| value."""
+    kinds = {c.name: c.kind for c in case.channels}
+    names = [c for c in mine.columns
+             if c != "t" and c in reference.columns and c not in undetermined]
+    diff = {c: float(np.max(np.abs(mine[c].to_numpy() - reference[c].to_numpy(float))))
+            for c in names}
+    rel = {c: diff[c] / max(float(np.max(np.abs(reference[c].to_numpy(float)))), 1e-300)
+           for c in names if kinds[c] in FORCE_KINDS}
+    return {"max_abs_diff": diff, "max_rel_diff": rel}
+
+
+def check(case: Case, reference: pd.DataFrame, undetermined=()) -> dict | None:
+    """The ``independent`` field of a 3-D reference's provenance: max |reference -
+    derivation| per channel both determine (``undetermined``: the reference's), relative
+    for forces, the derivation's own error estimate (against CHECK); None when the case is
+    not supported or stiff (:func:`stiff`)."""
+    if supported(case) or stiff(case):
+        return None
+    model = SpatialModel(case)
+    best, free = model.channels(case.times, model.integrate(case.times, SETTINGS))
+    loose, _ = model.channels(case.times, model.integrate(case.times, CHECK))
+    skip = set(free) | set(undetermined)
+    out = {"method": describe(SETTINGS) + "; reactions from the multipliers",
+           "settings": dict(SETTINGS),
+           "undetermined": sorted(free)}
+    out |= compare(case, best, reference, skip)
+    out["estimated_error"] = {c: estimated_error(best[c], loose[c], len(case.times))
+                              for c in out["max_abs_diff"]}
+    out["estimated_error_method"] = ("max |derivation - its run at "
+                                     f"{CHECK['method']} rtol {CHECK['rtol']:g}|")
+    return out
