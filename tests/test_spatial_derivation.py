@@ -185,7 +185,7 @@ def test_derivation_uses_no_natcoord_model():
     """Independent means independent: the module takes the case data and nothing else."""
     tree = ast.parse((CASES.parent / "natcoord" / "derivations" / "spatial.py").read_text())
     local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
-    assert local <= {"errors", "mechanism", "estimates"}
+    assert local <= {"errors", "case.mechanism", "estimates"}
 
 
 def test_report_shows_the_3d_agreement_as_for_planar_cases():
