@@ -32,7 +32,7 @@ def candidates() -> list[tuple[str, Path]]:
         out.append((f"${ENV}", Path(os.environ[ENV]).expanduser()))
     here = Path.cwd().resolve()
     out += [("the current directory or a parent", p) for p in (here, *here.parents)]
-    out.append(("the installed checkout", Path(__file__).resolve().parent.parent))
+    out.append(("the installed checkout", Path(__file__).resolve().parents[2]))
     return out
 
 
