@@ -58,3 +58,8 @@ def case_variant(tmp_path):
         return path
 
     return make
+
+
+# the pendulum with its bob's vertical acceleration as a channel (ay, m/s^2)
+PENDULUM_AY = [(r'^(y = \{ kind = "position", body = "link", point = "P", axis = "y" \})',
+                r'\1\nay = { kind = "acceleration", body = "link", point = "P", axis = "y" }')]

@@ -11,6 +11,7 @@ from natcoord.errors import CaseError
 from natcoord.outputs.result import evaluate_channels
 
 from . import engine_checks as ec
+from .conftest import PENDULUM_AY
 
 GAP = r'^(energy = \{ kind = "energy" \})'
 
@@ -261,10 +262,7 @@ def test_an_acceleration_channel_an_engine_does_not_report_leaves_the_run_ok(cas
     from natcoord.engines.base import initial_body_states as init
     from natcoord.suite.worker import Job, run_job
 
-    path = case_variant("pendulum", [(r'^(y = \{ kind = "position", body = "link", '
-                                      r'point = "P", axis = "y" \})',
-                                      r'\1\nay = { kind = "acceleration", body = "link", '
-                                      r'point = "P", axis = "y" }')])
+    path = case_variant("pendulum", PENDULUM_AY)
     case = load_case(path)
     res, _ = run_job(Job(case, init(case), "pinocchio"))
     assert res.status.value == "ok", res.reason

@@ -29,7 +29,7 @@ from natcoord.errors import Unsupported
 from natcoord.outputs.result import evaluate_channels
 
 from . import engine_checks as ec
-from .conftest import ROOT
+from .conftest import PENDULUM_AY, ROOT
 
 pytestmark = pytest.mark.engines
 
@@ -480,10 +480,7 @@ def test_mujoco_reports_point_accelerations(case_variant):
     from natcoord.engines.base import initial_body_states as init
     from natcoord.suite.worker import Job, run_job
 
-    path = case_variant("pendulum", [(r'^(y = \{ kind = "position", body = "link", '
-                                      r'point = "P", axis = "y" \})',
-                                      r'\1\nay = { kind = "acceleration", body = "link", '
-                                      r'point = "P", axis = "y" }')])
+    path = case_variant("pendulum", PENDULUM_AY)
     case = load_case(path)
     res, _ = run_job(Job(case, init(case), "mujoco"))
     assert res.status.value == "ok", res.reason
