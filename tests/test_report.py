@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import base64
 import gzip
 import json
 import math
@@ -17,7 +16,7 @@ import pytest
 
 from natcoord.report import write_report
 from natcoord.report.html import MAX_POINTS, cell_for, fmt_num, fmt_time
-from natcoord.report.lazy import decoded
+from natcoord.report.lazy import decoded, from_text, page_figures
 
 ENGINES = ["natcoord", "mujoco", "pinocchio", "exudyn", "dart"]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -203,10 +202,10 @@ def test_self_contained(report):
     assert '<script src="http' not in html
     assert not re.search(r"""<(script|link|img|iframe)[^>]+(src|href)\s*=\s*["']?(https?:)?//""",
                          html)
-    # plotly.js embedded once, inline (gzip, base64)
+    # plotly.js embedded once, inline (gzip, base85)
     blob = re.findall(r'<script type="application/octet-stream" id="nc-plotly"[^>]*>([^<]+)<', html)
     assert len(blob) == 1
-    assert gzip.decompress(base64.b64decode(blob[0])).startswith(b"/**\n* plotly.js")
+    assert gzip.decompress(from_text(blob[0])).startswith(b"/**\n* plotly.js")
     assert "cdn.plot.ly" not in html
 
 
@@ -221,11 +220,13 @@ def test_figures_per_channel(report):
     _, html = report
     n_channels = sum(len(c) for c in CHANNELS.values())
     assert html.count('class="plotly-graph-div"') == n_channels
-    # kept as JSON, drawn by one loader when the section opens (not at load)
-    assert html.count('<script type="application/json" data-fig=') == n_channels
+    # packed in one blob, drawn by one loader when the section opens (not at load)
+    figs = page_figures(html)
+    assert len(figs) == n_channels and html.count('id="nc-figures"') == 1
     assert html.count("Plotly.newPlot(") == 1
     # 16-bit arrays over their own span (time axes as grids), downsampled
-    assert '"q":"' in html and '"lo":' in html
+    ys = [t["y"] for f in figs.values() for t in f["data"]]
+    assert any("q" in y and "lo" in y for y in ys) and all("q" in y or "grid" in y for y in ys)
     assert "undetermined: not gated" in html
     assert "dash" in html and "log" in html
 
@@ -233,10 +234,11 @@ def test_figures_per_channel(report):
 def test_downsampled_and_reasonably_small(report):
     path, html = report
     size = path.stat().st_size
-    plotly_js = len(html.split("</script>", 1)[0])
+    plotly_js = len(re.search(r'id="nc-plotly"[^>]*>([^<]*)<', html)[1])
     assert size - plotly_js < 1_500_000, f"figures and tables take {size - plotly_js} bytes"
-    arrays = [a.replace("\\u002f", "/") for a in re.findall(r'"q":"([^"]*)"', html)]
-    assert arrays and max(len(base64.b64decode(a)) // 2 for a in arrays) <= MAX_POINTS
+    arrays = [decoded(t[k]) for f in page_figures(html).values() for t in f["data"]
+              for k in ("x", "y") if isinstance(t.get(k), dict)]
+    assert arrays and max(len(a) for a in arrays) <= MAX_POINTS
 
 
 def test_speed_and_bench_sections(report):
@@ -499,8 +501,9 @@ def test_work_precision_and_time_to_accuracy(history_report):
     assert "time to error ≤ 1e-6" in tta and "time to error ≤ 1e-9" in tta
     assert "natcoord (index1 dop853)" in tta and "natcoord (index3 trapezoidal)" in tta
     assert "not reached" in tta  # mujoco's sweep never reaches 1e-9
-    spec = json.loads(re.search(r'data-fig="[^"]+">(\{.*?"log".*?\})</script>', html
-                                .split('id="wp-pendulum"', 1)[1]).group(1))
+    fig_id = re.search(r'id="([^"]+)" class="plotly-graph-div"',
+                       html.split('id="wp-pendulum"', 1)[1])[1]
+    spec = page_figures(html)[fig_id]
     assert spec["layout"]["xaxis"]["type"] == spec["layout"]["yaxis"]["type"] == "log"
     assert {t["name"] for t in spec["data"] if t.get("mode") == "lines+markers"} == {
         "natcoord (index1 dop853)", "natcoord (index3 trapezoidal)", "mujoco"}
@@ -559,14 +562,8 @@ def _figure_series(html: str, anchor: str) -> dict[str, np.ndarray]:
     """Trace name -> y values (decoded as the page does) of the lazily stored figure inside
     the element with id ``anchor``."""
     start = html.index(f'id="{anchor}"')
-    fig_id = re.search(r'data-fig="([^"]+)"', html[start:])[1]
-    spec = json.loads(re.search(rf'data-fig="{fig_id}">(.*?)</script>', html, re.S)[1])
-    shared = json.loads(re.search(r'id="nc-arrays">(.*?)</script>', html, re.S)[1])
-    out = {}
-    for trace in spec["data"]:
-        y = trace["y"]
-        out[trace["name"]] = decoded(shared[y["ref"]] if "ref" in y else y)
-    return out
+    fig_id = re.search(r'id="([^"]+)" class="plotly-graph-div"', html[start:])[1]
+    return {t["name"]: decoded(t["y"]) for t in page_figures(html)[fig_id]["data"]}
 
 
 @pytest.fixture(scope="module")
