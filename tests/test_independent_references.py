@@ -170,6 +170,6 @@ def test_unsupported_cases_have_no_independent_field():
 
 def test_derivation_uses_no_natcoord_model():
     """Independent means independent: the module takes the case data and nothing else."""
-    tree = ast.parse((CASES.parent / "natcoord" / "independent.py").read_text())
+    tree = ast.parse((CASES.parent / "natcoord" / "derivations" / "independent.py").read_text())
     local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
-    assert local <= {"errors", "mechanism", "estimates"}
+    assert local <= {"errors", "case.mechanism", "estimates"}

@@ -15,8 +15,6 @@ from typing import ClassVar
 import numpy as np
 import scipy.linalg
 
-from ..compiled.general import reachable
-from ..compiled.sparsity import is_spd
 from .common import FormulationLoop, Prepared, _alpha
 from .options import Formulation, _choice, _flag, _positive
 
@@ -70,6 +68,7 @@ class Index1Loop(FormulationLoop):
     @functools.cached_property
     def regular(self) -> bool:
         """Whether M is positive definite (block by block)."""
+        from ..compiled.sparsity import is_spd
         return is_spd(self.M)
 
     @functools.cached_property
@@ -248,6 +247,7 @@ class Index1Loop(FormulationLoop):
     def _newton(self, phi, jacobian, phi_t, t, q, qd, Lt=None):
         """Simplified Newton on phi(q, t) = 0 (one factorization), then qd on
         jacobian qd = -phi_t; ``Lt``: see :meth:`_corrector`."""
+        from ..compiled.general import reachable  # (numba: imported when a loop runs)
         tol = reachable(self.opt["project_tol"], q, 2)  # what Phi's round-off allows
         q = q.copy()
         corr = None

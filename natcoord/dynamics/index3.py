@@ -10,7 +10,6 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..compiled.index3 import FD_STEP, PENALTY_MAX, force_tangent
 from .common import FormulationLoop, multipliers
 from .index1 import Index1Loop
 from .options import Formulation, _positive
@@ -56,6 +55,7 @@ class Index3Loop(FormulationLoop):
         lam = multipliers(self.model, self.cs, t, q, qd, qdd)
         self.mscale = float(np.max(np.abs(np.diag(self.M))))
         self._last_qdd = qdd
+        from ..compiled.index3 import force_tangent  # (numba: imported when a loop runs)
         self._Kt = force_tangent(self._frc, self.n)
         return np.concatenate([q, qd, qdd, lam])
 
@@ -66,6 +66,7 @@ class Index3Loop(FormulationLoop):
         of :func:`natcoord.compiled.index3.force_tangent`; 0 for constant forces."""
         if self._Kt is None:
             return 0.0
+        from ..compiled.index3 import FD_STEP
         K0, cols = self._Kt
         K = K0.copy()
         for a in cols:
@@ -106,6 +107,7 @@ class Index3Loop(FormulationLoop):
         1e10 x max|M|; counted in ``rejected``."""
         q0, qd0, qdd0, _ = self._split(y)
         t1, cs = t + h, self.cs
+        from ..compiled.index3 import PENALTY_MAX
         penalty = self.opt["penalty"]
         while True:
             beta = penalty * self.mscale  # alpha h^2 / 4
