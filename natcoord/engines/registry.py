@@ -16,10 +16,13 @@ that takes a built-in's name: one broken plug-in never takes the suite down.
 
 from __future__ import annotations
 
+import hashlib
 import importlib
 import importlib.metadata as md
+import importlib.util
 from dataclasses import dataclass, field
 from functools import cache
+from pathlib import Path
 from types import ModuleType
 
 GROUP = "natcoord.engines"
@@ -123,3 +126,22 @@ def adapter(name: str) -> ModuleType:
     if name not in reg.modules:
         raise KeyError(f"unknown engine {name!r}; engines are {', '.join(reg.names)}")
     return importlib.import_module(reg.modules[name])
+
+
+def adapter_digest(engine: str) -> str:
+    """sha256 (16 hex digits) of an engine adapter's source: its module, or every ``.py``
+    of its package ('' when it cannot be found). Importing an adapter never imports its
+    engine, and this does not even import the adapter."""
+    module = discover().modules.get(engine)
+    try:
+        spec = importlib.util.find_spec(module) if module else None
+    except (ImportError, ValueError):
+        spec = None
+    if spec is None or not spec.origin:
+        return ""
+    origin = Path(spec.origin)
+    files = sorted(origin.parent.glob("*.py")) if origin.name == "__init__.py" else [origin]
+    h = hashlib.sha256()
+    for f in files:
+        h.update(f.name.encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]

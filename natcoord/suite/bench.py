@@ -83,6 +83,11 @@ COLD_SAMPLES = 10  # output intervals of the cold-start run
 COLD_REPEATS = 3
 
 
+def now() -> str:
+    """The time now (UTC), as the records store it."""
+    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+
+
 def _line(points: Sequence[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray, float,
                                                           float] | None:
     """(x, w, slope, intercept) of the free least-squares line through the usable points
@@ -166,7 +171,7 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
     case = job.case
     job = dataclasses.replace(as_job(job), truncate=FIT_FRACTION)
     (run,) = timed_runs(job, engine, tmp, timeout_s, repeats)
-    from .policy import adapter_digest, now
+    from ..engines.registry import adapter_digest
 
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
            "status": run["status"], "reason": run.get("reason", ""),
@@ -332,7 +337,6 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
     ``sweeps``: the settings per engine (default :data:`SWEEPS`); ``skip``: (case, engine)
     pairs not swept.
     """
-    from .policy import now
 
     sweeps = SWEEPS if sweeps is None else sweeps
     points = []

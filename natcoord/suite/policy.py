@@ -16,10 +16,9 @@ from earlier suites' ``bench.json``.
 from __future__ import annotations
 
 import datetime as dt
-import hashlib
-import importlib.util
 from pathlib import Path
 
+from ..engines.registry import adapter_digest
 from ..errors import NatcoordError
 from . import bench, history
 from .io import read_json
@@ -35,31 +34,6 @@ NIGHTLY_SWEEPS = {"natcoord": [{"formulation": "index1", "method": "dop853", "h"
                                for r in (1e-5, 1e-7, 1e-9, 1e-11)]}
 NIGHTLY_SWEEPS |= {e: s[::2] for e, s in bench.SWEEPS.items() if e not in NIGHTLY_SWEEPS}
 QUICK_ENGINES = ("natcoord", "mujoco", "pinocchio")  # `suite --quick`: the fastest to start
-
-
-def now() -> str:
-    return dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
-
-
-def adapter_digest(engine: str) -> str:
-    """sha256 (16 hex digits) of an engine adapter's source: its module, or every ``.py``
-    of its package ('' when it cannot be found). Importing an adapter never imports its
-    engine, and this does not even import the adapter."""
-    from ..engines.registry import discover
-
-    module = discover().modules.get(engine)
-    try:
-        spec = importlib.util.find_spec(module) if module else None
-    except (ImportError, ValueError):
-        spec = None
-    if spec is None or not spec.origin:
-        return ""
-    origin = Path(spec.origin)
-    files = sorted(origin.parent.glob("*.py")) if origin.name == "__init__.py" else [origin]
-    h = hashlib.sha256()
-    for f in files:
-        h.update(f.name.encode() + b"\0" + f.read_bytes())
-    return h.hexdigest()[:16]
 
 
 def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict | None]:
