@@ -67,3 +67,34 @@ def test_bisect_names_the_commit_that_changed_the_mass(repo):
     assert _git(r, "status", "--porcelain") == before  # the checkout untouched
     assert _git(r, "rev-parse", "HEAD") == shas[-1]
     assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
+
+
+def _suite(r: Path, db: Path) -> subprocess.CompletedProcess:
+    """The suite of the checkout at ``r`` (its own case files and references; the pendulum
+    in natcoord, no bench), recorded in the history ``db``."""
+    out = db.parent / f"night-{_git(r, 'rev-parse', '--short', 'HEAD')}"
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", "suite", "pendulum",
+                           "--engines", "natcoord", "--repeats", "0", "--jobs", "1",
+                           "--history", str(db), "--out", str(out)],
+                          cwd=r, capture_output=True, text=True, timeout=1200,
+                          env={k: v for k, v in os.environ.items() if k != "NATCOORD_HOME"})
+
+
+def test_since_green_names_the_commit_that_changed_the_mass(repo, tmp_path):
+    """Two nights in the test repository: the shipped pendulum (green), then the commit
+    that made it 1 % heavier. `history --since-green` names the failing cell, the last
+    green commit and the commit of the failing night."""
+    r, shas = repo
+    db = tmp_path / "history.db"
+    _git(r, "checkout", "-q", shas[0])
+    assert _suite(r, db).returncode == 0
+    _git(r, "checkout", "-q", shas[2])
+    night = _suite(r, db)
+    assert night.returncode == 1, night.stdout[-2000:] + night.stderr[-2000:]
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "history", "--since-green",
+                        "--json", "--history", str(db)], cwd=r, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 1, p.stderr
+    found = json.loads(p.stdout)
+    assert [x["cell"] for x in found["regressed"]] == ["pendulum/natcoord"]
+    assert found["green"]["commit"] == shas[0] and found["latest"]["commit"] == shas[2]
