@@ -38,6 +38,7 @@ out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
 
 DEFAULT_TIMEOUT_S = 600.0
+NIGHT_BUDGET_S = 120.0  # `suite --bench-budget`: see natcoord.suite.policy
 RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
 ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
 CasesDir = Annotated[Path | None, typer.Option(
@@ -595,6 +596,11 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               scheduler: Scheduler = None, cases: CaseArgs = None,
               cases_dir: CasesDir = None, references: RefDir = None,
               history: HistoryDb = None,
+              bench_budget: Annotated[float, typer.Option(
+                  min=0, help="Engine process time (s) a night's bench may spend on other "
+                  "engines' cells that need measuring (natcoord's are outside it); a cell "
+                  "left over is timed by its accuracy run and measured on a later "
+                  "night.")] = NIGHT_BUDGET_S,
               quick: Annotated[bool, typer.Option(
                   "--quick", help="A first look: natcoord, mujoco and pinocchio (or "
                   "--engines), one bench sample of natcoord only, no work-precision sweeps, "
@@ -639,7 +645,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         bench_engines = [e for e in names if e in policy.ALWAYS] if quick else names
         catalogue = [] if quick or not repeats else [j for j in selected if j.case.benchmark]
         clock = eta_.Eta(_expected(selected, names, bench_engines if repeats else [],
-                                   catalogue, prev_bench, prev_summary, n))
+                                   catalogue, prev_bench, prev_summary, n, bench_budget))
         out.print(f"[bold]natcoord suite{' --quick' if quick else ''}[/]: {len(selected)} "
                   f"cases x {len(names)} engines, {where} -> {escape(str(target))}"
                   + (f"; about {clock.left():.0f} s (earlier suites' durations)"
@@ -659,27 +665,36 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         phases["accuracy runs"] = clock.clock()
         bench_result, speed = None, []
         if repeats:
-            reuse, kept, why = ({}, [], {(j.case.name, e): "quick" for j in selected
+            plan = policy.Plan(measure={(j.case.name, e): "quick" for j in selected
                                         for e in bench_engines}) if quick else policy.plan(
                 summary, prev_bench, names, repeats=repeats, machine=machine)
-            clock.add({(k, c, e): 0.0 for (c, e) in reuse for k in ("bench", "sweep")})
+            budget = policy.Budget(bench_budget)
+            clock.add({(k, c, e): 0.0 for (c, e) in (*plan.reuse, *plan.timed)
+                       for k in ("bench", "sweep")})
+            clock.budget({(c, e) for c, e in plan.spare}, bench_budget)
             out.print(f"[bold]bench[/]: {repeats} calibrated sample(s) per measured cell; "
-                      + _policy_line(why, reuse))
+                      + _policy_line(plan, bench_budget))
             bench_result = bench.bench(
                 selected, bench_engines, repeats=repeats, timeout_s=timeout,
-                references=references, reuse=reuse, cold=not quick,
+                references=references, reuse={**plan.reuse, **plan.timed}, cold=not quick,
+                spare=plan.spare, budget=budget,
                 progress=_progress_printer(len(selected) * len(bench_engines),
                                            "serial, one core", _ticker(clock, "bench")))
+            run_timed = {(r["case"], r["engine"]): r["timed_by"]["why"]
+                         for r in bench_result["records"] if "timed_by" in r}
             bench_result["policy"] = {
                 "mode": "quick" if quick else "nightly", "always": list(policy.ALWAYS),
-                "max_age_days": policy.MAX_AGE.days,
-                "reused": sorted("/".join(k) for k in reuse),
-                "measured": {"/".join(k): v for k, v in sorted(why.items())}}
+                "max_age_days": policy.MAX_AGE.days, "budget_s": bench_budget,
+                "reused": sorted("/".join(k) for k in plan.reuse),
+                "timed_by_accuracy_run": {"/".join(k): v for k, v in sorted(run_timed.items())},
+                "measured": {"/".join(k): v for k, v in sorted(plan.measure.items())
+                             if k not in run_timed}}
             phases["bench"] = clock.clock()
             if catalogue:
                 _nightly_sweeps(bench_result, catalogue, names, references, timeout,
-                                reuse, kept, clock)
+                                set(plan.reuse) | set(run_timed), plan.kept, clock, budget)
                 phases["work-precision"] = clock.clock()
+            bench_result["policy"]["spent_s"] = round(budget.spent, 1)
             if not quick:
                 speed = diff.slower_rechecked(
                     policy.measured_only(bench_result), selected, repeats, timeout, history,
@@ -735,10 +750,11 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
 
 
 def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summary,
-              jobs: int) -> dict:
+              jobs: int, budget_s: float) -> dict:
     """Each piece of a suite's work and its expected seconds (:mod:`natcoord.suite.eta`):
     the accuracy runs shared over ``jobs`` cores; a bench cell or sweep of an engine the
-    policy would reuse (same case file, last measured within its age) 0 s."""
+    policy would reuse (same case file, last measured within its age) 0 s; the other
+    engines' bench cells and sweeps within the night's budget ``budget_s``."""
     from .suite import eta, policy
     from .suite.worker import cannot_run
 
@@ -753,7 +769,9 @@ def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summar
     out |= {k: 0.0 if (k[1], k[2]) in fresh else t
             for k, t in eta.expect(pieces, known).items()}
     cannot = {(c.name, e) for c, e in cells if cannot_run(c, e)}  # no engine process
-    return {k: 0.0 if (k[1], k[2]) in cannot else t for k, t in out.items()}
+    out = {k: 0.0 if (k[1], k[2]) in cannot else t for k, t in out.items()}
+    budgeted = {(c.name, e) for c, e in cells if e not in policy.ALWAYS} - fresh
+    return eta.cap(out, budgeted, budget_s)
 
 
 def _ticker(clock, kind: str):
@@ -766,34 +784,45 @@ def _ticker(clock, kind: str):
     return left
 
 
-def _policy_line(why: dict, reuse: dict) -> str:
-    """What the bench policy chose: cells measured (and why, counted), cells reused."""
+def _policy_line(plan, budget_s: float) -> str:
+    """What the bench policy chose: cells measured (and why, counted), cells in the night's
+    budget, cells reused, cells timed by their accuracy run."""
     from collections import Counter
 
-    counts = Counter(why.values())
-    text = f"{len(why)} cell(s) measured (" + "; ".join(
+    counts = Counter(plan.measure.values())
+    text = f"{len(plan.measure)} cell(s) to measure (" + "; ".join(
         f"{v}: {k}" for k, v in counts.most_common(4)) + ")"
-    if reuse:
-        dates = sorted(r["measured"][:10] for r in reuse.values())
-        text += (f", {len(reuse)} reused from earlier suites (measured "
+    if plan.spare:
+        text += (f", {len(plan.spare)} of them other engines' within tonight's budget of "
+                 f"{budget_s:g} s (the rest timed by their accuracy run)")
+    if plan.reuse:
+        dates = sorted(r["measured"][:10] for r in plan.reuse.values())
+        text += (f", {len(plan.reuse)} reused from earlier suites (measured "
                  f"{dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''})")
+    if plan.timed:
+        text += (f", {len(plan.timed)} timed by their accuracy run (one run longer than a "
+                 "bench cell's timing budget)")
     return text
 
 
-def _nightly_sweeps(result: dict, catalogue, names, references, timeout, reuse, kept,
-                    clock) -> None:
+def _nightly_sweeps(result: dict, catalogue, names, references, timeout, skip: set, kept,
+                    clock, budget) -> None:
     """The suite's work-precision points (policy.NIGHTLY_SWEEPS on the catalogue cases;
-    reused cells' points kept), time to accuracy and the benchmark scoring, into
+    ``skip``: cells not swept tonight (reused ones' points ``kept``); other engines' sweeps
+    while the night's ``budget`` lasts), time to accuracy and the benchmark scoring, into
     ``result`` as `natcoord bench --work-precision` writes them."""
     from .suite import bench, policy
 
-    skip = set(reuse)
+    skip = set(skip)
     per = {(j.case.name, e): len(policy.NIGHTLY_SWEEPS.get(e, [])) for j in catalogue
            for e in names if (j.case.name, e) not in skip}
     total = sum(per.values())
     names_in = {j.case.name for j in catalogue}
-    out.print(f"[bold]work-precision[/]: {total} point(s) measured on {len(catalogue)} "
-              f"catalogue case(s), {sum(c in names_in for c, _ in skip)} cell(s) reused")
+    mine = sum(n for (_, e), n in per.items() if e in policy.ALWAYS)
+    out.print(f"[bold]work-precision[/]: up to {total} point(s) on {len(catalogue)} catalogue "
+              f"case(s): {mine} of natcoord, the other engines' while tonight's budget "
+              f"lasts; {sum(c in names_in for c, _ in skip)} cell(s) reused or timed by "
+              "their accuracy run")
     seen: dict = {}
 
     def left(key: str) -> float:
@@ -806,7 +835,8 @@ def _nightly_sweeps(result: dict, catalogue, names, references, timeout, reuse, 
 
     points = bench.work_precision(catalogue, names, references=references, repeats=3,
                                   timeout_s=timeout, sweeps=policy.NIGHTLY_SWEEPS,
-                                  skip=skip, progress=_progress_printer(
+                                  skip=skip, budget=budget, free=policy.ALWAYS,
+                                  progress=_progress_printer(
                                       total, "serial, one core", left))
     points += [p for p in kept if p.get("case") in names_in]
     for j in catalogue:  # an engine that cannot run a case: its sweep is done at once

@@ -39,7 +39,8 @@ def _plan(old: dict, tonight: dict | None = None, *, machine="m", repeats=7):
 
 def test_an_external_cell_is_reused_until_something_changes(monkeypatch):
     monkeypatch.setattr(policy, "adapter_digest", lambda e: "a1")
-    reuse, points, why = _plan(_rec())
+    plan = _plan(_rec())
+    reuse, points, why = plan.reuse, plan.kept, plan.measure
     assert list(reuse) == [("c", "mujoco")] and why == {("c", "natcoord"):
                                                         "measured every night"}
     mark = reuse[("c", "mujoco")]["reused"]
@@ -54,9 +55,44 @@ def test_an_external_cell_is_reused_until_something_changes(monkeypatch):
              "over 7 days ago"),
             (_rec(requested_repeats=3), {}, "m", "other sample count"),
             (_rec(status="failed", samples_s=[]), {}, "m", "no earlier measurement")]:
-        reuse, points, why = _plan(old, tonight, machine=machine)
-        assert not reuse and not points, reason
-        assert reason in why[("c", "mujoco")], (why, reason)
+        plan = _plan(old, tonight, machine=machine)
+        assert not plan.reuse and not plan.kept, reason
+        assert reason in plan.measure[("c", "mujoco")], (plan.measure, reason)
+        assert list(plan.spare) == [("c", "mujoco")]  # measured while the budget lasts
+
+
+def test_the_budget_takes_the_never_measured_first_and_long_runs_are_run_timed(
+        monkeypatch):
+    """Cells to measure are queued: never measured (a run-timed record counts as none)
+    before stale ones, the oldest first, the cheapest first among equals; a cell whose one
+    run is longer than a bench cell's timing budget is timed by its accuracy run, and its
+    record says so."""
+    monkeypatch.setattr(policy, "adapter_digest", lambda e: "a1")
+    old = lambda case, days: _rec(case=case, measured=(  # noqa: E731
+        NOW - dt.timedelta(days=days)).isoformat())
+    previous = {"machine": {"fingerprint": "m"}, "origins": {},
+                "records": [old("stale9", 9), old("stale8", 8), old("fresh", 1),
+                            _rec(case="timed", timed_by={"why": "x"})]}
+    run = lambda case, wall: {"case": case, "engine": "mujoco", "status": "ok",  # noqa: E731
+                              "engine_version": "3.1", "case_hash": "h1", "wall_time_s": wall,
+                              "process_time_s": wall + 1.0, "n_steps": 100,
+                              "build_time_s": 0.1, "settings": {"dt": 1e-3}}
+    summary = {"records": [run("stale8", 0.5), run("stale9", 0.5), run("fresh", 0.5),
+                           run("new_dear", 2.0), run("new_cheap", 0.01), run("timed", 0.2),
+                           run("long", 2 * policy.bench.BUDGET_S)]}
+    plan = policy.plan(summary, previous, ["mujoco"], repeats=7, machine="m", when=NOW)
+    assert list(plan.reuse) == [("fresh", "mujoco")]
+    assert [c for c, _ in plan.spare] == ["new_cheap", "timed", "new_dear", "stale9",
+                                          "stale8"]
+    (long,) = plan.timed.values()
+    assert long["samples_s"] == [2 * policy.bench.BUDGET_S] and long["repeats"] == 1
+    assert "its accuracy run is its timing" in long["timed_by"]["why"]
+    assert long["us_per_step"] == pytest.approx(1e6 * 2 * policy.bench.BUDGET_S / 100)
+    spare = plan.spare[("new_cheap", "mujoco")]
+    assert "over tonight's bench budget" in spare["timed_by"]["why"]
+    from natcoord.suite.stored import carried
+    assert carried(long) and carried(spare) and not carried(_rec())
+    assert policy.measured_only({"records": [long, _rec()]})["records"] == [_rec()]
 
 
 def test_a_one_case_suite_does_not_hide_the_nights_before_it(tmp_path):
@@ -150,7 +186,7 @@ def two_nights(tmp_path_factory):
 def test_the_second_night_reuses_the_external_cell_and_judges_only_natcoord(two_nights):
     tmp, db, first, second = two_nights
     assert first.returncode == 0 and second.returncode == 0, first.stderr + second.stderr
-    assert "2 cell(s) measured" in first.stdout and "s left in the suite" in second.stdout
+    assert "2 cell(s) to measure" in first.stdout and "s left in the suite" in second.stdout
     assert "1 reused from earlier suites" in second.stdout, second.stdout
     a = json.loads((tmp / "a" / "bench.json").read_text())
     b = json.loads((tmp / "b" / "bench.json").read_text())
@@ -187,6 +223,29 @@ def test_the_suite_writes_work_precision_and_scoring_like_bench(two_nights):
             assert s["time_to_precision"] > 0 and s["reached_by"]
         assert {r["engine"] for r in b["time_to_accuracy"]} >= {"natcoord (index1 dop853)",
                                                                  "mujoco"}
+
+
+def test_with_no_budget_left_the_external_cell_is_timed_by_its_accuracy_run(tmp_path):
+    """`--bench-budget 0`: natcoord is measured as every night; MuJoCo's cell (never
+    measured) is timed by tonight's accuracy run (one sample: that run's stepping time) and
+    not swept; the history does not record it as a measurement."""
+    db = tmp_path / "history.db"
+    p = _suite("slider_crank_3d", "--engines", "natcoord,mujoco", "--history", db,
+               "--bench-budget", "0", "--out", tmp_path / "n")
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-2000:]
+    b = json.loads((tmp_path / "n" / "bench.json").read_text())
+    s = json.loads((tmp_path / "n" / "summary.json").read_text())
+    rec = {r["engine"]: r for r in b["records"]}
+    run = {r["engine"]: r for r in s["records"]}
+    assert "timed_by" not in rec["natcoord"] and len(rec["natcoord"]["samples_s"]) >= 2
+    assert rec["mujoco"]["samples_s"] == [run["mujoco"]["wall_time_s"]]
+    assert "over tonight's bench budget" in rec["mujoco"]["timed_by"]["why"]
+    assert b["policy"]["budget_s"] == 0 and b["policy"]["spent_s"] == 0
+    assert list(b["policy"]["timed_by_accuracy_run"]) == ["slider_crank_3d/mujoco"]
+    assert {p["engine"] for p in b["work_precision"]} == {"natcoord"}
+    with sqlite3.connect(db) as con:
+        rows = con.execute("SELECT engine, COUNT(*) FROM bench GROUP BY engine").fetchall()
+    assert dict(rows) == {"natcoord": 1}
 
 
 def test_quick_is_marked_and_leaves_the_history_alone(two_nights):

@@ -73,6 +73,17 @@ def _spread_text(rec: dict, ss: list[float], fmt_time: Callable) -> tuple[str, s
     return "—", "no spread recorded"
 
 
+def _source(r: dict) -> dict:
+    """Where a bench record's samples come from, when not tonight's bench: ``source`` (a
+    word) and ``source_title`` (the why, for a hover)."""
+    if isinstance(r.get("timed_by"), dict):
+        return {"source": "run", "source_title": str(r["timed_by"].get("why", ""))}
+    if isinstance(r.get("reused"), dict):
+        return {"source": "reused", "source_title": "measured "
+                f"{r['reused'].get('measured', '?')} (reused: nothing it depends on changed)"}
+    return {"source": "", "source_title": ""}
+
+
 def own_settings(bench: dict, summary_by_key: dict, cases_order: list[str],
                  engine_order: Callable[[Iterable[str]], list[str]], anchor: Callable,
                  fmt_time: Callable, fmt_num: Callable, fmt_ratio: Callable,
@@ -108,6 +119,7 @@ def own_settings(bench: dict, summary_by_key: dict, cases_order: list[str],
                 "median": fmt_time(median),
                 "spread": spread, "spread_title": spread_title,
                 "repeats": fmt_int(r.get("repeats") or (len(ss) or None)),
+                **_source(r),
                 "wall_per_sim": fmt_time(w),
                 "ratio": fmt_ratio(w / base) if (w is not None and base) else "—",
                 "us_per_step": fmt_time(us * 1e-6 if us else None),

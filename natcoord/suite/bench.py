@@ -280,21 +280,36 @@ def cold_start(job, tmp: Path, repeats: int = COLD_REPEATS, timeout_s: float = 6
 def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
           timeout_s: float = 600.0, progress: Callable[[str, dict], None] | None = None,
           references: Path | None = None, reuse: dict | None = None,
-          cold: bool = True) -> dict:
+          cold: bool = True, spare: dict | None = None, budget=None) -> dict:
     """Benchmark and return ``{"records": [...], "machine": ..., "generated": ...}`` (and
     ``cold_start`` when natcoord is benchmarked and ``cold``). ``reuse``: ``{(case, engine):
-    record}`` taken as they are instead of measured (:mod:`natcoord.suite.policy`)."""
-    records, cold_rec = [], None
+    record}`` taken as they are instead of measured; ``spare``: ``{(case, engine): record}``
+    measured after the others, in this order, while ``budget`` (a
+    :class:`natcoord.suite.policy.Budget`) lasts, else taken as they are
+    (:mod:`natcoord.suite.policy`)."""
     jobs = [as_job(c) for c in cases]
-    reuse = reuse or {}
+    reuse, spare = reuse or {}, spare or {}
+    todo = [(job, engine) for job in jobs for engine in engines]
+    found: dict[tuple, dict] = {}
+    first = [(j, e) for j, e in todo if (j.case.name, e) not in spare]
+    later = sorted((x for x in todo if (x[0].case.name, x[1]) in spare),
+                   key=lambda x: list(spare).index((x[0].case.name, x[1])))
+    cold_rec = None
     with tempfile.TemporaryDirectory(prefix="natcoord-bench-") as tmp:
-        for job in jobs:
-            for engine in engines:
-                rec = reuse.get((job.case.name, engine)) or measure(
-                    job, engine, repeats, timeout_s, Path(tmp), references)
-                records.append(rec)
-                if progress:
-                    progress(f"{job.case.name}/{engine}", rec)
+        for job, engine in first + later:
+            key = (job.case.name, engine)
+            if key in reuse:
+                rec = reuse[key]
+            elif key in spare and budget is not None and not budget.left():
+                rec = spare[key]
+            else:
+                rec = measure(job, engine, repeats, timeout_s, Path(tmp), references)
+                if key in spare and budget is not None:
+                    budget.charge(rec)
+            found[key] = rec
+            if progress:
+                progress(f"{job.case.name}/{engine}", rec)
+        records = [found[(j.case.name, e)] for j, e in todo]
         if cold and "natcoord" in engines and jobs:  # after the runs above: kernels cached
             ran = [j for j in jobs if any(r["case"] == j.case.name and r["engine"] ==
                                           "natcoord" and r["status"] == "ok" for r in records)]
@@ -326,7 +341,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                    timeout_s: float = 600.0,
                    progress: Callable[[str, dict], None] | None = None,
                    sweeps: dict[str, list[dict]] | None = None,
-                   skip: set | frozenset = frozenset()) -> list[dict]:
+                   skip: set | frozenset = frozenset(), budget=None,
+                   free: Sequence[str] = ()) -> list[dict]:
     """Error of the first angle channel (``error``) and, for a case with a ``[benchmark]``,
     the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep:
     every sweep point timed as a bench cell (:func:`timed_runs`: ``repeats`` calibrated
@@ -335,7 +351,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
     Returns one record per case x engine x setting, and per case x engine the time to
     reach each error in TARGETS (the cheapest point at or below it; None if none does).
     ``sweeps``: the settings per engine (default :data:`SWEEPS`); ``skip``: (case, engine)
-    pairs not swept.
+    pairs not swept; ``budget`` (a :class:`natcoord.suite.policy.Budget`): an engine not in
+    ``free`` starts a case's sweep only while it lasts, and its points are charged to it.
     """
 
     sweeps = SWEEPS if sweeps is None else sweeps
@@ -350,8 +367,13 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
             for engine in engines:
                 if (case.name, engine) in skip:
                     continue
+                charged = budget is not None and engine not in free
+                if charged and not budget.left():
+                    continue
                 for setting in sweeps.get(engine, []):
                     runs = timed_runs(job, engine, Path(tmp), timeout_s, repeats, setting)
+                    if charged:
+                        budget.charge(runs[-1])
                     ok = [r for r in runs if r["status"] == "ok"]
                     rec = {"case": case.name, "engine": engine, "setting": setting,
                            "variant": variant(setting), "channel": angle,

@@ -26,7 +26,7 @@ from pathlib import Path
 from ..errors import EnvironmentFault
 from . import bench, gate, history, speed
 from .io import read_json, write_atomic
-from .stored import check_bench
+from .stored import carried, check_bench
 
 SLOWER = 4
 
@@ -173,7 +173,7 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
     machine = bench.get("machine", {}).get("fingerprint", "")
     out = []
     for r in bench.get("records", []):
-        if not r.get("samples_s") or "reused" in r:  # reused: no new measurement to judge
+        if not r.get("samples_s") or carried(r):  # reused or run-timed: nothing to judge
             continue
         key = (db, r["case"], r["engine"], r.get("case_hash", ""), machine)
         past, counters = history.past_samples(*key, exclude_dir=exclude_dir)

@@ -14,6 +14,8 @@ import statistics
 import time
 from collections.abc import Iterable
 
+from .stored import carried
+
 UNKNOWN_S = 5.0  # a piece of a kind never measured on this machine
 RUN, BENCH, SWEEP = "run", "bench", "sweep"
 
@@ -26,11 +28,11 @@ def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
                           (BENCH, (bench or {}).get("records", []))):
         for r in records:
             t = r.get("process_time_s")
-            if isinstance(t, (int, float)) and "reused" not in r:
+            if isinstance(t, (int, float)) and not carried(r):
                 out[(kind, r.get("case"), r.get("engine"))] = float(t)
     for p in (bench or {}).get("work_precision", []):
         t = p.get("process_time_s")
-        if isinstance(t, (int, float)) and "reused" not in p:
+        if isinstance(t, (int, float)) and not carried(p):
             key = (SWEEP, p.get("case"), p.get("engine"))
             out[key] = out.get(key, 0.0) + float(t)
     return out
@@ -51,6 +53,16 @@ def expect(pieces: Iterable[tuple], known: dict[tuple, float]) -> dict[tuple, fl
     return out
 
 
+def cap(expected: dict[tuple, float], cells: set[tuple], seconds: float
+        ) -> dict[tuple, float]:
+    """``expected`` with the bench and sweep pieces of ``cells`` ((case, engine)) scaled
+    to take ``seconds`` together at most (the night's bench budget)."""
+    mine = [k for k in expected if k[0] in (BENCH, SWEEP) and (k[1], k[2]) in cells]
+    total = sum(expected[k] for k in mine)
+    f = min(1.0, seconds / total) if total > 0 else 1.0
+    return {k: t * f if k in mine else t for k, t in expected.items()}
+
+
 class Eta:
     """Time left of a suite: ``expected`` seconds per piece (wall time: a parallel piece
     already divided by the cores it shares); :meth:`done` as pieces finish."""
@@ -62,6 +74,11 @@ class Eta:
     def add(self, expected: dict[tuple, float]) -> None:
         """More pieces (a later phase whose pieces are known only now)."""
         self.expected.update(expected)
+
+    def budget(self, cells: set[tuple], seconds: float) -> None:
+        """The bench and sweep pieces of ``cells`` ((case, engine)) share a budget of
+        ``seconds``: their expectations are scaled down to fit it."""
+        self.expected = cap(self.expected, cells, seconds)
 
     def done(self, piece: tuple) -> None:
         self.finished.add(piece)

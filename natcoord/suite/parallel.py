@@ -12,7 +12,10 @@ never come here: they stay serial, one core at a time.
 
 from __future__ import annotations
 
+import contextlib
+import os
 import pickle
+import queue
 import tempfile
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
@@ -26,6 +29,29 @@ MARGIN_S = 120.0  # scheduling and start-up allowance on top of a run's own time
 
 def cells(jobs, engines) -> list[tuple]:
     return [(job, engine) for job in jobs for engine in engines]
+
+
+class Cores:
+    """The cores the parallel runs are pinned to, one run per core, when there are at least
+    as many cores as runs at a time (then each run's stepping time is its own core's: the
+    suite takes it as the timing of a cell the bench does not measure, see
+    :mod:`natcoord.suite.policy`); else no pinning (``one()`` gives None)."""
+
+    def __init__(self, workers: int):
+        mine = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+        self.free = queue.SimpleQueue()
+        self.pinned = 0 < workers <= len(mine)
+        for cpu in mine[-workers:] if self.pinned else ():
+            self.free.put(cpu)
+
+    @contextlib.contextmanager
+    def one(self):
+        cpu = self.free.get() if self.pinned else None
+        try:
+            yield cpu
+        finally:
+            if cpu is not None:
+                self.free.put(cpu)
 
 
 def local(jobs, engines, out: Path, timeout_s: float, workers: int,
@@ -43,8 +69,13 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
     pool = ThreadPoolExecutor(max_workers=workers)
     order = sorted(range(len(todo)), key=lambda i: -(first or {}).get(
         (todo[i][0].case.name, todo[i][1]), 0.0))
-    futures = {pool.submit(run_subprocess, todo[i][0], todo[i][1], out, timeout_s): i
-               for i in order}
+    cores = Cores(workers)
+
+    def run(job, engine):
+        with cores.one() as cpu:
+            return run_subprocess(job, engine, out, timeout_s, cpu=cpu)
+
+    futures = {pool.submit(run, todo[i][0], todo[i][1]): i for i in order}
     try:
         for f in as_completed(futures):
             yield futures[f], f.result()

@@ -1,5 +1,5 @@
-"""The nightly's bench policy: which bench cells a suite measures tonight and which it takes
-from earlier suites' ``bench.json``.
+"""The nightly's bench policy: which bench cells a suite measures tonight, which it takes
+from earlier suites' ``bench.json`` and which it times by tonight's accuracy run.
 
 * natcoord's cells are measured every night (calibrated samples), with a short
   work-precision sweep (:data:`NIGHTLY_SWEEPS`).
@@ -7,22 +7,30 @@ from earlier suites' ``bench.json``.
   again only when its engine version (tonight's accuracy run says which), the case file
   (sha256), its adapter's code (sha256 of the adapter's files), the machine (fingerprint)
   or the samples asked for changed, when it is older than :data:`MAX_AGE`, or when no
-  earlier suite (:func:`earlier`) has a record of it. Otherwise it is reused, marked
-  ``reused`` with the time it was measured and the folder it comes from.
-* A reused cell is not a new measurement: the history does not record its samples again and
-  the speed gate does not judge it.
+  earlier suite (:func:`earlier`) has a calibrated record of it. Otherwise it is reused,
+  marked ``reused`` with the time it was measured and the folder it comes from.
+* The external cells to measure share a night's budget (:class:`Budget`: engine process
+  time, ``natcoord suite --bench-budget``): the never measured first, then the oldest,
+  the cheapest first among equals; a cell is measured with its sweep points while the
+  budget lasts. A cell left over, and a cell whose single run is longer than a bench cell's
+  timing budget (the bench would time that one run too), is **timed by its accuracy run**:
+  the stepping time of tonight's run (one sample, BLAS on one thread, each parallel run
+  pinned to a core of its own), marked ``timed_by``; it is measured on a later night.
+* A reused or run-timed cell is not a bench measurement (:func:`natcoord.suite.stored.carried`):
+  the history does not record its samples and the speed gate does not judge it.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..engines.registry import adapter_digest
 from ..errors import NatcoordError
 from . import bench, history
 from .io import read_json
-from .stored import check_bench
+from .stored import carried, check_bench
 
 MAX_AGE = dt.timedelta(days=7)
 ALWAYS = ("natcoord",)  # engines measured every night
@@ -65,7 +73,7 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
         machine_info = machine_info or data.get("machine")
         for r in data.get("records", []):
             key = f"{r['case']}/{r['engine']}"
-            if key not in origins:
+            if key not in origins and "timed_by" not in r:  # a calibrated measurement
                 origins[key] = str(folder)
                 bench_.append(r)
                 points += [p for p in data.get("work_precision", [])
@@ -83,7 +91,7 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
 def stale(old: dict | None, *, engine_version: str, case_hash: str, adapter: str,
           machine: str, old_machine: str, repeats: int, when: dt.datetime) -> str:
     """Why a previous bench record cannot stand for tonight's ('' when it can)."""
-    if not old or old.get("status") != "ok" or not old.get("samples_s"):
+    if not old or old.get("status") != "ok" or not old.get("samples_s") or "timed_by" in old:
         return "no earlier measurement"
     if old_machine != machine:
         return "another machine"
@@ -104,13 +112,71 @@ def stale(old: dict | None, *, engine_version: str, case_hash: str, adapter: str
     return ""
 
 
+@dataclass
+class Plan:
+    """What tonight's bench does per case x engine that ran: ``reuse`` (records marked
+    reused) with ``kept`` (their work-precision points), ``measure`` (why each cell is
+    measured), ``spare`` (for each external cell to measure, in the order the budget takes
+    them, the record it falls back to: timed by its accuracy run) and ``timed`` (records
+    timed by their accuracy run without asking the budget: one run longer than a bench
+    cell's timing budget)."""
+
+    reuse: dict = field(default_factory=dict)
+    kept: list = field(default_factory=list)
+    measure: dict = field(default_factory=dict)
+    spare: dict = field(default_factory=dict)
+    timed: dict = field(default_factory=dict)
+
+
+@dataclass
+class Budget:
+    """Engine process time (s) tonight's bench may spend on external cells: their bench
+    record and their sweep points. A piece starts while some budget is left."""
+
+    total: float
+    spent: float = 0.0
+
+    def left(self) -> bool:
+        return self.spent < self.total
+
+    def charge(self, record: dict) -> None:
+        t = record.get("process_time_s")
+        self.spent += float(t) if isinstance(t, (int, float)) else 0.0
+
+
+def from_run(run: dict, why: str) -> dict:
+    """A cell's bench record from tonight's accuracy-run record ``run``: its stepping time
+    (build time apart) as the one sample, marked ``timed_by`` with ``why``."""
+    wall, steps = run.get("wall_time_s"), run.get("n_steps") or 0
+    counters = run.get("counters") or {}
+    return {"case": run["case"], "engine": run["engine"], "status": "ok",
+            "reason": "", "case_hash": run.get("case_hash", ""),
+            "engine_version": run.get("engine_version", ""), "measured": bench.now(),
+            "adapter_hash": adapter_digest(run["engine"]), "repeats": 1,
+            "samples_s": [wall], "cpu_samples_s": [], "batch_runs": [1],
+            "wall_time_s": wall, "wall_spread": 0.0, "wall_median_s": wall,
+            "build_time_s": run.get("build_time_s") or 0.0, "n_steps": steps,
+            "us_per_step": 1e6 * wall / steps if steps else None,
+            "settings": run.get("settings") or {},
+            "counters": {k: counters[k] for k in bench.COUNTERS
+                         if isinstance(counters.get(k), (int, float))},
+            "timed_by": {"run": "accuracy run", "why": why}}
+
+
+def _cost(run: dict, repeats: int) -> float:
+    """Expected process time (s) of a cell's bench from its accuracy run: start-up and
+    build, the warm-up runs (whole and cost-fit), the calibrated samples within the
+    cell's timing budget."""
+    wall = float(run.get("wall_time_s") or 0.0)
+    total = float(run.get("process_time_s") or wall)
+    one = (1 + bench.FIT_FRACTION) * wall
+    return (total - wall) + one + min(bench.BUDGET_S, repeats * max(one, bench.MIN_BATCH_S))
+
+
 def plan(summary: dict, previous: dict | None, engines, *,
-         repeats: int, machine: str, when: dt.datetime | None = None
-         ) -> tuple[dict, list, dict]:
-    """Per case x engine of tonight's accuracy run (``summary``) that ran: the bench records
-    to reuse ``{(case, engine): record marked reused}``, the work-precision points that go
-    with them (marked too), and why each other cell is measured ``{(case, engine):
-    reason}``. ``previous``: the earlier measurements (:func:`earlier`, or None)."""
+         repeats: int, machine: str, when: dt.datetime | None = None) -> Plan:
+    """The bench plan (:class:`Plan`) for tonight's accuracy run ``summary``; ``previous``:
+    the earlier measurements (:func:`earlier`, or None)."""
     when = when or dt.datetime.now(dt.UTC)
     old = {(r["case"], r["engine"]): r for r in (previous or {}).get("records", [])}
     old_machine = ((previous or {}).get("machine") or {}).get("fingerprint", "")
@@ -118,25 +184,37 @@ def plan(summary: dict, previous: dict | None, engines, *,
     for p in (previous or {}).get("work_precision", []):
         points.setdefault((p.get("case"), p.get("engine")), []).append(p)
     digests = {e: adapter_digest(e) for e in engines if e not in ALWAYS}
-    reuse, kept, measure = {}, [], {}
+    out, queue = Plan(), []
     for r in summary.get("records", []):
         key = (r["case"], r["engine"])
         if r["engine"] in ALWAYS:
-            measure[key] = "measured every night"
+            out.measure[key] = "measured every night"
             continue
         if r.get("status") != "ok":
             continue  # the bench finds out again (unsupported or failed: no timing)
         why = stale(old.get(key), engine_version=r.get("engine_version", ""),
                     case_hash=r.get("case_hash", ""), adapter=digests.get(r["engine"], ""),
                     machine=machine, old_machine=old_machine, repeats=repeats, when=when)
-        if why:
-            measure[key] = why
+        if not why:
+            mark = {"measured": old[key]["measured"],
+                    "from": previous.get("origins", {}).get("/".join(key), "")}
+            out.reuse[key] = {**old[key], "reused": mark}
+            out.kept += [{**p, "reused": mark} for p in points.get(key, [])]
             continue
-        mark = {"measured": old[key]["measured"],
-                "from": previous.get("origins", {}).get("/".join(key), "")}
-        reuse[key] = {**old[key], "reused": mark}
-        kept += [{**p, "reused": mark} for p in points.get(key, [])]
-    return reuse, kept, measure
+        wall = r.get("wall_time_s")
+        if isinstance(wall, (int, float)) and wall > bench.BUDGET_S:
+            out.timed[key] = from_run(r, f"one run takes {wall:.0f} s, more than a bench "
+                                      f"cell's {bench.BUDGET_S:g} s: its accuracy run is its "
+                                      "timing")
+            continue
+        out.measure[key] = why
+        never = why == "no earlier measurement"
+        age = "" if never else (old.get(key) or {}).get("measured") or ""
+        queue.append((not never, age, _cost(r, repeats), key, r))
+    for *_, key, r in sorted(queue, key=lambda x: x[:3]):
+        out.spare[key] = from_run(r, "over tonight's bench budget: timed by its accuracy "
+                                  "run, measured on a later night")
+    return out
 
 
 def likely_reused(previous: dict | None, digests: dict[str, str],
@@ -161,4 +239,4 @@ def likely_reused(previous: dict | None, digests: dict[str, str],
 def measured_only(result: dict) -> dict:
     """A bench result holding only tonight's measurements (the same record objects): what
     the speed gate judges and the history records."""
-    return {**result, "records": [r for r in result.get("records", []) if "reused" not in r]}
+    return {**result, "records": [r for r in result.get("records", []) if not carried(r)]}

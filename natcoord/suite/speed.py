@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 from scipy.stats import mannwhitneyu
 
+from .stored import carried
+
 FACTOR = 1.5
 FACTORS: dict[str, float] = {}  # engine -> its own factor (a noisier engine may need more)
 ALPHA = 0.05
@@ -120,7 +122,7 @@ def compare_bench(base: dict, new: dict) -> list[SpeedChange]:
         if not isinstance(r, dict):
             continue
         b = by_key.get((r.get("case"), r.get("engine")))
-        if "reused" in r:  # the suite's bench policy took it from earlier: nothing new
+        if carried(r):  # the suite's bench policy took it from elsewhere: nothing new
             continue
         if b and b.get("status", "ok") == "ok" and r.get("status", "ok") == "ok":
             out.append(judge(r["case"], r["engine"], b.get("samples_s"), r.get("samples_s"),

@@ -15,6 +15,13 @@ def _number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
+def carried(record: dict) -> bool:
+    """True for a bench record (or work-precision point) that tonight's bench did not
+    measure: reused from an earlier suite (``reused``) or taken from tonight's accuracy run
+    (``timed_by``). The speed gate and the history judge and keep only measured ones."""
+    return "reused" in record or "timed_by" in record
+
+
 def check_bench(path: Path, data) -> dict:
     """``data`` (the content of ``path``, a bench.json) as it is, or StoredFileError."""
     if not isinstance(data, dict):
