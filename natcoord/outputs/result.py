@@ -183,7 +183,8 @@ def work(case: Case, motion: Motion) -> np.ndarray:
 def _turn(R: np.ndarray, w: np.ndarray, t: np.ndarray,
           max_step: float = 1.0) -> np.ndarray | None:
     """The integral of a 3-D body's angular velocity w (T, 3) (world axes; rotations R
-    (T, 3, 3) at times t (T,), s) from t[0] to every sample, (T, 3) rad. Over each sample interval: along the interval's rotation vector r (that of
+    (T, 3, 3) at times t (T,), s) from t[0] to every sample, (T, 3) rad. Over each sample
+    interval: along the interval's rotation vector r (that of
     R(t + h) R(t)^T less the Magnus expansion's second and third terms,
     :func:`_magnus23`), r itself, which is exact when the axis stays fixed whatever the
     rate; across r, the integral of the cubic spline through omega (zero for a fixed axis).
