@@ -199,3 +199,29 @@ def test_frame_field_is_checked(tmp_path, case_variant):
     torque = '[[forces]]\ntype = "torque"\nbody = "crank"\nvalue = 1.0\nframe = "body"\n[channels]'
     assert load_case(case_variant("four_bar", [(r"^\[channels\]", torque)])).forces[0].value == 1
 
+
+
+def test_the_spatial_derivation_applies_body_fixed_loads(tmp_path):
+    """natcoord/derivations/spatial.py (Euler parameters, Newton-Euler) on the top, point
+    positions: agrees with natcoord to 1e-9 m (measured 4.2e-14 body, 1.1e-13 world axes),
+    and the two frames differ by 1e-2 m."""
+    import re
+
+    from natcoord.derivations.spatial import SpatialModel
+
+    pos = "".join(f'q{p}{a} = {{ kind = "position", body = "top", point = "{p}", '
+                  f'axis = "{a}" }}\n' for p in "ac" for a in "xyz")
+    keys = [f"q{p}{a}" for p in "ac" for a in "xyz"]
+    tables = {}
+    for frame in ("body", "world"):
+        text = (TOP.replace("AA", repr(A)).replace("CC", repr(C)).replace("POINTS", SOLID)
+                .replace("SPIN", repr(S)))
+        text = re.sub(r"^(w1|w2|w3|Hx|Hy|Hz) = .*\n", "", text, flags=re.M)
+        d = tmp_path / frame
+        d.mkdir()
+        case = ec.case_from_text(d, text + pos + _torque(frame), "top")
+        m = SpatialModel(case)
+        tables[frame] = mine = m.channels(case.times, m.integrate(case.times))[0]
+        nc = evaluate_channels(case, ec.run("natcoord", case).motion)
+        assert max(float(np.max(np.abs(mine[k] - nc[k]))) for k in keys) < 1e-9
+    assert max(float(np.max(np.abs(tables["body"][k] - tables["world"][k]))) for k in keys) > 5e-3
