@@ -32,6 +32,7 @@ from .mechanism import (
     DRIVER_TYPES,
     GROUND,
     JOINT_TYPES,
+    LOAD_FRAMES,
     PLANAR_JOINTS,
     PLANES,
     Body,
@@ -480,14 +481,19 @@ def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:
     if body not in points_of or body == GROUND:
         r.fail(f"{p}.body", f"unknown body {body!r}; bodies are "
                f"{', '.join(b for b in points_of if b != GROUND)}")
+    frame = r.string(f, "frame", p, required=False, default="world", choices=LOAD_FRAMES)
     if ftype == "torque":
         value = (r.number(f, "value", p, "torque") if dim == 2 else
                  r.vector(r.get(f, "value", p), f"{p}.value", 3, "torque"))
-        return Force(ftype, body, value)
+        return Force(ftype, body, value, frame="world" if dim == 2 else frame)
+    if frame == "body" and dim == 2:
+        r.fail(f"{p}.frame", "a body-fixed force (frame = \"body\") is 3-D only; give the "
+               "force in world axes")
     point = r.string(f, "point", p)
     if point not in points_of[body]:
         r.fail(f"{p}.point", f"body {body!r} has no point {point!r}")
-    return Force(ftype, body, r.vector(r.get(f, "value", p), f"{p}.value", dim, "force"), point)
+    return Force(ftype, body, r.vector(r.get(f, "value", p), f"{p}.value", dim, "force"), point,
+                 frame)
 
 
 def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,

@@ -32,6 +32,7 @@ BODY_KINDS = ("uniform_rod", "particle", "rigid")
 JOINT_TYPES = ("revolute", "prismatic", "spherical", "universal", "cylindrical")
 PLANAR_JOINTS = ("revolute", "prismatic")  # the joint types a 2-D case can have
 FORCE_TYPES = ("torque", "force")
+LOAD_FRAMES = ("world", "body")  # the axes of a [[forces]] value
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
                  "driver", "axial", "combination", "loop_gap", "angular_velocity",
                  "angular_momentum", "momentum", "vector_angle")
@@ -125,13 +126,16 @@ class Spring:
 @dataclass(frozen=True)
 class Force:
     """A constant applied load on ``body``. ``torque``: moment ``value`` (N m; a scalar in
-    2-D, (3,) world axes in 3-D). ``force``: force ``value`` (d,) N, world axes, applied at
-    the body point ``point``."""
+    2-D, (3,) in 3-D). ``force``: force ``value`` (d,) N applied at the body point
+    ``point``. ``frame``: the axes of ``value``, ``"world"`` or ``"body"`` (3-D only: the
+    body's own frame, the world frame at t = 0 in a 3-D case, so the load turns with the
+    body; its world value is ``R(t) value``)."""
 
     type: str
     body: str
     value: float | np.ndarray
     point: str | None = None
+    frame: str = "world"
 
 
 @dataclass(frozen=True)

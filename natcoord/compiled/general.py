@@ -20,7 +20,9 @@ leading 1), ``th`` (m,) the Householder factors, ``piv`` (m,) the row permutatio
 Forces (:func:`forces`, ``Model.forces`` and ``NaturalModel.forces`` in numba) take the
 tuple of :func:`pack_forces` (filled by :func:`natcoord.dynamics.common.compiled_forces`):
 ``Q0`` (n,), ``T`` (n, n) or (0, 0), torque difference maps ``G`` (nG, d, n+1) with torque t
-on rows ``toff[t]:toff[t+1]``, torques ``tau`` (nt, 3) (2-D: tau[:, 0]), spring maps
+on rows ``toff[t]:toff[t+1]``, torques ``tau`` (nt, 3) (2-D: tau[:, 0]; with body-fixed
+torques (nt, 4 + K): world torque ``tau[t, :3] + tau[t, 3] d_0 x d_1 + sum_k tau[t, 4 + k]
+d_k`` over the torque's difference vectors d_k = G[toff[t] + k] qh), spring maps
 ``S = B - A`` (ns, d, n+1) and ``spr`` (ns, 3) = (k N/m, c N s/m, l0 m).
 """
 
@@ -544,6 +546,7 @@ def _torques_springs(G, toff, tau, S, spr, q, qd, out):
     dim = G.shape[1]
     d = np.empty(3)
     g = np.empty(3)
+    tw = np.empty(3)
     Sm = np.empty((3, 3))
     for t in range(toff.shape[0] - 1):
         # min-norm f_k with sum d_k x f_k = tau: f_k = B_k^T g, (sum B_k B_k^T) g = tau
@@ -559,6 +562,9 @@ def _torques_springs(G, toff, tau, S, spr, q, qd, out):
                         Sm[a, b] += (dd if a == b else 0.0) - d[a] * d[b]
         if dim == 2:
             g[0] = tau[t, 0] / Sm[0, 0]
+        elif tau.shape[1] > 3:  # body-fixed columns: tau + c_K d_0 x d_1 + sum_k c_k d_k
+            _body_torque(G, toff[t], toff[t + 1], tau[t], q, tw)
+            _torque_solve(Sm, tw, g)
         else:
             _torque_solve(Sm, tau[t], g)
         for k in range(toff[t], toff[t + 1]):
@@ -591,6 +597,28 @@ def _torques_springs(G, toff, tau, S, spr, q, qd, out):
             fa = -ten * ln_d[a] / ln
             for b in range(n):
                 out[b] += S[s_, a, b] * fa
+
+
+@njit(cache=True)
+def _body_torque(G, k0, k1, row, q, out):
+    """World torque (3,) of a torque row (``tau`` columns, see the module doc) at q: its
+    constant part row[:3] plus the body-fixed part ``row[3] d_0 x d_1 + sum_k row[4 + k]
+    d_k`` (d_k = G[k0 + k] qh, the frame R(q) = D(q) D0^+ of the outputs)."""
+    d0 = np.empty(3)
+    d1 = np.empty(3)
+    for a in range(3):
+        out[a] = row[a]
+    for k in range(k0, k1):
+        _map(G[k], q, True, d1)
+        c = row[4 + k - k0]
+        for a in range(3):
+            out[a] += c * d1[a]
+    if row[3] != 0.0:
+        _map(G[k0], q, True, d0)
+        _map(G[k0 + 1], q, True, d1)
+        out[0] += row[3] * (d0[1] * d1[2] - d0[2] * d1[1])
+        out[1] += row[3] * (d0[2] * d1[0] - d0[0] * d1[2])
+        out[2] += row[3] * (d0[0] * d1[1] - d0[1] * d1[0])
 
 
 @njit(cache=True)

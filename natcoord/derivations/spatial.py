@@ -370,6 +370,8 @@ class SpatialModel:
         for f in self.case.forces:
             i = self.index[f.body]
             val = np.asarray(f.value, float)
+            if f.frame == "body":  # given in the body's axes (the world's at t = 0)
+                val = kin.R[i] @ val
             if f.type == "torque":
                 Q[i, 3:] += val
                 power += val @ kin.w[i]

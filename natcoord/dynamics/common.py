@@ -141,24 +141,38 @@ def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray
 def compiled_forces(model) -> tuple | None:
     """The applied forces of ``model`` as the arrays of the compiled loop
     (:func:`natcoord.compiled.general.pack_forces`), or None for a force model it does not
-    know (it knows :meth:`natcoord.model.model.Model.forces`: Q0, constant torques on bodies,
+    know (it knows :meth:`natcoord.model.model.Model.forces`: Q0, constant torques on bodies
+    (world or body axes), forces in a body's axes (on a basis that spans 3-D),
     linear spring-dampers)."""
     from ..compiled.general import pack_forces
     from ..model.model import Model
     if getattr(type(model), "forces", None) is not Model.forces:
         return None
     n, d = model.n, model.dim
-    G, toff, tau = [np.zeros((0, d, n + 1))], [0], np.zeros((len(model.torques), 3))
-    for t, (body, tq) in enumerate(model.torques):
+    laws = [law for _, _, law in model.torques if law is not None]
+    width = 3 + (max(len(c) for c in laws) if laws else 0)  # body-fixed: 3 + K + 1 columns
+    G, toff, tau = [np.zeros((0, d, n + 1))], [0], np.zeros((len(model.torques), width))
+    for t, (body, tq, law) in enumerate(model.torques):
         tq = np.atleast_1d(np.asarray(tq, float))
         if tq.shape != ((1,) if d == 2 else (3,)):
             return None
         G.append(np.asarray(model.bodies[body].G, float))  # difference maps (K, d, n + 1)
         toff.append(toff[-1] + len(G[-1]))
-        tau[t, :len(tq)] = tq
+        if law is None:
+            tau[t, :len(tq)] = tq
+        else:  # tau_world = sum_k c_k d_k + c_K d_0 x d_1
+            tau[t, 3], tau[t, 4:4 + len(law) - 1] = law[-1], law[:-1]
+    Q0, T = model.Q0.copy(), np.zeros((n, n))
+    for body, C, law in model.body_forces:  # C^T R(q) F: linear in q for a 3-D basis
+        if law[-1]:
+            return None  # a basis spanning a plane: R(q) has d_0 x d_1 (the Python loop)
+        CG = np.einsum("an,kam->knm", C[:, :-1], model.bodies[body].G)  # (K, n, n + 1)
+        T += np.tensordot(law[:-1], CG[:, :, :-1], 1)
+        Q0 += np.tensordot(law[:-1], CG[:, :, -1], 1)
     S = np.array([s.B - s.A for s in model.springs], float).reshape(-1, d, n + 1)
     spr = np.array([[s.k, s.c, s.l0] for s in model.springs], float).reshape(-1, 3)
-    return pack_forces(model.Q0, None, np.concatenate(G), np.array(toff), tau, S, spr)
+    return pack_forces(Q0, T if model.body_forces else None, np.concatenate(G),
+                       np.array(toff), tau, S, spr)
 
 
 def _alpha(con, M: np.ndarray, q0: np.ndarray | None) -> float:

@@ -40,6 +40,9 @@ class Capabilities:
     rods : massless rods (revolute ends in 2-D, spherical in 3-D)
     torques : applied torques on bodies
     forces : applied forces: "any" point, "com" only at a body's centre of mass, "none"
+    body_loads : it applies torques and forces given in a body's frame (``frame = "body"``,
+        turning with the body); False (the default, so a plug-in that does not say is never
+        run with a load it would hold in world axes): such a case is refused
     particles : dimensions in which particles (no rotational inertia) are modelled
     reactions : it reports joint reactions (reaction, axial, driver channels); not a
         refusal (a case's motion channels run without them); without, check-engine skips
@@ -64,6 +67,7 @@ class Capabilities:
     rods: bool = True
     torques: bool = True
     forces: str = "any"
+    body_loads: bool = False
     particles: frozenset = frozenset({2, 3})
     reactions: bool = True
     step: str = ""
@@ -147,6 +151,9 @@ def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> lis
         if f.type == "torque" and (not caps.torques or f.body in particles):
             out.append(f"torque on {f.body!r}: " + ("a particle has no rotation"
                                                     if caps.torques else "not modelled"))
+        if f.frame == "body" and not caps.body_loads and case.dimension == 3:
+            out.append(_say(caps, "body_loads", f"{f.type} on {f.body!r} in its body's frame "
+                            "(frame = \"body\"): body-fixed loads are not modelled"))
         elif f.type == "force" and caps.forces != "any":
             b = case.body(f.body)
             if caps.forces == "none" or np.linalg.norm(b.points[f.point] - b.com) > 1e-12:

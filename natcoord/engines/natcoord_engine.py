@@ -78,7 +78,7 @@ SOLVER_SETTINGS = (
     Setting("penalty", "number", Index3.penalty, "index3: penalty alpha h^2/4 relative to "
             "max|M|", **_POSITIVE),
 )
-CAPABILITIES = Capabilities(loops="rigid",  # every element of a case file
+CAPABILITIES = Capabilities(loops="rigid", body_loads=True,  # every element of a case file
                             step="h", step_with={"method": "rk4"})
 SETTINGS = (
     Setting("coordinates", "choice", "joints", "joints: every body its own points, joints "

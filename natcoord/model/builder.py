@@ -44,6 +44,7 @@ class Builder:
     springs: list = field(default_factory=list)
     joints: dict[str, JointForce] = field(default_factory=dict)
     drivers: list = field(default_factory=list)
+    body_forces: list = field(default_factory=list)
     _n: int = 0
     _cb: ConstraintBuilder | None = None
     _M: np.ndarray | None = None
@@ -408,9 +409,14 @@ class Builder:
                                       C=self.at(body, point)[axis].copy()))
 
     # ---- forces -------------------------------------------------------------------------
-    def force(self, body: str, point, F) -> None:
-        """Constant force F (dim,) N at the body point with reference position ``point``."""
+    def force(self, body: str, point, F, frame: str = "world") -> None:
+        """Constant force F (dim,) N at the body point with reference position ``point``, in
+        world axes or (``frame = "body"``) in the body's own frame, turning with it."""
         self._start()
+        if frame == "body":
+            b = self.bodies[body]
+            self.body_forces.append((body, self.at(body, point), b.frame_law(F)))
+            return
         self._Q0 += self.at(body, point)[:, :-1].T @ np.asarray(F, float)
 
     def force_on(self, element: str, F) -> None:
@@ -418,10 +424,13 @@ class Builder:
         self._start()
         self._Q0 += self.E(element)[:, :-1].T @ np.asarray(F, float)
 
-    def torque(self, body: str, tau) -> None:
-        """Constant torque on a body, world axes (3,) N m, or a scalar in 2-D."""
+    def torque(self, body: str, tau, frame: str = "world") -> None:
+        """Constant torque on a body, (3,) N m, or a scalar in 2-D (where the frame does not
+        matter), in world axes or (``frame = "body"``) in the body's own frame."""
         self._start()
-        self.torques.append((body, np.atleast_1d(np.asarray(tau, float))))
+        tau = np.atleast_1d(np.asarray(tau, float))
+        law = self.bodies[body].frame_law(tau) if frame == "body" and self.dim == 3 else None
+        self.torques.append((body, tau, law))
 
     def spring(self, name: str, A: np.ndarray, B: np.ndarray, k: float, c: float = 0.0,
                l0: float | None = None) -> None:
@@ -436,4 +445,5 @@ class Builder:
         return Model(self.dim, self._n, self._M.copy(), cb.build(), self._Q0.copy(),
                      self._qh0()[:-1], dict(self.elements), dict(self.bodies),
                      dict(self.rows), dict(self.rod_length), tuple(self.torques),
-                     tuple(self.springs), dict(self.joints), tuple(self.drivers))
+                     tuple(self.springs), dict(self.joints), tuple(self.drivers),
+                     tuple(self.body_forces))

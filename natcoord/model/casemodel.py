@@ -257,11 +257,14 @@ def build(case: Case, coordinates: str = "joints") -> CaseModel:
     for s in case.springs:
         b.spring(s.name, b.E(element(*s.ends[0])), b.E(element(*s.ends[1])), s.stiffness,
                  s.damping, s.length)
-    for f in case.forces:
-        if f.type == "torque":
-            b.torque(f.body, f.value)
-        else:
-            b.force(f.body, ref[f.body][f.point], f.value)
+    for i, f in enumerate(case.forces):
+        try:
+            if f.type == "torque":
+                b.torque(f.body, f.value, f.frame)
+            else:
+                b.force(f.body, ref[f.body][f.point], f.value, f.frame)
+        except ValueError as e:  # a body-fixed load on a body whose frame is not fixed
+            raise ModelError(f"forces[{i}].frame", str(e)) from None
     for dr in case.drivers:
         law = (dr.v0, dr.rate, dr.accel)
         if dr.type == "angle":

@@ -103,6 +103,28 @@ class Body:
         """(d, n + 1) map to the body-fixed direction with reference components v (d,)."""
         return np.tensordot(self.coeffs(v, point=False), self.G, 1)
 
+    def frame_law(self, v) -> np.ndarray:
+        """c (K + 1,) with ``R(q) v = sum_k c_k d_k(q) + c_K (d_0 x d_1)(q)`` for a vector v
+        (d,) in the body's own frame: R = D(q) D0^+ R0, the body frame of the outputs (a 3-D
+        basis that spans a plane completed by its normal; c_K = 0 otherwise). ValueError for
+        a body whose basis does not fix its frame (a particle, a 3-D basis along a line)."""
+        D0, dim = self.D, len(self.p0)
+        if self.rank < dim and not (dim == 3 and self.rank == 2):
+            raise ValueError(f"body {self.name!r}: its basis {self.basis} does not fix its "
+                             "frame (points along a line); a body-fixed load needs a body "
+                             "whose points span a plane")
+        plane = dim == 3 and self.rank == 2
+        if plane:
+            D0 = np.column_stack([D0, np.cross(D0[:, 0], D0[:, 1])])
+        c = np.linalg.pinv(D0) @ self.R0 @ np.asarray(v, float)
+        return c if plane else np.append(c, 0.0)
+
+    def turned(self, c: np.ndarray, qh: np.ndarray) -> np.ndarray:
+        """The world vector (d,) of :meth:`frame_law`'s ``c`` at qh = [q, 1] (n + 1,)."""
+        d = self.G @ qh  # (K, d)
+        out = c[:-1] @ d
+        return out + c[-1] * np.cross(d[0], d[1]) if c[-1] else out
+
 
 @dataclass(frozen=True)
 class Spring:
@@ -150,10 +172,13 @@ class Model:
     bodies : dict[str, Body]
     rows : dict[str, ndarray]  named groups of constraint rows (joints, rods, ...)
     rod_length : dict[str, float]   length L of each named distance row (axial = 2 L lambda)
-    torques : tuple            (body, tau) constant torques, world axes, N m
+    torques : tuple            (body, tau, law): constant torques, N m: world axes (law None)
+                               or ``tau`` in the body's frame (law :meth:`Body.frame_law`)
     springs : tuple[Spring, ...]
     joints : dict[str, JointForce]  force each joint applies to its second body
     drivers : tuple[DriverRow, ...]  rheonomic rows, after the m rows in lambda
+    body_forces : tuple        (body, C (d, n+1), law): constant forces given in a body's
+                               frame (law :meth:`Body.frame_law`) at the point of map C, N
     """
 
     dim: int
@@ -170,6 +195,7 @@ class Model:
     springs: tuple[Spring, ...] = ()
     joints: dict[str, JointForce] = field(default_factory=dict)
     drivers: tuple = ()
+    body_forces: tuple = ()
 
     @property
     def m(self) -> int:
@@ -186,11 +212,14 @@ class Model:
     def forces(self, t: float, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
         """Generalized applied forces Q(t, q, qd): (n,), N (N m on unit-vector coordinates)."""
         Q = self.Q0.copy()
-        if not (self.torques or self.springs):
+        if not (self.torques or self.springs or self.body_forces):
             return Q
         qh, vh = np.append(q, 1.0), np.append(qd, 0.0)
-        for body, tau in self.torques:
-            Q += _torque_force(self.bodies[body], tau, qh)
+        for body, tau, law in self.torques:
+            b = self.bodies[body]
+            Q += _torque_force(b, tau if law is None else b.turned(law, qh), qh)
+        for body, C, law in self.body_forces:
+            Q += C[:, :-1].T @ self.bodies[body].turned(law, qh)
         for s in self.springs:
             d, dd = (s.B - s.A) @ qh, (s.B - s.A) @ vh
             ln = np.linalg.norm(d)

@@ -130,7 +130,10 @@ def work(case: Case, motion: Motion) -> np.ndarray:
     at a point P does F . (r_P(t) - r_P(0)), a constant 2-D torque tau does
     tau (angle(t) - angle(0)). A constant 3-D torque does tau . (integral of omega), from
     the rotations at the samples (:func:`_turn`: exact while the body turns about a fixed
-    axis, whatever its rate; else fourth order in the output step). The rest is the time
+    axis, whatever its rate; else fourth order in the output step); a body-fixed one
+    (``frame = "body"``, power tau . R^T omega) the same with omega in body axes (the
+    integral of R^T's own rotation). A body-fixed force's power (R F) . v_P is integrated
+    over the samples, like the rest. The rest is the time
     integral of a power sampled at the output times (:func:`cumulative_integral`): a
     damper's -c (dl/dt)^2 (dl/dt from its end points' velocities); a driver's effort times
     the rate of its driven coordinate, rate + accel t (NaN where the engine reports no
@@ -140,18 +143,26 @@ def work(case: Case, motion: Motion) -> np.ndarray:
     w = np.zeros_like(t)
     power = np.zeros_like(t)  # W, integrated once at the end
     for f in case.forces:
-        if f.type == "force":
+        if f.type == "force" and f.frame == "body":  # (R F) . v_P
+            p = case.body(f.body).points[f.point]
+            F = np.einsum("tij,j->ti", motion.R(f.body), np.asarray(f.value, float))
+            power += np.sum(F * point_velocity(case, motion, f.body, p), axis=1)
+        elif f.type == "force":
             r = point_position(case, motion, f.body, case.body(f.body).points[f.point])
             w += (r - r[0]) @ np.asarray(f.value, float)
         elif case.dimension == 2:
             a = np.unwrap(motion.angle[f.body])
             w += float(f.value) * (a - a[0])
         else:
-            turn = _turn(motion, f.body)
+            R, omega = motion.R(f.body), motion.omega[f.body]
+            if f.frame == "body":  # tau . omega_body; R^T turns with -omega_body (world form)
+                R, omega = np.swapaxes(R, 1, 2), -np.einsum("tji,tj->ti", R, omega)
+            turn = _turn(R, omega, motion.t)
+            sign = -1.0 if f.frame == "body" else 1.0
             if turn is None:  # turning too fast between samples to tell the rotation
-                power += motion.omega[f.body] @ np.asarray(f.value, float)
+                power += sign * omega @ np.asarray(f.value, float)
             else:
-                w += turn @ np.asarray(f.value, float)
+                w += sign * turn @ np.asarray(f.value, float)
     for s in case.springs:
         if s.damping:
             (ba, pa), (bb, pb) = s.ends
@@ -169,15 +180,16 @@ def work(case: Case, motion: Motion) -> np.ndarray:
     return w
 
 
-def _turn(motion: Motion, body: str, max_step: float = 1.0) -> np.ndarray | None:
-    """The integral of a 3-D body's angular velocity (world axes) from t[0] to every sample,
-    (T, 3) rad. Over each sample interval: along the interval's rotation vector r (that of
+def _turn(R: np.ndarray, w: np.ndarray, t: np.ndarray,
+          max_step: float = 1.0) -> np.ndarray | None:
+    """The integral of a 3-D body's angular velocity w (T, 3) (world axes; rotations R
+    (T, 3, 3) at times t (T,), s) from t[0] to every sample, (T, 3) rad. Over each sample
+    interval: along the interval's rotation vector r (that of
     R(t + h) R(t)^T less the Magnus expansion's second and third terms,
     :func:`_magnus23`), r itself, which is exact when the axis stays fixed whatever the
     rate; across r, the integral of the cubic spline through omega (zero for a fixed axis).
     None when the samples are not finite or the body turns more than ``max_step`` rad over
     an interval (the rotation vector would be ambiguous near pi)."""
-    R, w, t = motion.R(body), motion.omega[body], motion.t
     if len(t) < 2:
         return np.zeros((len(t), 3))
     if not (np.all(np.isfinite(R)) and np.all(np.isfinite(w))):

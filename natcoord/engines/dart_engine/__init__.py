@@ -123,6 +123,7 @@ def _rules(case: Case, s: dict) -> list[str]:
 CAPABILITIES = Capabilities(
     output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="soft",  # constraint impulses with error reduction (erp): the loop drifts back
+    body_loads=True,  # addExtForce / addExtTorque with local axes
     joints={"revolute", "prismatic", "spherical", "universal"},
     loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
     why={"joints": "DART has no cylindrical joint",

@@ -182,8 +182,8 @@ def make_loads(case: Case, nodes):
 
     W = dart.dynamics.Frame.World()
     const = [(nodes[f.body], f.type, np.asarray(f.value, float) * np.ones(3),
-              None if f.point is None else node_point(case, f.body, f.point))
-             for f in case.forces]
+              None if f.point is None else node_point(case, f.body, f.point),
+              f.frame == "body") for f in case.forces]  # local: in the node's (body's) axes
     names = [b.name for b in case.bodies]
     sp_list = list(case.springs)
     # per end side: body index (-1 ground) and the point in body axes
@@ -217,11 +217,11 @@ def make_loads(case: Case, nodes):
         return spring_loads()[0] if sp_list else np.zeros(0)
 
     def apply():
-        for node, kind, value, p in const:
+        for node, kind, value, p, local in const:
             if kind == "force":
-                node.addExtForce(value, p, False, True)
+                node.addExtForce(value, p, local, True)
             else:
-                node.addExtTorque(value, False)
+                node.addExtTorque(value, local)
         if not sp_list:
             return
         for i, (F, Mo) in spring_loads()[1].items():
@@ -231,9 +231,9 @@ def make_loads(case: Case, nodes):
 
     def resultant(node) -> np.ndarray:
         f = np.zeros(3)
-        for n, kind, value, _ in const:
+        for n, kind, value, _, local in const:
             if n is node and kind == "force":
-                f += value
+                f += node.getWorldTransform().matrix()[:3, :3] @ value if local else value
         if sp_list:
             for i, (F, _) in spring_loads()[1].items():
                 if nodes[names[i]] is node:

@@ -102,6 +102,8 @@ CAPABILITIES = Capabilities(
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",
     why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "body_loads": "the adapter feeds Drake constant ExternallyAppliedSpatialForce in "
+                       "world axes; a load that turns with its body is not wired",
          "rods": RODS_UNSUPPORTED.split(": ", 1)[1],
          "joints": "this adapter builds revolute, prismatic and ball joints only",
          "loop_joints": "a Drake ball constraint pins a point and cannot slide"},
@@ -130,6 +132,9 @@ def _loads(case: Case, built):
 
     out = []
     for f in case.forces:
+        if f.frame == "body":
+            raise Unsupported(f"{f.type} on {f.body} in its body's frame: the adapter's "
+                              "applied forces are constant, in world axes")
         x = ExternallyAppliedSpatialForce()
         x.body_index = built.bodies[f.body].index()
         if f.type == "torque":

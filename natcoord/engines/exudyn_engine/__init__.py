@@ -91,6 +91,7 @@ def _rules(case: Case, s: dict) -> list[str]:
 CAPABILITIES = Capabilities(
     output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="rigid",  # every joint a constraint, index-3 generalized-alpha: no tree, no cut
+    body_loads=True,  # LoadTorqueVector / LoadForceVector with bodyFixed
     joints={"revolute", "prismatic", "spherical", "cylindrical", "universal"},
     particles={2},
     why={"particles": "3-D particles are not modelled by the Exudyn adapter"},
@@ -129,7 +130,8 @@ def _check(case: Case, s: dict) -> None:
 
 
 def _loads(build, case: Case) -> None:
-    """Gravity on every body; applied torques (world axes) and forces at body points."""
+    """Gravity on every body; applied torques and forces at body points (world axes, or
+    ``bodyFixed`` for ``frame = "body"``)."""
     from .system import v3
 
     ei, mbs = build.ei, build.mbs
@@ -140,13 +142,16 @@ def _loads(build, case: Case) -> None:
     for f in case.forces:
         if f.body == GROUND:
             continue
-        if f.type == "torque":  # world axes; a scalar (2-D) is about z
+        fixed = f.frame == "body"  # bodyFixed: in the node's frame, the body's own
+        if f.type == "torque":  # a scalar (2-D) is about z
             mr = mbs.AddMarker(ei.MarkerBodyRigid(bodyNumber=build.objs[f.body]))
             value = f.value if np.ndim(f.value) else [0.0, 0.0, f.value]
-            mbs.AddLoad(ei.LoadTorqueVector(markerNumber=mr, loadVector=v3(value)))
-        else:
-            mbs.AddLoad(ei.LoadForceVector(markerNumber=build.marker(f.body, f.point),
-                                           loadVector=v3(f.value)))
+            mbs.AddLoad(ei.LoadTorqueVector(markerNumber=mr, loadVector=v3(value),
+                                            bodyFixed=fixed))
+        else:  # a follower force needs the marker's orientation: a rigid marker
+            mbs.AddLoad(ei.LoadForceVector(markerNumber=build.marker(f.body, f.point,
+                                                                     rigid=fixed),
+                                           loadVector=v3(f.value), bodyFixed=fixed))
 
 
 def run(case: Case, init, settings: dict) -> EngineRun:

@@ -114,6 +114,9 @@ DRIVERS_UNSUPPORTED = (
     "clock holds the angle to 1.5e-9 rad but ill-conditions the solver (torque 0.57 N off), "
     "and a body point's coordinate cannot be a joint equality at all")
 
+BODY_LOADS_UNSUPPORTED = ("MuJoCo's xfrc_applied is in world axes and held over a step, so "
+                          "a load given in a body's frame would lag the body's rotation "
+                          "inside the RK4 stages")
 CAPABILITIES = Capabilities(
     output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="soft",  # connect equalities: solref/solimp let a loop open by a small gap
@@ -121,6 +124,7 @@ CAPABILITIES = Capabilities(
     recut={"prismatic", "cylindrical", "universal"},  # mjcf.split_tree
     drivers=(), forces="com",
     why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "body_loads": BODY_LOADS_UNSUPPORTED,
          "loop_joints": "MuJoCo has no point-on-line equality (a connect equality holds a "
                         "point only)",
          "forces": "MuJoCo's xfrc_applied acts at the centre of mass and is held over a "

@@ -27,6 +27,9 @@ def applied_loads(mujoco, m, case: Case) -> np.ndarray:
     """
     x = np.zeros((m.nbody, 6))
     for f in case.forces:
+        if f.frame == "body":
+            raise Unsupported(f"{f.type} on {f.body} in its body's frame: "
+                              "xfrc_applied is in world axes and held over a step")
         j = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, f.body)
         b = case.body(f.body)
         if f.type == "torque":

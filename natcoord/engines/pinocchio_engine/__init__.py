@@ -112,6 +112,7 @@ def _rules(case, s: dict) -> list[str]:
 CAPABILITIES = Capabilities(
     output_steps=True,  # dt must divide the output interval (base.steps_per_sample)
     loops="rigid",  # constraintDynamics: exact constraint accelerations (mu 1e-8)
+    body_loads=True,  # fext in joint frames: a body-fixed load is constant there
     loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
     drivers=(),
     why={"drivers": "Pinocchio's constraintDynamics has contact constraints only, no "

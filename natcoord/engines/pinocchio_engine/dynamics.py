@@ -47,7 +47,8 @@ class Dynamics:
         self.const_tau = None
         if not self.loaded:
             self.const_tau = self.zero
-        elif b.one_axis and not b.springs and all(not x[2].any() for x in b.loads):
+        elif b.one_axis and not b.springs and all(not x[2].any() and not x[4]
+                                                  for x in b.loads):
             # pure moments, every rotation about one fixed direction: J^T f is constant
             self.const_tau = self.tau(b.q0, b.v0)
 
@@ -61,11 +62,11 @@ class Dynamics:
         for jid in self.loaded:
             M, vel = data.oMi[jid], data.v[jid]
             frames[jid] = (M.rotation, M.translation, vel.linear, vel.angular)
-        for jid, p, fw, mw in self.b.loads:
+        for jid, p, fw, mw, local in self.b.loads:
             R = frames[jid][0]
-            fl = R.T @ fw
+            fl, ml = (fw, mw) if local else (R.T @ fw, R.T @ mw)
             F[jid, :3] += fl
-            F[jid, 3:] += cross(p, fl) + R.T @ mw
+            F[jid, 3:] += cross(p, fl) + ml
         tension = {}
         for ja, jb, Pa, Pb, k, c, l0, names in self.groups:  # vectorized per joint pair
             ra, va = self._ends(frames, ja, Pa)

@@ -77,7 +77,8 @@ class Built:
 
     ``frame``: node -> (joint id, SE3 of the node's frame in that joint frame).
     ``edges``: joint id -> its :class:`Edge`. ``tree``: (case joint name, joint id, sign).
-    ``loads``: (joint id, point (3,) in the joint frame, force (3,), torque (3,)), world.
+    ``loads``: (joint id, point (3,) in the joint frame, force (3,), torque (3,), local):
+    world axes, or the joint frame's when ``local`` (a body-fixed load).
     ``springs``: (name, (jid, p), (jid, p), k, c, l0), points in joint frames, jid 0 ground.
     ``one_axis``: every rotating joint turns about one fixed world direction (planar
     cases, parallel revolutes), so the angular Jacobians are constant. ``particles``: body
@@ -391,14 +392,18 @@ def build(pin, lifted: Lifted, s: dict) -> Built:
 
 
 def _loads(lifted: Lifted, frame: dict) -> list:
-    """(joint id, point in the joint frame (3,), force (3,), torque (3,)) per applied load."""
+    """(joint id, point in the joint frame (3,), force (3,), torque (3,), local) per applied
+    load: world axes, or (local, ``frame = "body"``) the joint frame's, which turns with
+    the body."""
     out = []
     zero = np.zeros(3)
     for f in lifted.case.forces:
         jid, X = frame[f.body]
         p = X.act(lifted.point(f.body, f.point)) if f.point is not None else zero
-        out.append((jid, p, f.value if f.type == "force" else zero,
-                    f.value if f.type == "torque" else zero))
+        local = f.frame == "body"
+        v = X.rotation @ np.asarray(f.value, float) if local else f.value
+        out.append((jid, p, v if f.type == "force" else zero,
+                    v if f.type == "torque" else zero, local))
     return out
 
 

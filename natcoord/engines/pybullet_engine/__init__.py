@@ -120,6 +120,8 @@ CAPABILITIES = Capabilities(
     joints={"revolute", "prismatic", "spherical"}, loop_joints={"revolute", "spherical"},
     recut={"prismatic"}, drivers=(), rods=False, step="dt",
     why={"drivers": DRIVERS_UNSUPPORTED.split(": ", 1)[1],
+         "body_loads": "the adapter applies loads in world axes (PyBullet's LINK_FRAME is "
+                       "the link's inertial frame, not the case's body frame: not wired)",
          "rods": RODS_UNSUPPORTED.split(": ", 1)[1],
          "joints": "a PyBullet multibody joint is revolute, prismatic, spherical or fixed",
          "loop_joints": "a point-to-point constraint holds a point and cannot slide"},

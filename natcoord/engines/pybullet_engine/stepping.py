@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...case.mechanism import GROUND, Case
+from ...errors import Unsupported
 from ..planar import cross, node_point
 from .multibody import Built
 
@@ -66,6 +67,9 @@ class Loads:
     def __init__(self, pb, cid: int, built: Built, case: Case, state: State):
         self.pb, self.cid, self.uid, self.case, self.state = pb, cid, built.uid, case, state
         self.link = {n: ln.index for n, ln in built.links.items()}
+        if any(f.frame == "body" for f in case.forces):
+            raise Unsupported("a load in its body's frame: the adapter applies loads in "
+                              "world axes")
         self.torques = [(self.link[f.body], np.asarray(f.value, float).tolist())
                         for f in case.forces if f.type == "torque"]
         self.point_forces = [f for f in case.forces if f.type == "force"]

@@ -122,6 +122,7 @@ def _rules(case, s: dict) -> list[str]:
 
 CAPABILITIES = Capabilities(
     loops="rigid",  # PointConstraints, projected at every step
+    body_loads=True,  # PrescribedForce in the body frame
     joints={"revolute", "prismatic", "spherical", "universal"},
     loop_joints={"revolute", "spherical"}, recut={"prismatic"},  # tree.point_loop_tree
     why={"joints": "no OpenSim joint is wired up for it",

@@ -242,9 +242,10 @@ def _add_spring(osim, b: Built, sp):
 
 
 def _add_load(osim, b: Built, k: int, f):
-    """A constant load in world axes: PrescribedForce with constant functions."""
+    """A constant load in world axes, or (``frame = "body"``) in the body's frame (the
+    OpenSim body's: its points are the case's): PrescribedForce with constant functions."""
     pf = osim.PrescribedForce(f"load{k}", b.bodies[f.body])
-    pf.setForceIsInGlobalFrame(True)
+    pf.setForceIsInGlobalFrame(f.frame != "body")
     pf.setPointIsInGlobalFrame(False)
     v = np.asarray(f.value, dtype=float)
     const = [osim.Constant(float(x)) for x in v]
