@@ -12,8 +12,9 @@ from earlier suites' ``bench.json`` and which it times by tonight's accuracy run
 * The external cells to measure share a night's budget (:class:`Budget`: engine process
   time, ``natcoord suite --bench-budget``): the never measured first, then the oldest,
   the cheapest first among equals; a cell is measured with its sweep points while the
-  budget lasts. A cell left over, and a cell whose single run is longer than a bench cell's
-  timing budget (the bench would time that one run too), is **timed by its accuracy run**:
+  budget lasts. A cell left over, and any cell (natcoord's too) whose single run is longer
+  than a bench cell's timing budget (the bench would time that one run too), is **timed by
+  its accuracy run**:
   the stepping time of tonight's run (one sample, BLAS on one thread, each parallel run
   pinned to a core of its own), marked ``timed_by``; it is measured on a later night.
 * A reused or run-timed cell is not a bench measurement (:func:`natcoord.suite.stored.carried`):
@@ -187,6 +188,12 @@ def plan(summary: dict, previous: dict | None, engines, *,
     out, queue = Plan(), []
     for r in summary.get("records", []):
         key = (r["case"], r["engine"])
+        wall = r.get("wall_time_s")
+        if r.get("status") == "ok" and isinstance(wall, (int, float)) and wall > bench.BUDGET_S:
+            out.timed[key] = from_run(r, f"one run takes {wall:.0f} s, more than a bench "
+                                      f"cell's {bench.BUDGET_S:g} s: its accuracy run is its "
+                                      "timing")
+            continue
         if r["engine"] in ALWAYS:
             out.measure[key] = "measured every night"
             continue
@@ -200,12 +207,6 @@ def plan(summary: dict, previous: dict | None, engines, *,
                     "from": previous.get("origins", {}).get("/".join(key), "")}
             out.reuse[key] = {**old[key], "reused": mark}
             out.kept += [{**p, "reused": mark} for p in points.get(key, [])]
-            continue
-        wall = r.get("wall_time_s")
-        if isinstance(wall, (int, float)) and wall > bench.BUDGET_S:
-            out.timed[key] = from_run(r, f"one run takes {wall:.0f} s, more than a bench "
-                                      f"cell's {bench.BUDGET_S:g} s: its accuracy run is its "
-                                      "timing")
             continue
         out.measure[key] = why
         never = why == "no earlier measurement"
