@@ -603,9 +603,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                   "night.")] = NIGHT_BUDGET_S,
               quick: Annotated[bool, typer.Option(
                   "--quick", help="A first look: natcoord, mujoco and pinocchio (or "
-                  "--engines), one bench sample of natcoord only, no work-precision sweeps, "
-                  "no speed gate; not recorded in the history, reports/latest not "
-                  "moved.")] = False):
+                  "--engines), every cell timed by its accuracy run (no bench process), no "
+                  "work-precision sweeps, no speed gate; not recorded in the history, "
+                  "reports/latest not moved.")] = False):
     """The nightly job: run all, bench, report, gate (accuracy, and speed against the
     history), record history; reports/latest then points at it. Exits with the gate's code
     (4: a significant slowdown). Bench policy: natcoord measured every night, another
@@ -642,9 +642,10 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             _fail(str(e))
         total = len(selected) * len(names)
         n, where = _where(jobs, scheduler)
-        bench_engines = [e for e in names if e in policy.ALWAYS] if quick else names
+        bench_engines = names
         catalogue = [] if quick or not repeats else [j for j in selected if j.case.benchmark]
-        clock = eta_.Eta(_expected(selected, names, bench_engines if repeats else [],
+        clock = eta_.Eta(_expected(selected, names, bench_engines if repeats and not quick
+                                   else [],
                                    catalogue, prev_bench, prev_summary, n, bench_budget))
         out.print(f"[bold]natcoord suite{' --quick' if quick else ''}[/]: {len(selected)} "
                   f"cases x {len(names)} engines, {where} -> {escape(str(target))}"
@@ -652,8 +653,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                      if prev_summary else ""))
         if quick:
             out.print("[bold yellow]quick[/]: a first look, not a nightly: engines "
-                      f"{', '.join(names)}, one bench sample of natcoord, no sweeps, no speed "
-                      "gate; not recorded in the history, reports/latest not moved")
+                      f"{', '.join(names)}, every cell timed by its accuracy run (no bench), "
+                      "no sweeps, no speed gate; not recorded in the history, reports/latest "
+                      "not moved")
         phases = {"start": clock.clock()}
         first = {(c, e): t for (k, c, e), t in clock.expected.items() if k == "run"}
         summary = run_suite(selected, names, staging, references=references,
@@ -665,8 +667,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         phases["accuracy runs"] = clock.clock()
         bench_result, speed = None, []
         if repeats:
-            plan = policy.Plan(measure={(j.case.name, e): "quick" for j in selected
-                                        for e in bench_engines}) if quick else policy.plan(
+            plan = policy.quick(summary) if quick else policy.plan(
                 summary, prev_bench, names, repeats=repeats, machine=machine)
             budget = policy.Budget(bench_budget)
             clock.add({(k, c, e): 0.0 for (c, e) in (*plan.reuse, *plan.timed)
@@ -711,7 +712,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             verdict.code = diff.SLOWER
         verdict.lines += [s.line() for s in slower] + diff.speed_notes(speed, history)
         if quick:
-            verdict.lines.append("quick suite: speed not judged (one sample, natcoord only); "
+            verdict.lines.append("quick suite: speed not judged (one sample per cell, from "
+                                 "its accuracy run); "
                                  "not recorded in the history")
         write_report(staging, references, history)
         phases["speed gate, report"] = clock.clock()

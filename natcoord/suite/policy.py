@@ -218,6 +218,20 @@ def plan(summary: dict, previous: dict | None, engines, *,
     return out
 
 
+def quick(summary: dict) -> Plan:
+    """`suite --quick`'s plan: no bench process; every cell that ran is timed by its
+    accuracy run, the others keep their status."""
+    timed = {}
+    for r in summary.get("records", []):
+        key = (r["case"], r["engine"])
+        timed[key] = (from_run(r, "quick suite: timed by its accuracy run")
+                      if r.get("status") == "ok" and r.get("wall_time_s")
+                      else {"case": key[0], "engine": key[1], "status": r.get("status"),
+                            "reason": r.get("reason", ""), "timed_by": {
+                                "run": "accuracy run", "why": "quick suite"}})
+    return Plan(timed=timed)
+
+
 def likely_reused(previous: dict | None, digests: dict[str, str],
                   when: dt.datetime | None = None) -> set[tuple]:
     """The (case, engine) cells of the earlier measurements that tonight will probably
