@@ -572,7 +572,7 @@ def _kind_dim(key: str, channels) -> str:
             "driver": "torque", "axial": "force", "combination": "force",
             "loop_gap": "length", "angular_velocity": "angular velocity",
             "angular_momentum": "angular momentum", "momentum": "momentum",
-            "vector_angle": "angle"}[kind]
+            "vector_angle": "angle", "angular_acceleration": "angular acceleration"}[kind]
 
 
 def _array(r: _Reader, data: dict, key: str, *, required=True) -> list[dict]:
@@ -753,13 +753,14 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                        f"{', '.join(jnames) or 'none'}, got {_short(names)}")
             gap_joints = tuple(names)
         frame, about = "world", ()
-        if kind in ("angular_velocity", "angular_momentum", "momentum"):
-            body = r.string(c, "body", p, required=kind == "angular_velocity")
+        if kind in ("angular_velocity", "angular_acceleration", "angular_momentum", "momentum"):
+            body = r.string(c, "body", p, required=kind.startswith("angular_") and
+                            kind != "angular_momentum")
             if body is not None and body not in bodies:
                 r.fail(f"{p}.body", f"unknown body {body!r}; bodies are {', '.join(bodies)}")
             axis = r.string(c, "axis", p, choices=axes if kind == "momentum"
                             else ("x", "y", "z") if dim == 3 else ("z",))
-        if kind == "angular_velocity":
+        if kind in ("angular_velocity", "angular_acceleration"):
             frame = r.string(c, "frame", p, required=False, default="world",
                              choices=("world", "body"))
         vectors = ()

@@ -35,7 +35,7 @@ FORCE_TYPES = ("torque", "force")
 LOAD_FRAMES = ("world", "body")  # the axes of a [[forces]] value
 CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceleration",
                  "driver", "axial", "combination", "loop_gap", "angular_velocity",
-                 "angular_momentum", "momentum", "vector_angle")
+                 "angular_momentum", "momentum", "vector_angle", "angular_acceleration")
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
@@ -177,7 +177,7 @@ class Channel:
     relative_to: str | None = None
     work: bool = False
     joints: tuple[str, ...] = ()  # loop_gap: the joints it measures (empty: every joint)
-    frame: str = "world"  # angular_velocity: "world" or "body" axes
+    frame: str = "world"  # angular_velocity, angular_acceleration: "world" or "body" axes
     about: str | tuple[float, ...] = ()  # angular_momentum: a world point (m), or "com"
     vectors: tuple[tuple[str, str, str], ...] = ()  # vector_angle: two (body, p, q)
 
@@ -187,7 +187,7 @@ class Channel:
                 "energy": "J", "acceleration": "m/s^2", "driver": "N m", "axial": "N",
                 "combination": "N", "loop_gap": "m", "angular_velocity": "rad/s",
                 "angular_momentum": "kg m^2/s", "momentum": "kg m/s",
-                "vector_angle": "rad"}[self.kind]
+                "vector_angle": "rad", "angular_acceleration": "rad/s^2"}[self.kind]
 
 
 @dataclass(frozen=True)

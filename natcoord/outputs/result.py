@@ -304,6 +304,19 @@ def angular_velocity(case: Case, motion: Motion, body: str, frame: str = "world"
     return np.einsum("tji,tj->ti", motion.R(body), w)
 
 
+def angular_acceleration(case: Case, motion: Motion, body: str, frame: str = "world"
+                         ) -> np.ndarray:
+    """Angular acceleration of ``body``, rad/s^2: (T, 3) d(omega)/dt in world axes, or in
+    body axes with ``frame = "body"`` (R^T alpha, which is also d/dt of the body-axes
+    omega); (T,) about z in 2-D; NaN where the engine reports no accelerations."""
+    a = motion.alpha.get(body)
+    if a is None:
+        return np.full((len(motion.t), 3) if case.dimension == 3 else len(motion.t), np.nan)
+    if case.dimension == 2 or frame == "world":
+        return a
+    return np.einsum("tji,tj->ti", motion.R(body), a)
+
+
 def momentum(case: Case, motion: Motion, body: str | None = None) -> np.ndarray:
     """Linear momentum (T, d), kg m/s, of ``body`` or of every body (None): sum m v_G."""
     out = np.zeros((len(motion.t), case.dimension))
@@ -395,11 +408,14 @@ def evaluate_channels(case: Case, motion: Motion) -> pd.DataFrame:
             v = vector_angle(case, motion, *ch.vectors)
         elif ch.kind == "loop_gap":
             v = loop_gap(case, motion, ch.joints)
-        elif ch.kind in ("angular_velocity", "angular_momentum", "momentum"):
+        elif ch.kind in ("angular_velocity", "angular_acceleration", "angular_momentum",
+                         "momentum"):
             if ch.kind == "momentum":
                 v = momentum(case, motion, ch.body)
             elif ch.kind == "angular_velocity":
                 v = angular_velocity(case, motion, ch.body, ch.frame)
+            elif ch.kind == "angular_acceleration":
+                v = angular_acceleration(case, motion, ch.body, ch.frame)
             else:
                 v = angular_momentum(case, motion, ch.body, ch.about)
             v = v if v.ndim == 1 else v[:, axis_index[ch.axis]]

@@ -171,8 +171,9 @@ def run_job(job: Job) -> tuple[Result, dict]:
     return res, extra
 
 
-MAYBE_ABSENT = ("acceleration",)  # kinds an engine may not compute: NaN throughout is
-# "not reported" (judged so by the gate when gated), not a divergence that fails the run
+# kinds an engine may not compute: NaN throughout is "not reported" (judged so by the gate
+# when gated), not a divergence that fails the run
+MAYBE_ABSENT = ("acceleration", "angular_acceleration")
 
 
 def main(argv=None) -> int:
