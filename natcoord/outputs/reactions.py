@@ -36,6 +36,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ..errors import ExistenceError
 from ..model.drivers import ConstraintSystem
@@ -273,10 +274,12 @@ def along_all(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarr
         W[:, :model.m] = np.broadcast_to(np.asarray(w, float), (T, model.m))
     step = max(1, CHUNK // max(1, con.m * max(con.m, con.n)))
     parts = []
-    for a in range(0, T, step):
-        b = slice(a, a + step)
-        parts.append(solve(con.jacobian(q[b], t[b]), resultant(model, t[b], q[b], qd[b], qdd[b]),
-                           None if W is None else W[b], rtol=rtol))
+    with threadpool_limits(1, user_api="blas"):  # threads on small matrices: 6x slower
+        for a in range(0, T, step):
+            b = slice(a, a + step)
+            parts.append(solve(con.jacobian(q[b], t[b]), resultant(model, t[b], q[b], qd[b],
+                                                                   qdd[b]),
+                               None if W is None else W[b], rtol=rtol))
     if not parts:
         return solve(np.zeros((0, con.m, con.n)), np.zeros((0, con.n)), rtol=rtol)
     kmax = max(p.null.shape[2] for p in parts)
