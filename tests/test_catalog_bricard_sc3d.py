@@ -26,9 +26,8 @@ def _run(name: str, times=None):
     sol = integrate(cm.model, casemodel.initial_state(cm),
                     case.times if times is None else times,
                     case_solver({"method": "dop853", "rtol": 1e-12, "atol": 1e-14}))
-    lam = outputs.reactions_by_method(cm, sol)
-    first = next(iter(lam.values()))
-    return case, cm, sol, evaluate_channels(case, outputs.motion(cm, sol, first)), first
+    first = next(iter(outputs.reactions_by_method(cm, sol).values()))
+    return case, cm, sol, evaluate_channels(case, outputs.motion(cm, sol, first.lam)), first
 
 
 @pytest.fixture(scope="module")
@@ -89,8 +88,8 @@ def test_bricard_mirror_libration(bricard):
 def test_bricard_determined_and_undetermined_reactions(bricard):
     """One self-stress wrench runs round the loop: every world component of every joint
     force is undetermined, their differences J1 - J3, J1 - J6 are determined."""
-    case, cm, sol, _, lam = bricard
-    und = set(outputs.undetermined(cm, sol, lam))
+    case, cm, sol, _, r = bricard
+    und = set(outputs.undetermined(cm, sol, r))
     joints = {c.name for c in case.channels if c.kind == "reaction"}
     combos = {c.name for c in case.channels if c.kind == "combination"}
     assert joints and combos

@@ -132,3 +132,66 @@ def test_existence_holds_when_the_massless_link_is_closed():
     b.rod("QR", "Q", "R")
     model = b.build()
     reactions.check_existence(model.M, model.constraints.jacobian(model.q0))
+
+
+# ---- the batched path: every sample of a trajectory factored at once ---------------------
+def _trajectory(name: str):
+    from pathlib import Path
+
+    from natcoord.case.casefile import load_case
+    from natcoord.dynamics.forward import integrate
+    from natcoord.dynamics.solver import case_solver
+    from natcoord.model import casemodel
+    case = load_case(Path(__file__).resolve().parents[1] / "cases" / f"{name}.toml")
+    cm = casemodel.build(case, "joints")
+    times = case.times[::4]
+    sol = integrate(cm.model, casemodel.initial_state(cm), times,
+                    case_solver(dict(case.engine("natcoord").settings)))
+    return cm, sol
+
+
+def _same_reactions(a: reactions.Reactions, b: reactions.Reactions):
+    assert a.rank == b.rank
+    scale = max(1.0, np.abs(b.lam).max())
+    np.testing.assert_allclose(a.lam, b.lam, rtol=0, atol=1e-9 * scale)
+    assert a.residual <= 1e-9 * scale and b.residual <= 1e-9 * scale
+    np.testing.assert_allclose(a.N @ a.N.T, b.N @ b.N.T, rtol=0, atol=1e-10)  # same space
+    assert np.array_equal(a.determined, b.determined)
+
+
+def test_batched_reactions_equal_the_per_sample_ones_on_bricard(monkeypatch):
+    """a04_bricard (one redundant row): along_all over 251 samples, in chunks of 7, gives
+    each sample's weighted(); a sample with a row zeroed (the rank drops by one, a singular
+    position's kind) is solved with its own rank beside the regular ones."""
+    from natcoord.model.drivers import ConstraintSystem
+    cm, sol = _trajectory("a04_bricard")
+    m = cm.model
+    con = ConstraintSystem(m)
+    monkeypatch.setattr(reactions, "CHUNK", 7 * con.m * max(con.m, con.n))
+    for w in cm.methods.values():
+        batch = reactions.along_all(m, sol.t, sol.q, sol.qd, sol.qdd, w)
+        assert (batch.rank == m.n - 1).all() and batch.null.shape == (len(sol.t), m.m, 1)
+        for k in range(len(sol.t)):
+            f = reactions.resultant(m, sol.t[k], sol.q[k], sol.qd[k], sol.qdd[k])
+            _same_reactions(batch.at(k), reactions.weighted(con.jacobian(sol.q[k]), f, w))
+    J = con.jacobian(sol.q, sol.t)
+    f = reactions.resultant(m, sol.t, sol.q, sol.qd, sol.qdd)
+    det = reactions.min_norm(J[0], f[0]).determined
+    row = int(np.flatnonzero(det)[0])
+    J[5, row] = 0.0  # that row no longer carries anything: rank n - 2 there
+    f[5] = J[5].T @ reactions.min_norm(J[5], f[5]).lam  # a resultant it can carry
+    batch = reactions.solve(J, f)
+    assert batch.rank[5] == m.n - 2 and (np.delete(batch.rank, 5) == m.n - 1).all()
+    assert batch.null.shape[2] == 2 and not batch.null[:4, :, 1].any()
+    for k in range(10):
+        _same_reactions(batch.at(k), reactions.min_norm(J[k], f[k]))
+
+
+def test_batched_jacobian_with_drivers_equals_the_per_sample_one():
+    from natcoord.model.drivers import ConstraintSystem
+    cm, sol = _trajectory("slider_crank_driven")
+    con = ConstraintSystem(cm.model)
+    assert con.k > 0
+    J = con.jacobian(sol.q, sol.t)
+    for k in range(len(sol.t)):
+        assert np.array_equal(J[k], con.jacobian(sol.q[k], sol.t[k]))

@@ -126,7 +126,7 @@ def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     # a cold compile or cache load and the sparsity plan: build time, not wall time
     build += sol.counters["compile_time_s"] + sol.counters["plan_time_s"]
     lams = outputs.reactions_by_method(cm, sol)
-    motions = {name: outputs.motion(cm, sol, lam) for name, lam in lams.items()}
+    motions = {name: outputs.motion(cm, sol, r.lam) for name, r in lams.items()}
     first = next(iter(lams))
     diag = outputs.diagnostics(cm, sol.q[0])
     counters = sol.counters | diag | {

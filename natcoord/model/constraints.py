@@ -151,12 +151,19 @@ class QuadraticConstraints:
         return 0.5 * np.bincount(self.k, self.v * qh[self.i] * qh[self.j], minlength=self.m)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
-        """Phi_q: (m, n) dense Jacobian."""
-        qh = self._qh(q)
+        """Phi_q: (m, n) dense Jacobian at q (n,), or (T, m, n) at T samples q (T, n) (one
+        pass over the triplets for all samples)."""
+        q = np.asarray(q, float)
         sel = self.i < self.n
-        flat = self.k[sel] * self.n + self.i[sel]
-        vals = np.bincount(flat, self.v[sel] * qh[self.j[sel]], minlength=self.m * self.n)
-        return vals.reshape(self.m, self.n)
+        size, flat = self.m * self.n, self.k[sel] * self.n + self.i[sel]
+        if q.ndim == 1:
+            vals = np.bincount(flat, self.v[sel] * self._qh(q)[self.j[sel]], minlength=size)
+            return vals.reshape(self.m, self.n)
+        qh = np.concatenate([q, np.ones((len(q), 1))], 1)
+        flat = (np.arange(len(q))[:, None] * size + flat).ravel()
+        vals = np.bincount(flat, (self.v[sel] * qh[:, self.j[sel]]).ravel(),
+                           minlength=len(q) * size)
+        return vals.reshape(len(q), self.m, self.n)
 
     def quad_velocity(self, qd: np.ndarray) -> np.ndarray:
         """qd^T H_k qd for every row (= Phi_q_dot @ qd): (m,)."""

@@ -50,21 +50,22 @@ class DriverRow:
         return (self.v0 + self.rate * t + 0.5 * self.accel * t * t, self.rate + self.accel * t,
                 self.accel)
 
-    def coefficients(self, n: int, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """a(t), a'(t), a''(t): (n + 1,) each."""
-        v, vd, vdd = self.law(t)
-        a, ad, add = np.zeros(n + 1), np.zeros(n + 1), np.zeros(n + 1)
+    def coefficients(self, n: int, t: float | np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """a(t), a'(t), a''(t): (n + 1,) each at a time t, or (T, n + 1) at times t (T,)."""
+        t = np.asarray(t, float)
+        v, vd, vdd = (np.broadcast_to(x, t.shape)[..., None] for x in self.law(t))
         if self.kind == "angle":
             th = v + self.offset
             c, s = np.cos(th), np.sin(th)
-            g = np.array([-s, c])          # cross(e, d) = g @ d
-            gd = vd * np.array([-c, -s])  # dg/dt
-            gdd = vdd * np.array([-c, -s]) + vd * vd * np.array([s, -c])
-            a, ad, add = g @ self.C, gd @ self.C, gdd @ self.C
-        else:
-            a[:] = self.C
-            a[n] -= v
-            ad[n], add[n] = -vd, -vdd
+            g = np.concatenate([-s, c], -1)           # cross(e, d) = g @ d
+            gd = vd * np.concatenate([-c, -s], -1)    # dg/dt
+            gdd = vdd * np.concatenate([-c, -s], -1) + vd * vd * np.concatenate([s, -c], -1)
+            return g @ self.C, gd @ self.C, gdd @ self.C
+        a = np.broadcast_to(self.C, t.shape + (n + 1,)).copy()
+        ad, add = np.zeros_like(a), np.zeros_like(a)
+        a[..., n:] -= v
+        ad[..., n:], add[..., n:] = -vd, -vdd
         return a, ad, add
 
     def effort(self, lam: np.ndarray, q: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -93,9 +94,10 @@ class ConstraintSystem:
         self.labels = tuple(self.con.labels) + tuple(f"driver {d.name}" for d in self.drivers)
 
     def _coef(self, t: float):
+        """a, a', a'' of every driver row: (k, n + 1) each at a time t, (T, k, n + 1) at
+        times t (T,)."""
         rows = [d.coefficients(self.n, t) for d in self.drivers]
-        return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]),
-                np.array([r[2] for r in rows]))
+        return tuple(np.stack([r[i] for r in rows], -2) for i in range(3))
 
     def phi(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
         """Phi(q, t): (m_all,)."""
@@ -105,13 +107,14 @@ class ConstraintSystem:
         A, _, _ = self._coef(t)
         return np.concatenate([p, A @ np.append(q, 1.0)])
 
-    def jacobian(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
-        """Phi_q: (m_all, n)."""
+    def jacobian(self, q: np.ndarray, t: float | np.ndarray = 0.0) -> np.ndarray:
+        """Phi_q: (m_all, n) at q (n,) and time t, or (T, m_all, n) at samples q (T, n),
+        t (T,)."""
         J = self.con.jacobian(q)
         if not self.k:
             return J
         A, _, _ = self._coef(t)
-        return np.vstack([J, A[:, :-1]])
+        return np.concatenate([J, A[..., :-1]], -2)
 
     def phi_t(self, q: np.ndarray, t: float = 0.0) -> np.ndarray:
         """Phi_t: (m_all,), zero on scleronomic rows; velocity constraint Phi_q qd = -Phi_t."""

@@ -14,7 +14,6 @@ import numpy as np
 
 from ..case.mechanism import GROUND, Case
 from ..model.casemodel import CaseModel, _frame, build, initial_state
-from ..model.drivers import ConstraintSystem
 from . import reactions
 from .result import Motion, evaluate_channels
 
@@ -208,33 +207,31 @@ def _ground_reaction(cm: CaseModel, joint, sol, forces, links) -> np.ndarray | N
     return sign * F
 
 
-def reactions_by_method(cm: CaseModel, sol) -> dict[str, np.ndarray]:
-    """Multipliers (T, m_all) of every reaction method of the case."""
-    return {name: reactions.along(cm.model, sol.t, sol.q, sol.qd, sol.qdd, w)
+def reactions_by_method(cm: CaseModel, sol) -> dict[str, reactions.ReactionsAlong]:
+    """Reactions along the solution (multipliers ``.lam`` (T, m_all), null spaces, ranks) of
+    every reaction method of the case."""
+    return {name: reactions.along_all(cm.model, sol.t, sol.q, sol.qd, sol.qdd, w)
             for name, w in cm.methods.items()}
 
 
-def undetermined(cm: CaseModel, sol, lam: np.ndarray, *, rtol: float = 1e-7) -> list[str]:
+def undetermined(cm: CaseModel, sol, r: reactions.ReactionsAlong, *,
+                 rtol: float = 1e-7) -> list[str]:
     """The channels that a self-equilibrating set changes: evaluated with ``lam`` and with
-    ``lam + s N c`` (N = ker Phi_q^T at each sample, c a fixed random unit vector, s the
-    size of lam), a channel that moves by more than ``rtol`` of its size is undetermined
-    (the paper, Section 3.2). Samples where the rank drops (singular positions) are
-    skipped."""
-    T, rng = len(sol.t), np.random.default_rng(0)
-    con = ConstraintSystem(cm.model)
-    Ns = [reactions.left_null_space(con.jacobian(q, t))[0] for t, q in zip(sol.t, sol.q,
-                                                                          strict=True)]
-    k0 = int(np.median([N.shape[1] for N in Ns]))
+    ``lam + s N c`` (N = ker Phi_q^T at each sample from ``r``, one method's reactions along
+    ``sol``; c a fixed random unit vector, s the size of lam), a channel that moves by more
+    than ``rtol`` of its size is undetermined (the paper, Section 3.2). Samples where the
+    rank drops (singular positions) are skipped."""
+    rng, lam = np.random.default_rng(0), r.lam
+    free = lam.shape[1] - r.rank
+    k0 = int(np.median(free))
     if k0 == 0:
         return []
-    keep = np.array([N.shape[1] == k0 for N in Ns])
+    keep = free == k0
     c = rng.standard_normal(k0)
     c /= np.linalg.norm(c)
     scale = float(np.max(np.abs(lam))) or 1.0
     moved = lam.copy()
-    for k in range(T):
-        if keep[k]:
-            moved[k] += scale * Ns[k] @ c
+    moved[keep] += scale * r.null[keep][:, :, :k0] @ c
     a = evaluate_channels(cm.case, motion(cm, sol, lam))
     b = evaluate_channels(cm.case, motion(cm, sol, moved))
     out = []

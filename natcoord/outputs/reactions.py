@@ -17,10 +17,13 @@ a set of *self-equilibrating* constraint forces (Eq. (60)). This module picks on
                           with W from the stiffness of the members (Eqs. (94), (115)) so the
                           answer is the one the flexible system would carry.
 
-All three are one complete orthogonal factorization of ``Phi_q^T`` (QR with column pivoting,
-then a QR of the leading rows): no pseudo-inverse, no SVD. Multipliers are always returned
-for the *original* rows, so ``Phi_q^T lambda = F - M qdd`` holds for every method and the
-methods differ only by a self-equilibrating set.
+All three are one singular value decomposition of ``W Phi_q`` (the rank counts the singular
+values above RANK_RTOL of the largest): the minimum-norm solution and an orthonormal basis
+of the null space come from the same factors. :func:`solve` factors T samples at once
+(numpy's stacked LAPACK loop, no Python call per sample); :func:`weighted` and
+:func:`left_null_space` are its one-sample case. Multipliers are always returned for the
+*original* rows, so ``Phi_q^T lambda = F - M qdd`` holds for every method and the methods
+differ only by a self-equilibrating set.
 
 Units: lambda_k has units of force / (units of row k per metre): N / m for a distance row
 ``|d|^2 - L^2`` (length dimension 2), N for a linear row in point coordinates (dimension 1),
@@ -33,7 +36,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import qr, solve_triangular
+from threadpoolctl import threadpool_limits
 
 from ..errors import ExistenceError
 from ..model.drivers import ConstraintSystem
@@ -71,27 +74,82 @@ class Reactions:
         return len(self.lam) - self.rank
 
 
-def _cod(A: np.ndarray, rtol: float):
-    """Complete orthogonal factorization A[:, P] = Q1 T1^T Z1^T of A (n, m), rank r.
+@dataclass(frozen=True)
+class ReactionsAlong:
+    """:class:`Reactions` at T samples; ``at(k)`` is sample k's.
 
-    Returns (Q1 (n, r), T1 (r, r) upper, Z (m, m) orthogonal, P (m,), r).
+    Attributes
+    ----------
+    lam : (T, m) float        multipliers of the original rows
+    null : (T, m, kmax) float columns ``:m - rank[k]`` of ``null[k]`` an orthonormal basis of
+                              ker Phi_q^T at sample k, the rest zero (kmax = m - min rank)
+    rank : (T,) int
+    residual : (T,) float     max |Phi_q^T lam - f| per sample, N
+    weights : (T, m) float
     """
-    n, m = A.shape
-    if m == 0:
-        return np.zeros((n, 0)), np.zeros((0, 0)), np.zeros((0, 0)), np.zeros(0, int), 0
-    Q, R, P = qr(A, mode="economic", pivoting=True)
-    d = np.abs(np.diag(R))
-    r = int(np.count_nonzero(d > rtol * d[0])) if d.size and d[0] > 0 else 0
-    Z, T = qr(R[:r, :].T, mode="full")  # R1^T = Z T, so R1 = T1^T Z1^T
-    return Q[:, :r], T[:r, :r], Z, P, r
+
+    lam: np.ndarray
+    null: np.ndarray
+    rank: np.ndarray
+    residual: np.ndarray
+    weights: np.ndarray
+
+    def at(self, k: int, det_tol: float = DETERMINED_TOL) -> Reactions:
+        N = self.null[k][:, :self.lam.shape[1] - int(self.rank[k])]
+        return Reactions(self.lam[k], N, determined_rows(N, det_tol), int(self.rank[k]),
+                         float(self.residual[k]), self.weights[k])
+
+
+def solve(Phi_q: np.ndarray, f: np.ndarray, w: np.ndarray | None = None, *,
+          rtol: float = RANK_RTOL) -> ReactionsAlong:
+    """Weighted minimum-norm multipliers (Eq. (75)) at T samples at once.
+
+    Solves ``(Phi_q^T W) mu = f`` for the minimum-norm ``mu`` and returns ``lam = W mu``,
+    the multipliers of the original rows (Phi_q^T lam = f). Equivalently lam minimises
+    ``sum((lam / w)**2)``: a large weight makes a row's multiplier cheap, so stiff members
+    carry the self-equilibrating share. The rank may differ between samples (a singular
+    position); each sample's solution uses its own.
+
+    Parameters
+    ----------
+    Phi_q : (T, m, n)   constraint Jacobians of the original rows
+    f : (T, n)          F - M qdd, the constraint resultants, N (N m on unit-vector
+                        coordinates)
+    w : (m,) or (T, m) > 0   row weights, diagonal of W; None for the plain minimum norm
+    """
+    Phi_q, f = np.asarray(Phi_q, float), np.asarray(f, float)
+    T, m, n = Phi_q.shape
+    W = np.ones((T, m)) if w is None else np.broadcast_to(np.asarray(w, float), (T, m))
+    if np.any(~np.isfinite(W)) or np.any(W <= 0):
+        raise ValueError(f"weights must be {m} positive finite numbers, got {w!r}")
+    if m == 0 or n == 0:
+        return ReactionsAlong(np.zeros((T, m)), np.broadcast_to(np.eye(m), (T, m, m)).copy(),
+                              np.zeros(T, int), np.max(np.abs(f), 1, initial=0.0), W)
+    # W Phi_q = U diag(s) Vh; Phi_q^T W = Vh^T diag(s) U^T, so mu = U diag(1/s) Vh f and
+    # ker(Phi_q^T W) is spanned by U's columns past the rank
+    U, s, Vh = np.linalg.svd(W[:, :, None] * Phi_q, full_matrices=m > n)
+    big = s > rtol * s[:, :1]
+    rank = np.count_nonzero(big, 1)
+    inv = np.where(big, 1.0 / np.where(big, s, 1.0), 0.0)
+    mu = np.einsum("tmr,tr->tm", U[:, :, :s.shape[1]], inv * np.einsum("trn,tn->tr", Vh, f))
+    lam = W * mu
+    kmax = m - int(rank.min(initial=m))
+    null = np.zeros((T, m, kmax))
+    for r in np.unique(rank):  # ker(Phi_q^T) = W ker(Phi_q^T W), made orthonormal again
+        at = rank == r
+        N = W[at][:, :, None] * U[at][:, :, r:]
+        if w is not None and r < m:
+            N = np.linalg.qr(N)[0]
+        null[at, :, :m - r] = N
+    resid = np.max(np.abs(np.einsum("tmn,tm->tn", Phi_q, lam) - f), 1)
+    return ReactionsAlong(lam, null, rank, resid, W)
 
 
 def left_null_space(Phi_q: np.ndarray, *, rtol: float = RANK_RTOL) -> tuple[np.ndarray, int]:
     """Orthonormal basis N (m, m - r) of ker Phi_q^T and the rank r of Phi_q (m, n)."""
-    _, _, Z, P, r = _cod(np.asarray(Phi_q, float).T, rtol)
-    N = np.zeros((Phi_q.shape[0], Phi_q.shape[0] - r))
-    N[P] = Z[:, r:]
-    return N, r
+    Phi_q = np.asarray(Phi_q, float)
+    r = solve(Phi_q[None], np.zeros((1, Phi_q.shape[1])), rtol=rtol).at(0)
+    return r.N, r.rank
 
 
 def determined_rows(N: np.ndarray, tol: float = DETERMINED_TOL) -> np.ndarray:
@@ -105,12 +163,7 @@ def determined_rows(N: np.ndarray, tol: float = DETERMINED_TOL) -> np.ndarray:
 
 def weighted(Phi_q: np.ndarray, f: np.ndarray, w: np.ndarray | None = None, *,
              rtol: float = RANK_RTOL, det_tol: float = DETERMINED_TOL) -> Reactions:
-    """Weighted minimum-norm multipliers, Eq. (75).
-
-    Solves ``(Phi_q^T W) mu = f`` for the minimum-norm ``mu`` and returns ``lam = W mu``,
-    the multipliers of the original rows (Phi_q^T lam = f). Equivalently lam minimises
-    ``sum((lam / w)**2)``: a large weight makes a row's multiplier cheap, so stiff members
-    carry the self-equilibrating share.
+    """Weighted minimum-norm multipliers (Eq. (75)) at one sample: :func:`solve`'s.
 
     Parameters
     ----------
@@ -120,20 +173,10 @@ def weighted(Phi_q: np.ndarray, f: np.ndarray, w: np.ndarray | None = None, *,
     """
     Phi_q = np.asarray(Phi_q, float)
     m = Phi_q.shape[0]
-    w = np.ones(m) if w is None else np.asarray(w, float)
-    if w.shape != (m,) or np.any(~np.isfinite(w)) or np.any(w <= 0):
+    if w is not None and np.shape(w) != (m,):
         raise ValueError(f"weights must be {m} positive finite numbers, got {w!r}")
-    f = np.asarray(f, float)
-    Q1, T1, Z, P, r = _cod(Phi_q.T * w, rtol)
-    mu_p = Z[:, :r] @ solve_triangular(T1, Q1.T @ f, trans="T", lower=False)
-    lam = np.zeros(m)
-    lam[P] = w[P] * mu_p
-    N = np.zeros((m, m - r))
-    N[P] = w[P, None] * Z[:, r:]  # ker(Phi_q^T) = W ker(Phi_q^T W)
-    if m > r:
-        N, _ = np.linalg.qr(N)
-    resid = float(np.max(np.abs(Phi_q.T @ lam - f), initial=0.0))
-    return Reactions(lam, N, determined_rows(N, det_tol), r, resid, w)
+    return solve(Phi_q[None], np.asarray(f, float)[None], None if w is None else
+                 np.asarray(w, float)[None], rtol=rtol).at(0, det_tol)
 
 
 def min_norm(Phi_q: np.ndarray, f: np.ndarray, *, rtol: float = RANK_RTOL) -> Reactions:
@@ -200,31 +243,56 @@ def stiffness_weights(m: int, springs: Mapping[int, tuple[float, float]],
 
 
 # ---- model-level helpers ----------------------------------------------------------------
-def resultant(model, t: float, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
-    """F - M qdd (n,), the constraint resultant Phi_q^T lambda of Eq. (54)."""
-    return model.forces(t, q, qd) - model.M @ qdd
+def resultant(model, t, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.ndarray:
+    """F - M qdd, the constraint resultant Phi_q^T lambda of Eq. (54): (n,) at one sample
+    t, q, qd, qdd (n,), or (T, n) along samples t (T,), q, qd, qdd (T, n)."""
+    if np.ndim(q) == 1:
+        return model.forces(t, q, qd) - model.M @ qdd
+    if getattr(model, "torques", ()) or getattr(model, "springs", ()):
+        F = np.array([model.forces(*x) for x in zip(t, q, qd, strict=True)])
+    else:
+        F = np.broadcast_to(model.Q0, np.shape(q))
+    return F - qdd @ model.M.T
 
 
-def along(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-          w: np.ndarray | None = None) -> np.ndarray:
-    """Weighted minimum-norm multipliers (T, m_all) along samples t (T,), q, qd, qdd (T, n)
-    (driver rows after the m constraint rows).
+CHUNK = 1 << 21  # entries of W Phi_q factored at once (bounds the memory of the factors)
+
+
+def along_all(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+              w: np.ndarray | None = None, *, rtol: float = RANK_RTOL) -> ReactionsAlong:
+    """Weighted minimum-norm reactions along samples t (T,), q, qd, qdd (T, n) (driver rows
+    after the m constraint rows), factored by :func:`solve` a chunk of samples at a time.
 
     ``w`` (m,) or (T, m): weights of the constraint rows (None: plain minimum norm); driver
     rows weigh 1.
     """
     con = ConstraintSystem(model)
     T = len(t)
-    lam = np.zeros((T, con.m))
     W = None
     if w is not None:
         W = np.ones((T, con.m))
         W[:, :model.m] = np.broadcast_to(np.asarray(w, float), (T, model.m))
-    for k in range(T):
-        Jq = con.jacobian(q[k], t[k])
-        f = resultant(model, t[k], q[k], qd[k], qdd[k])
-        lam[k] = weighted(Jq, f, None if W is None else W[k]).lam
-    return lam
+    step = max(1, CHUNK // max(1, con.m * max(con.m, con.n)))
+    parts = []
+    with threadpool_limits(1, user_api="blas"):  # threads on small matrices: 6x slower
+        for a in range(0, T, step):
+            b = slice(a, a + step)
+            parts.append(solve(con.jacobian(q[b], t[b]), resultant(model, t[b], q[b], qd[b],
+                                                                   qdd[b]),
+                               None if W is None else W[b], rtol=rtol))
+    if not parts:
+        return solve(np.zeros((0, con.m, con.n)), np.zeros((0, con.n)), rtol=rtol)
+    kmax = max(p.null.shape[2] for p in parts)
+    null = np.concatenate([np.pad(p.null, ((0, 0), (0, 0), (0, kmax - p.null.shape[2])))
+                           for p in parts])
+    return ReactionsAlong(null=null, **{f: np.concatenate([getattr(p, f) for p in parts])
+                                        for f in ("lam", "rank", "residual", "weights")})
+
+
+def along(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
+          w: np.ndarray | None = None) -> np.ndarray:
+    """Weighted minimum-norm multipliers (T, m_all) along samples (see :func:`along_all`)."""
+    return along_all(model, t, q, qd, qdd, w).lam
 
 
 def check_existence(M: np.ndarray, Phi_q: np.ndarray, *, rtol: float = 1e-10) -> None:
