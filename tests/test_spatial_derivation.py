@@ -182,10 +182,22 @@ def test_hanging_rod_pin_reaction_is_its_weight():
 
 
 def test_derivation_uses_no_natcoord_model():
-    """Independent means independent: the module takes the case data and nothing else."""
-    tree = ast.parse((CASES.parent / "natcoord" / "derivations" / "spatial.py").read_text())
+    """Independent means independent: the module takes the case data and nothing else, its
+    compiled kernel numpy and numba only."""
+    here = CASES.parent / "natcoord" / "derivations"
+    tree = ast.parse((here / "spatial.py").read_text())
     local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
-    assert local <= {"errors", "case.mechanism", "estimates"}
+    assert local <= {"errors", "case.mechanism", "estimates", None}  # None: `from . import`
+    names = {a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level
+             and n.module is None for a in n.names}
+    assert names == {"spatial_kernel"}
+    kernel = ast.parse((here / "spatial_kernel.py").read_text())
+    imported = {a.name.split(".")[0] for n in ast.walk(kernel) if isinstance(n, ast.Import)
+                for a in n.names}
+    imported |= {n.module.split(".")[0] for n in ast.walk(kernel)
+                 if isinstance(n, ast.ImportFrom) and not n.level}
+    assert imported == {"__future__", "numpy", "numba"}
+    assert not any(isinstance(n, ast.ImportFrom) and n.level for n in ast.walk(kernel))
 
 
 def test_report_shows_the_3d_agreement_as_for_planar_cases():

@@ -66,7 +66,12 @@ PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 FORCE_KINDS = ("reaction", "axial", "combination")
 KINDS = ("angle", "position", "velocity", "acceleration", "energy", *FORCE_KINDS)
 PROJECT_TOL = 1e-13  # m: position projection's stop
+# Least squares drop singular values below RCOND times the largest: a redundant row's
+# direction (singular value ~1e-16 on the constraints, ~1e-13 a little off them) is never
+# inverted; numpy's default (eps max(shape)) did, moving a04_bricard by 1.5 mm at a sample.
+RCOND = 1e-10
 STIFF_RATE = 1e3  # 1/s: a spring-damper faster than this makes a case stiff (see stiff())
+IMPLICIT = ("Radau", "BDF", "LSODA")
 CHUNK = 10  # output intervals integrated at once: the state is projected at their end
 _I3 = np.eye(3)
 
@@ -160,17 +165,13 @@ class _Term:
 
 
 class _Kin:
-    """The kinematic state of every body at one instant (ground last, at rest)."""
+    """The kinematic state of every body at one instant (ground last, at rest): r, v, w
+    (n + 1, 3), R (n + 1, 3, 3), Euler parameters p (n, 4) and nu (6 n,)."""
 
     def __init__(self, model: SpatialModel, y: np.ndarray):
         n = model.n
-        self.r = np.vstack([y[:3*n].reshape(n, 3), np.zeros((1, 3))])
-        p = y[3*n:7*n].reshape(n, 4)
-        self.p = p
-        self.R = [_rotation(q) for q in p] + [np.eye(3)]
-        nu = y[7*n:13*n].reshape(n, 2, 3)
-        self.v = np.vstack([nu[:, 0], np.zeros((1, 3))])
-        self.w = np.vstack([nu[:, 1], np.zeros((1, 3))])
+        self.r, self.R, self.v, self.w = model.kernel.kinematics(y, n)
+        self.p = y[3*n:7*n].reshape(n, 4)
         self.nu = y[7*n:13*n]
 
 
@@ -197,6 +198,8 @@ class SpatialModel:
         self.inertia = [np.asarray(b.inertia, float).reshape(3, 3) for b in case.bodies]
         self.com = [np.asarray(b.com, float) for b in case.bodies] + [np.zeros(3)]
         self.gravity = np.asarray(case.gravity, float)
+        from . import spatial_kernel  # numba: imported when a case is derived
+        self.kernel = spatial_kernel
         self.rows: list = []
         self.joint_rows: dict[str, tuple[list[int], int, int]] = {}
         for j in case.joints:
@@ -207,7 +210,7 @@ class SpatialModel:
             self._add(rod.name, b1, b2, [("dot", d, d, rod.length**2)])
         self._tables()
         self.y0 = self._initial_state()
-        self.keep = self._independent_rows()
+        self.rank = self._rank(self.y0)
 
     # ---- constraint rows from the joints' definitions -------------------------------------
     def _point(self, body: str, name: str, coef: float = 1.0) -> _Term:
@@ -298,94 +301,45 @@ class SpatialModel:
         for e, ts in enumerate(exprs):
             for t in ts:
                 self._S[e, terms.index((t.body, t.point, tuple(t.s)))] += t.coef
-        self._comp = tuple(np.array(c) for c in zip(*comp, strict=True)) if comp else None
-        self._dot = tuple(np.array(c) for c in zip(*dot, strict=True)) if dot else None
+        comp = np.array(comp, float).reshape(-1, 4)
+        dot = np.array(dot, float).reshape(-1, 5)
+        forces = self.case.forces
+        fb = np.array([self.index[f.body] for f in forces], np.int64)
+        ft = np.array([float(f.type == "force") for f in forces])
+        fv = np.array([np.asarray(f.value, float) for f in forces]).reshape(-1, 3)
+        fs = np.array([np.asarray(self.case.body(f.body).points[f.point], float)
+                       - self.com[self.index[f.body]] if f.type == "force" else np.zeros(3)
+                       for f in forces]).reshape(-1, 3)
+        ends = [[self._point(b, p) for b, p in s.ends] for s in self.case.springs]
+        sb = np.array([[e.body for e in pair] for pair in ends], np.int64).reshape(-1, 2)
+        ss = np.array([[e.s for e in pair] for pair in ends], float).reshape(-1, 2, 3)
+        sk = np.array([[s.stiffness, s.damping, s.length] for s in self.case.springs],
+                      float).reshape(-1, 3)
+        inertia = np.array(self.inertia, float).reshape(-1, 3, 3)
+        # the kernel's model tables (spatial_kernel's order)
+        self._model = (self.mass, inertia, self.gravity)
+        self._rows = (self._tb.astype(np.int64), self._tp, self._ts, self._S, comp, dot,
+                      len(self.rows))
+        self._loads = (fb, ft, fv, fs, sb, ss, sk)
 
     def constraints(self, kin: _Kin):
         """Phi (m,), its Jacobian G over every body's (v, w) (m, 6 (n + 1)) and gamma (m,)
         with Phi'' = G nu' + gamma."""
-        m, T = len(self.rows), len(self._tb)
-        phi, gam = np.zeros(m), np.zeros(m)
-        jac = np.zeros((m, 6 * (self.n + 1)))
-        if not m:
-            return phi, jac, gam
-        R = np.array(kin.R)[self._tb]
-        d = np.einsum("tij,tj->ti", R, self._ts)
-        w = kin.w[self._tb]
-        wd = np.cross(w, d)
-        pt = self._tp[:, None]
-        S = self._S
-        val = S @ (pt * kin.r[self._tb] + d)
-        vel = S @ (pt * kin.v[self._tb] + wd)
-        acc = S @ np.cross(w, wd)
-        Jt = np.zeros((T, 3, 6 * (self.n + 1)))
-        sk = np.zeros((T, 3, 3))
-        sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
-        sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
-        ar = np.arange(T)[:, None, None]
-        cols = 6 * self._tb[:, None] + np.arange(3)
-        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :]] = pt[:, :, None] * _I3
-        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :] + 3] = -sk
-        J = np.einsum("et,tij->eij", S, Jt)
-        if self._comp is not None:
-            r, e, k, c = self._comp
-            phi[r], gam[r], jac[r] = val[e, k] - c, acc[e, k], J[e, k]
-        if self._dot is not None:
-            r, e1, e2, c, sc = self._dot
-            v1, v2 = val[e1], val[e2]
-            phi[r] = sc * (np.sum(v1 * v2, axis=1) - c)
-            gam[r] = sc * (np.sum(acc[e1] * v2 + v1 * acc[e2] + 2 * vel[e1] * vel[e2],
-                                  axis=1))
-            jac[r] = sc[:, None] * (np.einsum("ri,rij->rj", v1, J[e2])
-                                    + np.einsum("ri,rij->rj", v2, J[e1]))
-        return phi, jac, gam
+        return self.kernel.constraints(kin.r, kin.R, kin.v, kin.w, *self._rows)
 
     # ---- dynamics ------------------------------------------------------------------------
     def _springs(self, kin: _Kin):
-        """Per spring: tension (N), rate of length (m/s), ends (body, d, unit vector)."""
-        out = []
-        for s in self.case.springs:
-            (b1, p1), (b2, p2) = s.ends
-            e1, e2 = self._point(b1, p1), self._point(b2, p2)
-            x1, v1, _, _ = self._expr(kin, [e1])
-            x2, v2, _, _ = self._expr(kin, [e2])
-            length = float(np.linalg.norm(x2 - x1))
-            u = (x2 - x1) / length
-            ldot = float(u @ (v2 - v1))
-            tension = s.stiffness * (length - s.length) + s.damping * ldot
-            out.append((s, tension, ldot, e1, e2, u, x1, x2))
-        return out
+        """Per spring: tension (N), rate of length (m/s), length (m)."""
+        tension, ldot, length, _, _ = self.kernel.springs(kin.r, kin.R, kin.v, kin.w,
+                                                          *self._loads[4:])
+        return zip(self.case.springs, tension, ldot, length, strict=True)
 
     def loads(self, kin: _Kin):
         """Generalised forces Q (6 n,): force and moment about the centre of mass per body
         (gravity, applied loads, springs, gyroscopic), and the power (W) of the applied
         loads and dampers."""
-        n = self.n
-        Q = np.zeros((n + 1, 6))
-        power = 0.0
-        for i in range(n):
-            Q[i, :3] += self.mass[i] * self.gravity
-            Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
-            Q[i, 3:] -= _cross(kin.w[i], Iw @ kin.w[i])
-        for f in self.case.forces:
-            i = self.index[f.body]
-            val = np.asarray(f.value, float)
-            if f.type == "torque":
-                Q[i, 3:] += val
-                power += val @ kin.w[i]
-            else:
-                d = kin.R[i] @ (np.asarray(self.case.body(f.body).points[f.point], float)
-                                - self.com[i])
-                Q[i, :3] += val
-                Q[i, 3:] += _cross(d, val)
-                power += val @ (kin.v[i] + _cross(kin.w[i], d))
-        for s, tension, ldot, e1, e2, u, _, _ in self._springs(kin):
-            for e, f in ((e1, tension * u), (e2, -tension * u)):
-                d = kin.R[e.body] @ e.s
-                Q[e.body, :3] += f
-                Q[e.body, 3:] += _cross(d, f)
-            power -= s.damping * ldot**2
-        return Q[:n].ravel(), power
+        Q, power = self.kernel.loads(kin.r, kin.R, kin.v, kin.w, *self._model, *self._loads)
+        return Q[:self.n].ravel(), power
 
     def mass_matrix(self, kin: _Kin) -> np.ndarray:
         n = self.n
@@ -395,47 +349,39 @@ class SpatialModel:
             M[6*i + 3:6*i + 6, 6*i + 3:6*i + 6] = kin.R[i] @ self.inertia[i] @ kin.R[i].T
         return M
 
-    def _independent_rows(self) -> np.ndarray:
-        """Indices of a maximal set of independent constraint rows at t = 0 (QR with column
-        pivoting of G^T): the redundant ones add nothing to the motion."""
-        from scipy.linalg import qr
-        _, G, _ = self.constraints(_Kin(self, self.y0))
-        G = G[:, :6 * self.n]
+    def _rank(self, y: np.ndarray) -> int:
+        """The rank of the constraint Jacobian at y (on the constraints), by SVD."""
+        _, G, _ = self.constraints(_Kin(self, y))
         if not G.shape[0]:
-            return np.zeros(0, int)
-        _, r, piv = qr(G.T, mode="economic", pivoting=True)
-        d = np.abs(np.diag(r))
-        return np.sort(piv[:int(np.sum(d > d[0] * 1e-10))])
+            return 0
+        s = np.linalg.svd(G[:, :6 * self.n], compute_uv=False)
+        return int(np.sum(s > s[0] * 1e-10))
 
-    def solve_acc(self, kin: _Kin, every_row: bool = False):
-        """nu' (6 n,), the multipliers (m,), G (m, 6 (n+1)) and the power of applied loads
-        and dampers (W). The motion uses the independent rows (a square solve); with
-        ``every_row``, every row by least squares: the minimum-norm multipliers."""
+    def solve_acc(self, kin: _Kin):
+        """nu' (6 n,), the minimum-norm multipliers of every row (m,), G (m, 6 (n+1)) and
+        the power of applied loads and dampers (W): every row by least squares (at the
+        output samples; :meth:`rhs` solves the independent rows only)."""
         _, G, gam = self.constraints(kin)
         Q, power = self.loads(kin)
         M = self.mass_matrix(kin)
-        k = 6 * self.n
-        rows = np.arange(G.shape[0]) if every_row else self.keep
-        m = len(rows)
+        k, m = 6 * self.n, G.shape[0]
         A = np.zeros((k + m, k + m))
-        A[:k, :k], A[:k, k:], A[k:, :k] = M, G[rows, :k].T, G[rows, :k]
-        b = np.concatenate([Q, -gam[rows]])
-        if every_row:
-            x, *_ = np.linalg.lstsq(A, b, rcond=None)
-            lam = x[k:]
-        else:
-            x = np.linalg.solve(A, b)
-            lam = np.zeros(G.shape[0])
-            lam[rows] = x[k:]
-        return x[:k], lam, G, power
+        A[:k, :k], A[:k, k:], A[k:, :k] = M, G[:, :k].T, G[:, :k]
+        x, *_ = np.linalg.lstsq(A, np.concatenate([Q, -gam]), rcond=RCOND)
+        return x[:k], x[k:], G, power
+
+    def _args(self) -> tuple:
+        return (self.rank, *self._model, *self._rows, *self._loads)
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
-        n = self.n
-        kin = _Kin(self, y)
-        acc, _, _, power = self.solve_acc(kin)
-        pdot = np.concatenate([0.5 * _quat_mul(np.array([0.0, *kin.w[i]]), kin.p[i])
-                               for i in range(n)])
-        return np.concatenate([kin.v[:n].ravel(), pdot, acc, [power]])
+        """y' (13 n + 1,) (compiled: :func:`spatial_kernel.rhs`)."""
+        return self.kernel.rhs(y, *self._args())
+
+    def jacobian(self, t: float, y: np.ndarray) -> np.ndarray:
+        """d y' / d y (13 n + 1, 13 n + 1) by compiled forward differences, for the
+        implicit integrators."""
+        args = self._args()
+        return self.kernel.jacobian(y, self.kernel.rhs(y, *args), *args)
 
     # ---- projection and the initial state ------------------------------------------------
     def project(self, y: np.ndarray) -> np.ndarray:
@@ -448,7 +394,7 @@ class SpatialModel:
             phi, G, _ = self.constraints(kin)
             if np.max(np.abs(phi), initial=0.0) < PROJECT_TOL:
                 break
-            dx, *_ = np.linalg.lstsq(G[:, :6*n], -phi, rcond=None)
+            dx, *_ = np.linalg.lstsq(G[:, :6*n], -phi, rcond=RCOND)
             dx = dx.reshape(n, 2, 3)
             y[:3*n] += dx[:, 0].ravel()
             p = y[3*n:7*n].reshape(n, 4)
@@ -460,7 +406,7 @@ class SpatialModel:
         kin = _Kin(self, y)
         _, G, _ = self.constraints(kin)
         Gn = G[:, :6*n]
-        dv, *_ = np.linalg.lstsq(Gn, -Gn @ kin.nu, rcond=None)
+        dv, *_ = np.linalg.lstsq(Gn, -Gn @ kin.nu, rcond=RCOND)
         y[7*n:13*n] += dv
         return y
 
@@ -479,7 +425,7 @@ class SpatialModel:
             rows.append(self._rate_row(kin, case.channel(name))[None, :6*n])
             rhs.append([float(rate)])
         A, b = np.vstack(rows), np.concatenate(rhs)
-        nu, *_ = np.linalg.lstsq(A, b, rcond=None)  # rates left free: minimum norm
+        nu, *_ = np.linalg.lstsq(A, b, rcond=RCOND)  # rates left free: minimum norm
         if np.max(np.abs(A @ nu - b)) > 1e-9 * max(1.0, np.max(np.abs(b))):
             raise Unsupported("spatial derivation: the [initial] velocities contradict "
                               "the joints")
@@ -508,8 +454,9 @@ class SpatialModel:
         y = self.y0
         for k in range(0, len(times) - 1, CHUNK):
             span = times[k:k + CHUNK + 1]
+            implicit = {"jac": self.jacobian} if s["method"] in IMPLICIT else {}
             sol = solve_ivp(self.rhs, (span[0], span[-1]), y, method=s["method"],
-                            rtol=s["rtol"], atol=s["atol"], t_eval=span[1:])
+                            rtol=s["rtol"], atol=s["atol"], t_eval=span[1:], **implicit)
             if not sol.success:
                 raise RuntimeError(f"spatial derivation: {sol.message} at t = {span[0]:g} s")
             out.extend(self.project(x) for x in sol.y.T)
@@ -519,7 +466,7 @@ class SpatialModel:
     def forces(self, kin: _Kin):
         """Joint reactions (force on the second body, world axes, N), rod and spring
         tensions (N) and which reaction components the constraints leave undetermined."""
-        acc, lam, G, _ = self.solve_acc(kin, every_row=True)
+        acc, lam, G, _ = self.solve_acc(kin)
         k = 6 * self.n
         if G.shape[0]:
             _, s, vt = np.linalg.svd(G[:, :k].T)
@@ -538,7 +485,7 @@ class SpatialModel:
             rows, _, _ = self.joint_rows[rod.name]
             tension[rod.name] = lam[rows[0]] * rod.length
             free[rod.name] = (null[rows[0]] * rod.length if null.size else np.zeros(0))
-        for sp, t, *_ in self._springs(kin):
+        for sp, t, _, _ in self._springs(kin):
             tension[sp.name] = t
         return acc, react, tension, free
 
@@ -548,8 +495,8 @@ class SpatialModel:
             Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
             e += 0.5 * self.mass[i] * kin.v[i] @ kin.v[i] + 0.5 * kin.w[i] @ Iw @ kin.w[i]
             e -= self.mass[i] * kin.r[i] @ self.gravity
-        for s, _, _, _, _, _, x1, x2 in self._springs(kin):
-            e += 0.5 * s.stiffness * (np.linalg.norm(x2 - x1) - s.length) ** 2
+        for s, _, _, length in self._springs(kin):
+            e += 0.5 * s.stiffness * (length - s.length) ** 2
         return e
 
     def channels(self, times: np.ndarray, ys: np.ndarray):
