@@ -30,18 +30,26 @@ r_P' = v + w x (R s), r_P'' = a + alpha x R s + w x (w x R s)):
   prismatic: that and no turn about the axis (1 row);
 * massless rod: (|r_P2 - r_P1|^2 - L^2) / 2 = 0, its tension lam * L.
 
-Integration: scipy's ``solve_ivp`` (DOP853 at rtol 1e-12 by default) over CHUNK output
-intervals at a time; every output sample is projected onto the constraints (positions by
-Gauss-Newton to 1e-13 m, least-change; Euler parameters normalised; velocities by least
-squares) and the integration restarts from the projected state at the chunk's end; no
-Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
+The right-hand side is compiled (numba, :mod:`.spatial_kernel`: the same equations for every
+case, tables of terms and rows per case); at each call it solves the rank's best conditioned
+rows (pivoted Gram-Schmidt), so a redundant loop (a04_bricard) never meets a singular set.
+
+Integration: scipy's ``solve_ivp`` over CHUNK output intervals at a time, DOP853 at rtol
+1e-12, or for a stiff case (:func:`stiff`: a spring-damper faster than STIFF_RATE) Radau
+IIA (order 5) at rtol 1e-10 with the compiled finite-difference Jacobian; every output
+sample is projected onto the constraints (positions by Gauss-Newton to 1e-13 m,
+least-change; Euler parameters normalised; velocities by least squares, singular values
+below RCOND dropped) and the integration restarts from the projected state at the chunk's
+end; no Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
+Measured on a loaded 2-core machine, the whole case: a04_bricard (10 s) 1.4 s,
+a05_flyball_governor (10 s, Radau) 63 s, parallelogram_3d_flexible (2 s, Radau) 23 s.
 
 Supported: 3-D cases of rigid bodies and uniform rods, the five joint types, rods,
-spring-dampers, constant forces and torques, gravity; channels ``angle`` (two points),
-``position``, ``velocity``, ``acceleration``, ``reaction`` (x, y, z), ``axial``,
-``energy`` (and its balance) and ``combination``. Drivers and particles raise
-:class:`natcoord.errors.Unsupported`. Stiff spring-dampers are derived, but too slowly for
-a reference run here: :func:`check` skips those cases (:func:`stiff` says why).
+spring-dampers (stiff ones too), constant forces and torques, gravity; channels ``angle``
+(two points), ``position``, ``velocity``, ``acceleration``, ``reaction`` (x, y, z),
+``axial``, ``energy`` (and its balance: the dampers' work over the samples as the channel
+defines it, or exact) and ``combination``. Drivers and particles raise
+:class:`natcoord.errors.Unsupported`.
 """
 
 from __future__ import annotations
@@ -61,6 +69,9 @@ METHOD = ("body coordinates (centre of mass, Euler parameters), Newton-Euler, jo
           "every sample, {solver}")
 SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
 CHECK = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
+# stiff cases (stiff()): scipy's Radau IIA (order 5) with the compiled Jacobian
+STIFF_SETTINGS = {"method": "Radau", "rtol": 1e-10, "atol": 1e-12}
+STIFF_CHECK = {"method": "Radau", "rtol": 1e-8, "atol": 1e-10}
 AXES = {"x": 0, "y": 1, "z": 2}
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 FORCE_KINDS = ("reaction", "axial", "combination")
@@ -98,19 +109,17 @@ def supported(case: Case) -> str:
 
 def stiff(case: Case) -> str:
     """'' unless a spring-damper makes the case stiff (a rate sqrt(k / m) or c / m above
-    STIFF_RATE, m the lighter body it moves): then the reason :func:`check` skips it.
-    Measured on parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg), on a shared
-    2-core machine: DOP853 (steps held by stability) had not finished the first 0.03 s
-    after 8 min; scipy's Radau with its finite-difference Jacobian took 354 s for the
-    first 0.05 s at rtol 1e-10."""
+    STIFF_RATE, m the lighter body it moves): then why it is integrated by an implicit
+    method (STIFF_SETTINGS). On parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg)
+    the explicit DOP853's steps are held by stability (it had not finished the first
+    0.03 s after 8 min with the Python right-hand side)."""
     for s in case.springs:
         masses = [case.body(b).mass for b, _ in s.ends if b != GROUND]
         m = min(masses)
         rate = max(np.sqrt(s.stiffness / m), s.damping / m)
         if rate > STIFF_RATE:
-            return (f"spring {s.name}: rate {rate:.3g} /s (stiff): the explicit integrator's "
-                    "steps are held by stability and scipy's implicit ones with "
-                    "finite-difference Jacobians are too slow for a reference run")
+            return (f"spring {s.name}: rate {rate:.3g} /s (stiff): an explicit "
+                    "integrator's steps are held by stability")
     return ""
 
 
@@ -121,15 +130,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _skew(a: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def _rotation(p: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of Euler parameters p = (e0, e1, e2, e3), normalised here."""
-    e0, e1, e2, e3 = p / np.linalg.norm(p)
-    return np.array([
-        [e0*e0 + e1*e1 - e2*e2 - e3*e3, 2*(e1*e2 - e0*e3), 2*(e1*e3 + e0*e2)],
-        [2*(e1*e2 + e0*e3), e0*e0 - e1*e1 + e2*e2 - e3*e3, 2*(e2*e3 - e0*e1)],
-        [2*(e1*e3 - e0*e2), 2*(e2*e3 + e0*e1), e0*e0 - e1*e1 - e2*e2 + e3*e3]])
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -183,7 +183,8 @@ class SpatialModel:
     n : number of moving bodies; their order is ``case.bodies``'
     rows : constraint rows, each ("comp", E, k, c) or ("dot", E1, E2, c), E a list of _Term
     joint_rows : joint or rod name -> (row indices, first body index, second body index)
-    y0 : (13 n + 1,) state at t = 0: r, p, v, w per body, the work W (J)
+    y0 : (13 n + 2,) state at t = 0: r, p, v, w per body, the work W of applied loads and
+         dampers and the dampers' part Wd (J)
     """
 
     def __init__(self, case: Case):
@@ -338,7 +339,8 @@ class SpatialModel:
         """Generalised forces Q (6 n,): force and moment about the centre of mass per body
         (gravity, applied loads, springs, gyroscopic), and the power (W) of the applied
         loads and dampers."""
-        Q, power = self.kernel.loads(kin.r, kin.R, kin.v, kin.w, *self._model, *self._loads)
+        Q, power, _ = self.kernel.loads(kin.r, kin.R, kin.v, kin.w, *self._model,
+                                        *self._loads)
         return Q[:self.n].ravel(), power
 
     def mass_matrix(self, kin: _Kin) -> np.ndarray:
@@ -374,11 +376,11 @@ class SpatialModel:
         return (self.rank, *self._model, *self._rows, *self._loads)
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
-        """y' (13 n + 1,) (compiled: :func:`spatial_kernel.rhs`)."""
+        """y' (13 n + 2,) (compiled: :func:`spatial_kernel.rhs`)."""
         return self.kernel.rhs(y, *self._args())
 
     def jacobian(self, t: float, y: np.ndarray) -> np.ndarray:
-        """d y' / d y (13 n + 1, 13 n + 1) by compiled forward differences, for the
+        """d y' / d y (13 n + 2, 13 n + 2) by compiled forward differences, for the
         implicit integrators."""
         args = self._args()
         return self.kernel.jacobian(y, self.kernel.rhs(y, *args), *args)
@@ -412,7 +414,7 @@ class SpatialModel:
 
     def _initial_state(self) -> np.ndarray:
         n, case = self.n, self.case
-        y = np.zeros(13 * n + 1)
+        y = np.zeros(13 * n + 2)
         y[:3*n] = np.concatenate(self.com[:n])
         y[3*n:7*n] = np.tile([1.0, 0.0, 0.0, 0.0], n)
         y = self.project(y)
@@ -446,10 +448,11 @@ class SpatialModel:
 
     # ---- integration and channels -------------------------------------------------------
     def integrate(self, times: np.ndarray, settings: dict | None = None) -> np.ndarray:
-        """States (T, 13 n + 1) at ``times`` (each projected). The integrator runs over
+        """States (T, 13 n + 2) at ``times`` (each projected), by ``settings`` (default
+        :meth:`settings`). The integrator runs over
         CHUNK output intervals at a time (its dense output gives the samples inside) and
         restarts from the projected state at the chunk's end."""
-        s = {**SETTINGS, **(settings or {})}
+        s = {**self.settings()[0], **(settings or {})}
         out = [self.y0]
         y = self.y0
         for k in range(0, len(times) - 1, CHUNK):
@@ -499,9 +502,32 @@ class SpatialModel:
             e += 0.5 * s.stiffness * (length - s.length) ** 2
         return e
 
-    def channels(self, times: np.ndarray, ys: np.ndarray):
+    def settings(self) -> tuple[dict, dict]:
+        """The integrator's settings for this case and for its error estimate (a 100x
+        looser run): implicit Radau where :func:`stiff`, else DOP853."""
+        return (STIFF_SETTINGS, STIFF_CHECK) if stiff(self.case) else (SETTINGS, CHECK)
+
+    def balance_over_samples(self, times: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Energy minus work (T,), J, as the ``energy`` channel with ``work = true`` is
+        defined for every engine (README, energy balance): the dampers' work the integral
+        of their power at the samples (the not-a-knot cubic spline through it, integrated),
+        the applied loads' exact. The derivation's own balance takes the dampers' work
+        exactly (a state)."""
+        from scipy.interpolate import CubicSpline
+        n = self.n
+        kins = [_Kin(self, y) for y in ys]
+        energy = np.array([self.energy(k) for k in kins])
+        power = np.array([-sum(s.damping * ldot**2 for s, _, ldot, _ in self._springs(k))
+                          for k in kins])
+        damped = (CubicSpline(times, power).antiderivative()(times) if len(times) > 1
+                  else np.zeros(1))
+        return energy - (ys[:, 13 * n] - ys[:, 13 * n + 1]) - damped
+
+    def channels(self, times: np.ndarray, ys: np.ndarray, work: str = "samples"):
         """The case's channels (DataFrame: t, then each channel) and the set of force
-        channels the redundant constraints leave undetermined."""
+        channels the redundant constraints leave undetermined. ``work``: an energy
+        balance's damper work over the samples as the channel defines it ("samples",
+        :meth:`balance_over_samples`) or exact ("exact")."""
         case = self.case
         cols: dict[str, list] = {"t": list(times)}
         cols.update({c.name: [] for c in case.channels})
@@ -541,7 +567,7 @@ class SpatialModel:
                             c = rng.standard_normal(f.shape[0])
                         shift[ch.name] = f @ c
                 elif ch.kind == "energy":
-                    v = self.energy(kin) - (y[-1] if ch.work else 0.0)
+                    v = self.energy(kin) - (y[13 * self.n] if ch.work else 0.0)
                 else:  # combination
                     v = sum(k * cols[name][-1] for name, k in ch.of)
                     shift[ch.name] = sum(k * shift.get(name, 0.0) for name, k in ch.of)
@@ -551,6 +577,8 @@ class SpatialModel:
         for ch in case.channels:
             if ch.kind == "angle":
                 cols[ch.name] = np.unwrap(cols[ch.name])
+            if ch.kind == "energy" and ch.work and work == "samples":
+                cols[ch.name] = self.balance_over_samples(times, ys)
         return pd.DataFrame({k: np.asarray(v, float) for k, v in cols.items()}), undetermined
 
 
@@ -559,6 +587,13 @@ def solve(case: Case, settings: dict | None = None):
     channels (set of names)."""
     model = SpatialModel(case)
     return model.channels(case.times, model.integrate(case.times, settings))
+
+
+def _damped_balances(case: Case) -> list[str]:
+    """The energy-balance channels whose work includes a damper's."""
+    if not any(s.damping for s in case.springs):
+        return []
+    return [c.name for c in case.channels if c.kind == "energy" and c.work]
 
 
 def describe(settings: dict) -> str:
@@ -582,20 +617,33 @@ def compare(case: Case, mine: pd.DataFrame, reference: pd.DataFrame,
 def check(case: Case, reference: pd.DataFrame, undetermined=()) -> dict | None:
     """The ``independent`` field of a 3-D reference's provenance: max |reference -
     derivation| per channel both determine (``undetermined``: the reference's), relative
-    for forces, the derivation's own error estimate (against CHECK); None when the case is
-    not supported or stiff (:func:`stiff`)."""
-    if supported(case) or stiff(case):
+    for forces, the derivation's own error estimate (against its run 100x looser); an
+    energy balance with dampers as every engine's is defined (their work over the samples),
+    and under ``exact_work`` how far the reference's is from the exact balance; None when
+    the case is not supported."""
+    if supported(case):
         return None
     model = SpatialModel(case)
-    best, free = model.channels(case.times, model.integrate(case.times, SETTINGS))
-    loose, _ = model.channels(case.times, model.integrate(case.times, CHECK))
+    settings, loose_settings = model.settings()
+    ys = model.integrate(case.times, settings)
+    best, free = model.channels(case.times, ys)
+    loose, _ = model.channels(case.times, model.integrate(case.times, loose_settings))
     skip = set(free) | set(undetermined)
-    out = {"method": describe(SETTINGS) + "; reactions from the multipliers",
-           "settings": dict(SETTINGS),
+    out = {"method": describe(settings) + "; reactions from the multipliers",
+           "settings": dict(settings),
            "undetermined": sorted(free)}
     out |= compare(case, best, reference, skip)
     out["estimated_error"] = {c: estimated_error(best[c], loose[c], len(case.times))
                               for c in out["max_abs_diff"]}
     out["estimated_error_method"] = ("max |derivation - its run at "
-                                     f"{CHECK['method']} rtol {CHECK['rtol']:g}|")
+                                     f"{loose_settings['method']} "
+                                     f"rtol {loose_settings['rtol']:g}|")
+    balances = _damped_balances(case)
+    if balances:
+        exact, _ = model.channels(case.times, ys, work="exact")
+        out["exact_work"] = compare(case, exact[["t", *balances]], reference,
+                                    skip)["max_abs_diff"]
+        out["exact_work_method"] = ("max |reference - derivation| of the energy balance "
+                                    "with the dampers' work exact (integrated with the "
+                                    "motion), not over the samples")
     return out

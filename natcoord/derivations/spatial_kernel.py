@@ -4,7 +4,8 @@ One implementation of the body-coordinate equations, called by :class:`.spatial.
 at every right-hand side (:func:`rhs`, :func:`jacobian`) and at every output sample
 (constraints, loads, springs). Arrays only, so numba compiles them once per machine
 (``cache=True``). Shapes: n moving bodies, the ground is body n (at rest, world frame);
-state y (13 n + 1,): r (3 n), Euler parameters p (4 n), (v, w) per body (6 n), the work W.
+state y (13 n + 2,): r (3 n), Euler parameters p (4 n), (v, w) per body (6 n), the work W
+of applied loads and dampers and the dampers' part of it (J).
 
 The model's constant tables (``tables``, built by ``SpatialModel``), in this order:
 
@@ -124,11 +125,11 @@ def springs(r, R, v, w, sb, ss, sk):
 @njit(cache=True)
 def loads(r, R, v, w, mass, inertia, gravity, fb, ft, fv, fs, sb, ss, sk):
     """Q (n + 1, 6): force and moment about the centre of mass per body (gravity, applied
-    loads, springs, gyroscopic; the ground's row collects what acts on it) and the power
-    (W) of the applied loads and dampers."""
+    loads, springs, gyroscopic; the ground's row collects what acts on it), the power (W)
+    of the applied loads and dampers, and the dampers' part of it."""
     n = mass.shape[0]
     Q = np.zeros((n + 1, 6))
-    power = 0.0
+    power, damping = 0.0, 0.0
     for i in range(n):
         Q[i, :3] += mass[i] * gravity
         Iw = R[i] @ inertia[i] @ R[i].T
@@ -150,8 +151,8 @@ def loads(r, R, v, w, mass, inertia, gravity, fb, ft, fv, fs, sb, ss, sk):
             b = sb[s, j]
             Q[b, :3] += f
             Q[b, 3:] += cross(arm[s, j], f)
-        power -= sk[s, 1] * ldot[s] ** 2
-    return Q, power
+        damping -= sk[s, 1] * ldot[s] ** 2
+    return Q, power + damping, damping
 
 
 @njit(cache=True)
@@ -185,16 +186,17 @@ def independent_rows(G, rank):
 @njit(cache=True)
 def accelerations(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp, dot, m,
                   fb, ft, fv, fs, sb, ss, sk):
-    """nu' (6 n,), the multipliers of the independent rows (their indices) and the power
-    (W): [M G_k^T; G_k 0] [nu'; lam] = [Q; -gamma_k], M block-diagonal (m I, R I R^T; a
-    uniform rod's inertia is singular, so no M^-1), G_k the ``rank`` rows
+    """nu' (6 n,), the independent rows (indices) and their multipliers, and the powers
+    (W) of :func:`loads`: [M G_k^T; G_k 0] [nu'; lam] = [Q; -gamma_k], M block-diagonal
+    (m I, R I R^T; a uniform rod's inertia is singular, so no M^-1), G_k the ``rank`` rows
     :func:`independent_rows` picks at this state. Redundant rows add nothing to the motion;
     a set chosen once turns singular (a04_bricard's at t = 0 by 1.25 s: its condition
     number 21 -> 1.1e4), and a rank judged per call by a threshold takes the redundant row
     where the integrator's stages leave the constraints (1e-7 m measured): the blow-up."""
     n = mass.shape[0]
     r, R, v, w = kinematics(y, n)
-    Q, power = loads(r, R, v, w, mass, inertia, gravity, fb, ft, fv, fs, sb, ss, sk)
+    Q, power, damping = loads(r, R, v, w, mass, inertia, gravity, fb, ft, fv, fs, sb, ss,
+                              sk)
     _, G, gam = constraints(r, R, v, w, tb, tp, ts, S, comp, dot, m)
     keep = independent_rows(G[:, :6 * n], rank)
     k, mk = 6 * n, keep.shape[0]
@@ -210,15 +212,16 @@ def accelerations(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp, dot, m,
         A[:k, k + a] = G[keep[a], :k]
         b[k + a] = -gam[keep[a]]
     x = np.linalg.solve(A, b)
-    return x[:k], keep, x[k:], power
+    return x[:k], keep, x[k:], power, damping
 
 
 @njit(cache=True)
 def rhs(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp, dot, m,
         fb, ft, fv, fs, sb, ss, sk):
-    """y' (13 n + 1,): v, p' = (0, w) * p / 2, nu', the power of loads and dampers."""
+    """y' (13 n + 2,): v, p' = (0, w) * p / 2, nu', the power of loads and dampers, the
+    dampers'."""
     n = mass.shape[0]
-    acc, _, _, power = accelerations(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp,
+    acc, _, _, power, damping = accelerations(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp,
                                   dot, m, fb, ft, fv, fs, sb, ss, sk)
     out = np.empty_like(y)
     out[:3*n] = y[7*n:13*n].reshape(n, 2, 3)[:, 0].copy().reshape(3 * n)
@@ -231,6 +234,7 @@ def rhs(y, rank, mass, inertia, gravity, tb, tp, ts, S, comp, dot, m,
         out[3*n + 4*i + 3] = 0.5 * (wz*p[0] + wx*p[2] - wy*p[1])
     out[7*n:13*n] = acc
     out[13*n] = power
+    out[13*n + 1] = damping
     return out
 
 
