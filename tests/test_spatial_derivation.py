@@ -184,6 +184,16 @@ def test_a_change_in_natcoord_is_seen(rssr, change):
     assert motion > 100 * MOTION and force > 100 * FORCE, (motion, force)
 
 
+def test_a_change_in_a_stiff_derivation_is_seen():
+    """The implicit path too: a05_flyball_governor's slider 1 % heavier in the derivation
+    moves it off the reference over SPAN."""
+    case = _short(load_case(CASES / "a05_flyball_governor.toml"))
+    ref = pd.read_csv(REFERENCES / "a05_flyball_governor.csv").iloc[:len(case.times)]
+    changed, _ = _mine(_heavier(case, "slider"))
+    motion, force = _worst(case, compare(case, changed, ref, set()))
+    assert motion > 100 * MOTION and force > 100 * FORCE, (motion, force)
+
+
 def test_hanging_rod_pin_reaction_is_its_weight():
     """Closed form: four_bar_3d's crank alone, hanging at rest from its revolute (the other
     bodies and joints removed): pin force +m g on the crank, no motion."""
