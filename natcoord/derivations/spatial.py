@@ -30,18 +30,26 @@ r_P' = v + w x (R s), r_P'' = a + alpha x R s + w x (w x R s)):
   prismatic: that and no turn about the axis (1 row);
 * massless rod: (|r_P2 - r_P1|^2 - L^2) / 2 = 0, its tension lam * L.
 
-Integration: scipy's ``solve_ivp`` (DOP853 at rtol 1e-12 by default) over CHUNK output
-intervals at a time; every output sample is projected onto the constraints (positions by
-Gauss-Newton to 1e-13 m, least-change; Euler parameters normalised; velocities by least
-squares) and the integration restarts from the projected state at the chunk's end; no
-Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
+The right-hand side is compiled (numba, :mod:`.spatial_kernel`: the same equations for every
+case, tables of terms and rows per case); at each call it solves the rank's best conditioned
+rows (pivoted Gram-Schmidt), so a redundant loop (a04_bricard) never meets a singular set.
+
+Integration: scipy's ``solve_ivp`` over CHUNK output intervals at a time, DOP853 at rtol
+1e-12, or for a stiff case (:func:`stiff`: a spring-damper faster than STIFF_RATE) Radau
+IIA (order 5) at rtol 1e-10 with the compiled finite-difference Jacobian; every output
+sample is projected onto the constraints (positions by Gauss-Newton to 1e-13 m,
+least-change; Euler parameters normalised; velocities by least squares, singular values
+below RCOND dropped) and the integration restarts from the projected state at the chunk's
+end; no Baumgarte terms. The work of applied loads and dampers is a state (exact in time).
+Measured on a loaded 2-core machine, the whole case: a04_bricard (10 s) 1.4 s,
+a05_flyball_governor (10 s, Radau) 63 s, parallelogram_3d_flexible (2 s, Radau) 23 s.
 
 Supported: 3-D cases of rigid bodies and uniform rods, the five joint types, rods,
-spring-dampers, constant forces and torques, gravity; channels ``angle`` (two points),
-``position``, ``velocity``, ``acceleration``, ``reaction`` (x, y, z), ``axial``,
-``energy`` (and its balance) and ``combination``. Drivers and particles raise
-:class:`natcoord.errors.Unsupported`. Stiff spring-dampers are derived, but too slowly for
-a reference run here: :func:`check` skips those cases (:func:`stiff` says why).
+spring-dampers (stiff ones too), constant forces and torques, gravity; channels ``angle``
+(two points), ``position``, ``velocity``, ``acceleration``, ``reaction`` (x, y, z),
+``axial``, ``energy`` (and its balance: the dampers' work over the samples as the channel
+defines it, or exact) and ``combination``. Drivers and particles raise
+:class:`natcoord.errors.Unsupported`.
 """
 
 from __future__ import annotations
@@ -61,12 +69,20 @@ METHOD = ("body coordinates (centre of mass, Euler parameters), Newton-Euler, jo
           "every sample, {solver}")
 SETTINGS = {"method": "DOP853", "rtol": 1e-12, "atol": 1e-14}
 CHECK = {"method": "DOP853", "rtol": 1e-10, "atol": 1e-12}
+# stiff cases (stiff()): scipy's Radau IIA (order 5) with the compiled Jacobian
+STIFF_SETTINGS = {"method": "Radau", "rtol": 1e-10, "atol": 1e-12}
+STIFF_CHECK = {"method": "Radau", "rtol": 1e-8, "atol": 1e-10}
 AXES = {"x": 0, "y": 1, "z": 2}
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 FORCE_KINDS = ("reaction", "axial", "combination")
 KINDS = ("angle", "position", "velocity", "acceleration", "energy", *FORCE_KINDS)
 PROJECT_TOL = 1e-13  # m: position projection's stop
+# Least squares drop singular values below RCOND times the largest: a redundant row's
+# direction (singular value ~1e-16 on the constraints, ~1e-13 a little off them) is never
+# inverted; numpy's default (eps max(shape)) did, moving a04_bricard by 1.5 mm at a sample.
+RCOND = 1e-10
 STIFF_RATE = 1e3  # 1/s: a spring-damper faster than this makes a case stiff (see stiff())
+IMPLICIT = ("Radau", "BDF", "LSODA")
 CHUNK = 10  # output intervals integrated at once: the state is projected at their end
 _I3 = np.eye(3)
 
@@ -93,19 +109,17 @@ def supported(case: Case) -> str:
 
 def stiff(case: Case) -> str:
     """'' unless a spring-damper makes the case stiff (a rate sqrt(k / m) or c / m above
-    STIFF_RATE, m the lighter body it moves): then the reason :func:`check` skips it.
-    Measured on parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg), on a shared
-    2-core machine: DOP853 (steps held by stability) had not finished the first 0.03 s
-    after 8 min; scipy's Radau with its finite-difference Jacobian took 354 s for the
-    first 0.05 s at rtol 1e-10."""
+    STIFF_RATE, m the lighter body it moves): then why it is integrated by an implicit
+    method (STIFF_SETTINGS). On parallelogram_3d_flexible (17e6 N/m, 1e5 N s/m on 10 kg)
+    the explicit DOP853's steps are held by stability (it had not finished the first
+    0.03 s after 8 min with the Python right-hand side)."""
     for s in case.springs:
         masses = [case.body(b).mass for b, _ in s.ends if b != GROUND]
         m = min(masses)
         rate = max(np.sqrt(s.stiffness / m), s.damping / m)
         if rate > STIFF_RATE:
-            return (f"spring {s.name}: rate {rate:.3g} /s (stiff): the explicit integrator's "
-                    "steps are held by stability and scipy's implicit ones with "
-                    "finite-difference Jacobians are too slow for a reference run")
+            return (f"spring {s.name}: rate {rate:.3g} /s (stiff): an explicit "
+                    "integrator's steps are held by stability")
     return ""
 
 
@@ -116,15 +130,6 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def _skew(a: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-
-
-def _rotation(p: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of Euler parameters p = (e0, e1, e2, e3), normalised here."""
-    e0, e1, e2, e3 = p / np.linalg.norm(p)
-    return np.array([
-        [e0*e0 + e1*e1 - e2*e2 - e3*e3, 2*(e1*e2 - e0*e3), 2*(e1*e3 + e0*e2)],
-        [2*(e1*e2 + e0*e3), e0*e0 - e1*e1 + e2*e2 - e3*e3, 2*(e2*e3 - e0*e1)],
-        [2*(e1*e3 - e0*e2), 2*(e2*e3 + e0*e1), e0*e0 - e1*e1 - e2*e2 + e3*e3]])
 
 
 def _quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -160,17 +165,13 @@ class _Term:
 
 
 class _Kin:
-    """The kinematic state of every body at one instant (ground last, at rest)."""
+    """The kinematic state of every body at one instant (ground last, at rest): r, v, w
+    (n + 1, 3), R (n + 1, 3, 3), Euler parameters p (n, 4) and nu (6 n,)."""
 
     def __init__(self, model: SpatialModel, y: np.ndarray):
         n = model.n
-        self.r = np.vstack([y[:3*n].reshape(n, 3), np.zeros((1, 3))])
-        p = y[3*n:7*n].reshape(n, 4)
-        self.p = p
-        self.R = [_rotation(q) for q in p] + [np.eye(3)]
-        nu = y[7*n:13*n].reshape(n, 2, 3)
-        self.v = np.vstack([nu[:, 0], np.zeros((1, 3))])
-        self.w = np.vstack([nu[:, 1], np.zeros((1, 3))])
+        self.r, self.R, self.v, self.w = model.kernel.kinematics(y, n)
+        self.p = y[3*n:7*n].reshape(n, 4)
         self.nu = y[7*n:13*n]
 
 
@@ -182,7 +183,8 @@ class SpatialModel:
     n : number of moving bodies; their order is ``case.bodies``'
     rows : constraint rows, each ("comp", E, k, c) or ("dot", E1, E2, c), E a list of _Term
     joint_rows : joint or rod name -> (row indices, first body index, second body index)
-    y0 : (13 n + 1,) state at t = 0: r, p, v, w per body, the work W (J)
+    y0 : (13 n + 2,) state at t = 0: r, p, v, w per body, the work W of applied loads and
+         dampers and the dampers' part Wd (J)
     """
 
     def __init__(self, case: Case):
@@ -197,6 +199,8 @@ class SpatialModel:
         self.inertia = [np.asarray(b.inertia, float).reshape(3, 3) for b in case.bodies]
         self.com = [np.asarray(b.com, float) for b in case.bodies] + [np.zeros(3)]
         self.gravity = np.asarray(case.gravity, float)
+        from . import spatial_kernel  # numba: imported when a case is derived
+        self.kernel = spatial_kernel
         self.rows: list = []
         self.joint_rows: dict[str, tuple[list[int], int, int]] = {}
         for j in case.joints:
@@ -207,7 +211,7 @@ class SpatialModel:
             self._add(rod.name, b1, b2, [("dot", d, d, rod.length**2)])
         self._tables()
         self.y0 = self._initial_state()
-        self.keep = self._independent_rows()
+        self.rank = self._rank(self.y0)
 
     # ---- constraint rows from the joints' definitions -------------------------------------
     def _point(self, body: str, name: str, coef: float = 1.0) -> _Term:
@@ -298,96 +302,48 @@ class SpatialModel:
         for e, ts in enumerate(exprs):
             for t in ts:
                 self._S[e, terms.index((t.body, t.point, tuple(t.s)))] += t.coef
-        self._comp = tuple(np.array(c) for c in zip(*comp, strict=True)) if comp else None
-        self._dot = tuple(np.array(c) for c in zip(*dot, strict=True)) if dot else None
+        comp = np.array(comp, float).reshape(-1, 4)
+        dot = np.array(dot, float).reshape(-1, 5)
+        forces = self.case.forces
+        fb = np.array([self.index[f.body] for f in forces], np.int64)
+        # kind of load: 0 torque, 1 force; + 2 when its value is in the body's axes (the
+        # world's at t = 0), turned by R at every call
+        ft = np.array([float(f.type == "force") + 2.0 * (f.frame == "body") for f in forces])
+        fv = np.array([np.asarray(f.value, float) for f in forces]).reshape(-1, 3)
+        fs = np.array([np.asarray(self.case.body(f.body).points[f.point], float)
+                       - self.com[self.index[f.body]] if f.type == "force" else np.zeros(3)
+                       for f in forces]).reshape(-1, 3)
+        ends = [[self._point(b, p) for b, p in s.ends] for s in self.case.springs]
+        sb = np.array([[e.body for e in pair] for pair in ends], np.int64).reshape(-1, 2)
+        ss = np.array([[e.s for e in pair] for pair in ends], float).reshape(-1, 2, 3)
+        sk = np.array([[s.stiffness, s.damping, s.length] for s in self.case.springs],
+                      float).reshape(-1, 3)
+        inertia = np.array(self.inertia, float).reshape(-1, 3, 3)
+        # the kernel's model tables (spatial_kernel's order)
+        self._model = (self.mass, inertia, self.gravity)
+        self._rows = (self._tb.astype(np.int64), self._tp, self._ts, self._S, comp, dot,
+                      len(self.rows))
+        self._loads = (fb, ft, fv, fs, sb, ss, sk)
 
     def constraints(self, kin: _Kin):
         """Phi (m,), its Jacobian G over every body's (v, w) (m, 6 (n + 1)) and gamma (m,)
         with Phi'' = G nu' + gamma."""
-        m, T = len(self.rows), len(self._tb)
-        phi, gam = np.zeros(m), np.zeros(m)
-        jac = np.zeros((m, 6 * (self.n + 1)))
-        if not m:
-            return phi, jac, gam
-        R = np.array(kin.R)[self._tb]
-        d = np.einsum("tij,tj->ti", R, self._ts)
-        w = kin.w[self._tb]
-        wd = np.cross(w, d)
-        pt = self._tp[:, None]
-        S = self._S
-        val = S @ (pt * kin.r[self._tb] + d)
-        vel = S @ (pt * kin.v[self._tb] + wd)
-        acc = S @ np.cross(w, wd)
-        Jt = np.zeros((T, 3, 6 * (self.n + 1)))
-        sk = np.zeros((T, 3, 3))
-        sk[:, 0, 1], sk[:, 0, 2], sk[:, 1, 2] = -d[:, 2], d[:, 1], -d[:, 0]
-        sk[:, 1, 0], sk[:, 2, 0], sk[:, 2, 1] = d[:, 2], -d[:, 1], d[:, 0]
-        ar = np.arange(T)[:, None, None]
-        cols = 6 * self._tb[:, None] + np.arange(3)
-        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :]] = pt[:, :, None] * _I3
-        Jt[ar, np.arange(3)[None, :, None], cols[:, None, :] + 3] = -sk
-        J = np.einsum("et,tij->eij", S, Jt)
-        if self._comp is not None:
-            r, e, k, c = self._comp
-            phi[r], gam[r], jac[r] = val[e, k] - c, acc[e, k], J[e, k]
-        if self._dot is not None:
-            r, e1, e2, c, sc = self._dot
-            v1, v2 = val[e1], val[e2]
-            phi[r] = sc * (np.sum(v1 * v2, axis=1) - c)
-            gam[r] = sc * (np.sum(acc[e1] * v2 + v1 * acc[e2] + 2 * vel[e1] * vel[e2],
-                                  axis=1))
-            jac[r] = sc[:, None] * (np.einsum("ri,rij->rj", v1, J[e2])
-                                    + np.einsum("ri,rij->rj", v2, J[e1]))
-        return phi, jac, gam
+        return self.kernel.constraints(kin.r, kin.R, kin.v, kin.w, *self._rows)
 
     # ---- dynamics ------------------------------------------------------------------------
     def _springs(self, kin: _Kin):
-        """Per spring: tension (N), rate of length (m/s), ends (body, d, unit vector)."""
-        out = []
-        for s in self.case.springs:
-            (b1, p1), (b2, p2) = s.ends
-            e1, e2 = self._point(b1, p1), self._point(b2, p2)
-            x1, v1, _, _ = self._expr(kin, [e1])
-            x2, v2, _, _ = self._expr(kin, [e2])
-            length = float(np.linalg.norm(x2 - x1))
-            u = (x2 - x1) / length
-            ldot = float(u @ (v2 - v1))
-            tension = s.stiffness * (length - s.length) + s.damping * ldot
-            out.append((s, tension, ldot, e1, e2, u, x1, x2))
-        return out
+        """Per spring: tension (N), rate of length (m/s), length (m)."""
+        tension, ldot, length, _, _ = self.kernel.springs(kin.r, kin.R, kin.v, kin.w,
+                                                          *self._loads[4:])
+        return zip(self.case.springs, tension, ldot, length, strict=True)
 
     def loads(self, kin: _Kin):
         """Generalised forces Q (6 n,): force and moment about the centre of mass per body
         (gravity, applied loads, springs, gyroscopic), and the power (W) of the applied
         loads and dampers."""
-        n = self.n
-        Q = np.zeros((n + 1, 6))
-        power = 0.0
-        for i in range(n):
-            Q[i, :3] += self.mass[i] * self.gravity
-            Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
-            Q[i, 3:] -= _cross(kin.w[i], Iw @ kin.w[i])
-        for f in self.case.forces:
-            i = self.index[f.body]
-            val = np.asarray(f.value, float)
-            if f.frame == "body":  # given in the body's axes (the world's at t = 0)
-                val = kin.R[i] @ val
-            if f.type == "torque":
-                Q[i, 3:] += val
-                power += val @ kin.w[i]
-            else:
-                d = kin.R[i] @ (np.asarray(self.case.body(f.body).points[f.point], float)
-                                - self.com[i])
-                Q[i, :3] += val
-                Q[i, 3:] += _cross(d, val)
-                power += val @ (kin.v[i] + _cross(kin.w[i], d))
-        for s, tension, ldot, e1, e2, u, _, _ in self._springs(kin):
-            for e, f in ((e1, tension * u), (e2, -tension * u)):
-                d = kin.R[e.body] @ e.s
-                Q[e.body, :3] += f
-                Q[e.body, 3:] += _cross(d, f)
-            power -= s.damping * ldot**2
-        return Q[:n].ravel(), power
+        Q, power, _ = self.kernel.loads(kin.r, kin.R, kin.v, kin.w, *self._model,
+                                        *self._loads)
+        return Q[:self.n].ravel(), power
 
     def mass_matrix(self, kin: _Kin) -> np.ndarray:
         n = self.n
@@ -397,47 +353,39 @@ class SpatialModel:
             M[6*i + 3:6*i + 6, 6*i + 3:6*i + 6] = kin.R[i] @ self.inertia[i] @ kin.R[i].T
         return M
 
-    def _independent_rows(self) -> np.ndarray:
-        """Indices of a maximal set of independent constraint rows at t = 0 (QR with column
-        pivoting of G^T): the redundant ones add nothing to the motion."""
-        from scipy.linalg import qr
-        _, G, _ = self.constraints(_Kin(self, self.y0))
-        G = G[:, :6 * self.n]
+    def _rank(self, y: np.ndarray) -> int:
+        """The rank of the constraint Jacobian at y (on the constraints), by SVD."""
+        _, G, _ = self.constraints(_Kin(self, y))
         if not G.shape[0]:
-            return np.zeros(0, int)
-        _, r, piv = qr(G.T, mode="economic", pivoting=True)
-        d = np.abs(np.diag(r))
-        return np.sort(piv[:int(np.sum(d > d[0] * 1e-10))])
+            return 0
+        s = np.linalg.svd(G[:, :6 * self.n], compute_uv=False)
+        return int(np.sum(s > s[0] * 1e-10))
 
-    def solve_acc(self, kin: _Kin, every_row: bool = False):
-        """nu' (6 n,), the multipliers (m,), G (m, 6 (n+1)) and the power of applied loads
-        and dampers (W). The motion uses the independent rows (a square solve); with
-        ``every_row``, every row by least squares: the minimum-norm multipliers."""
+    def solve_acc(self, kin: _Kin):
+        """nu' (6 n,), the minimum-norm multipliers of every row (m,), G (m, 6 (n+1)) and
+        the power of applied loads and dampers (W): every row by least squares (at the
+        output samples; :meth:`rhs` solves the independent rows only)."""
         _, G, gam = self.constraints(kin)
         Q, power = self.loads(kin)
         M = self.mass_matrix(kin)
-        k = 6 * self.n
-        rows = np.arange(G.shape[0]) if every_row else self.keep
-        m = len(rows)
+        k, m = 6 * self.n, G.shape[0]
         A = np.zeros((k + m, k + m))
-        A[:k, :k], A[:k, k:], A[k:, :k] = M, G[rows, :k].T, G[rows, :k]
-        b = np.concatenate([Q, -gam[rows]])
-        if every_row:
-            x, *_ = np.linalg.lstsq(A, b, rcond=None)
-            lam = x[k:]
-        else:
-            x = np.linalg.solve(A, b)
-            lam = np.zeros(G.shape[0])
-            lam[rows] = x[k:]
-        return x[:k], lam, G, power
+        A[:k, :k], A[:k, k:], A[k:, :k] = M, G[:, :k].T, G[:, :k]
+        x, *_ = np.linalg.lstsq(A, np.concatenate([Q, -gam]), rcond=RCOND)
+        return x[:k], x[k:], G, power
+
+    def _args(self) -> tuple:
+        return (self.rank, *self._model, *self._rows, *self._loads)
 
     def rhs(self, t: float, y: np.ndarray) -> np.ndarray:
-        n = self.n
-        kin = _Kin(self, y)
-        acc, _, _, power = self.solve_acc(kin)
-        pdot = np.concatenate([0.5 * _quat_mul(np.array([0.0, *kin.w[i]]), kin.p[i])
-                               for i in range(n)])
-        return np.concatenate([kin.v[:n].ravel(), pdot, acc, [power]])
+        """y' (13 n + 2,) (compiled: :func:`spatial_kernel.rhs`)."""
+        return self.kernel.rhs(y, *self._args())
+
+    def jacobian(self, t: float, y: np.ndarray) -> np.ndarray:
+        """d y' / d y (13 n + 2, 13 n + 2) by compiled forward differences, for the
+        implicit integrators."""
+        args = self._args()
+        return self.kernel.jacobian(y, self.kernel.rhs(y, *args), *args)
 
     # ---- projection and the initial state ------------------------------------------------
     def project(self, y: np.ndarray) -> np.ndarray:
@@ -450,7 +398,7 @@ class SpatialModel:
             phi, G, _ = self.constraints(kin)
             if np.max(np.abs(phi), initial=0.0) < PROJECT_TOL:
                 break
-            dx, *_ = np.linalg.lstsq(G[:, :6*n], -phi, rcond=None)
+            dx, *_ = np.linalg.lstsq(G[:, :6*n], -phi, rcond=RCOND)
             dx = dx.reshape(n, 2, 3)
             y[:3*n] += dx[:, 0].ravel()
             p = y[3*n:7*n].reshape(n, 4)
@@ -462,13 +410,13 @@ class SpatialModel:
         kin = _Kin(self, y)
         _, G, _ = self.constraints(kin)
         Gn = G[:, :6*n]
-        dv, *_ = np.linalg.lstsq(Gn, -Gn @ kin.nu, rcond=None)
+        dv, *_ = np.linalg.lstsq(Gn, -Gn @ kin.nu, rcond=RCOND)
         y[7*n:13*n] += dv
         return y
 
     def _initial_state(self) -> np.ndarray:
         n, case = self.n, self.case
-        y = np.zeros(13 * n + 1)
+        y = np.zeros(13 * n + 2)
         y[:3*n] = np.concatenate(self.com[:n])
         y[3*n:7*n] = np.tile([1.0, 0.0, 0.0, 0.0], n)
         y = self.project(y)
@@ -481,7 +429,7 @@ class SpatialModel:
             rows.append(self._rate_row(kin, case.channel(name))[None, :6*n])
             rhs.append([float(rate)])
         A, b = np.vstack(rows), np.concatenate(rhs)
-        nu, *_ = np.linalg.lstsq(A, b, rcond=None)  # rates left free: minimum norm
+        nu, *_ = np.linalg.lstsq(A, b, rcond=RCOND)  # rates left free: minimum norm
         if np.max(np.abs(A @ nu - b)) > 1e-9 * max(1.0, np.max(np.abs(b))):
             raise Unsupported("spatial derivation: the [initial] velocities contradict "
                               "the joints")
@@ -502,16 +450,18 @@ class SpatialModel:
 
     # ---- integration and channels -------------------------------------------------------
     def integrate(self, times: np.ndarray, settings: dict | None = None) -> np.ndarray:
-        """States (T, 13 n + 1) at ``times`` (each projected). The integrator runs over
+        """States (T, 13 n + 2) at ``times`` (each projected), by ``settings`` (default
+        :meth:`settings`). The integrator runs over
         CHUNK output intervals at a time (its dense output gives the samples inside) and
         restarts from the projected state at the chunk's end."""
-        s = {**SETTINGS, **(settings or {})}
+        s = {**self.settings()[0], **(settings or {})}
         out = [self.y0]
         y = self.y0
         for k in range(0, len(times) - 1, CHUNK):
             span = times[k:k + CHUNK + 1]
+            implicit = {"jac": self.jacobian} if s["method"] in IMPLICIT else {}
             sol = solve_ivp(self.rhs, (span[0], span[-1]), y, method=s["method"],
-                            rtol=s["rtol"], atol=s["atol"], t_eval=span[1:])
+                            rtol=s["rtol"], atol=s["atol"], t_eval=span[1:], **implicit)
             if not sol.success:
                 raise RuntimeError(f"spatial derivation: {sol.message} at t = {span[0]:g} s")
             out.extend(self.project(x) for x in sol.y.T)
@@ -521,7 +471,7 @@ class SpatialModel:
     def forces(self, kin: _Kin):
         """Joint reactions (force on the second body, world axes, N), rod and spring
         tensions (N) and which reaction components the constraints leave undetermined."""
-        acc, lam, G, _ = self.solve_acc(kin, every_row=True)
+        acc, lam, G, _ = self.solve_acc(kin)
         k = 6 * self.n
         if G.shape[0]:
             _, s, vt = np.linalg.svd(G[:, :k].T)
@@ -540,7 +490,7 @@ class SpatialModel:
             rows, _, _ = self.joint_rows[rod.name]
             tension[rod.name] = lam[rows[0]] * rod.length
             free[rod.name] = (null[rows[0]] * rod.length if null.size else np.zeros(0))
-        for sp, t, *_ in self._springs(kin):
+        for sp, t, _, _ in self._springs(kin):
             tension[sp.name] = t
         return acc, react, tension, free
 
@@ -550,13 +500,36 @@ class SpatialModel:
             Iw = kin.R[i] @ self.inertia[i] @ kin.R[i].T
             e += 0.5 * self.mass[i] * kin.v[i] @ kin.v[i] + 0.5 * kin.w[i] @ Iw @ kin.w[i]
             e -= self.mass[i] * kin.r[i] @ self.gravity
-        for s, _, _, _, _, _, x1, x2 in self._springs(kin):
-            e += 0.5 * s.stiffness * (np.linalg.norm(x2 - x1) - s.length) ** 2
+        for s, _, _, length in self._springs(kin):
+            e += 0.5 * s.stiffness * (length - s.length) ** 2
         return e
 
-    def channels(self, times: np.ndarray, ys: np.ndarray):
+    def settings(self) -> tuple[dict, dict]:
+        """The integrator's settings for this case and for its error estimate (a 100x
+        looser run): implicit Radau where :func:`stiff`, else DOP853."""
+        return (STIFF_SETTINGS, STIFF_CHECK) if stiff(self.case) else (SETTINGS, CHECK)
+
+    def balance_over_samples(self, times: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """Energy minus work (T,), J, as the ``energy`` channel with ``work = true`` is
+        defined for every engine (README, energy balance): the dampers' work the integral
+        of their power at the samples (the not-a-knot cubic spline through it, integrated),
+        the applied loads' exact. The derivation's own balance takes the dampers' work
+        exactly (a state)."""
+        from scipy.interpolate import CubicSpline
+        n = self.n
+        kins = [_Kin(self, y) for y in ys]
+        energy = np.array([self.energy(k) for k in kins])
+        power = np.array([-sum(s.damping * ldot**2 for s, _, ldot, _ in self._springs(k))
+                          for k in kins])
+        damped = (CubicSpline(times, power).antiderivative()(times) if len(times) > 1
+                  else np.zeros(1))
+        return energy - (ys[:, 13 * n] - ys[:, 13 * n + 1]) - damped
+
+    def channels(self, times: np.ndarray, ys: np.ndarray, work: str = "samples"):
         """The case's channels (DataFrame: t, then each channel) and the set of force
-        channels the redundant constraints leave undetermined."""
+        channels the redundant constraints leave undetermined. ``work``: an energy
+        balance's damper work over the samples as the channel defines it ("samples",
+        :meth:`balance_over_samples`) or exact ("exact")."""
         case = self.case
         cols: dict[str, list] = {"t": list(times)}
         cols.update({c.name: [] for c in case.channels})
@@ -596,7 +569,7 @@ class SpatialModel:
                             c = rng.standard_normal(f.shape[0])
                         shift[ch.name] = f @ c
                 elif ch.kind == "energy":
-                    v = self.energy(kin) - (y[-1] if ch.work else 0.0)
+                    v = self.energy(kin) - (y[13 * self.n] if ch.work else 0.0)
                 else:  # combination
                     v = sum(k * cols[name][-1] for name, k in ch.of)
                     shift[ch.name] = sum(k * shift.get(name, 0.0) for name, k in ch.of)
@@ -606,6 +579,8 @@ class SpatialModel:
         for ch in case.channels:
             if ch.kind == "angle":
                 cols[ch.name] = np.unwrap(cols[ch.name])
+            if ch.kind == "energy" and ch.work and work == "samples":
+                cols[ch.name] = self.balance_over_samples(times, ys)
         return pd.DataFrame({k: np.asarray(v, float) for k, v in cols.items()}), undetermined
 
 
@@ -614,6 +589,13 @@ def solve(case: Case, settings: dict | None = None):
     channels (set of names)."""
     model = SpatialModel(case)
     return model.channels(case.times, model.integrate(case.times, settings))
+
+
+def _damped_balances(case: Case) -> list[str]:
+    """The energy-balance channels whose work includes a damper's."""
+    if not any(s.damping for s in case.springs):
+        return []
+    return [c.name for c in case.channels if c.kind == "energy" and c.work]
 
 
 def describe(settings: dict) -> str:
@@ -637,20 +619,33 @@ def compare(case: Case, mine: pd.DataFrame, reference: pd.DataFrame,
 def check(case: Case, reference: pd.DataFrame, undetermined=()) -> dict | None:
     """The ``independent`` field of a 3-D reference's provenance: max |reference -
     derivation| per channel both determine (``undetermined``: the reference's), relative
-    for forces, the derivation's own error estimate (against CHECK); None when the case is
-    not supported or stiff (:func:`stiff`)."""
-    if supported(case) or stiff(case):
+    for forces, the derivation's own error estimate (against its run 100x looser); an
+    energy balance with dampers as every engine's is defined (their work over the samples),
+    and under ``exact_work`` how far the reference's is from the exact balance; None when
+    the case is not supported."""
+    if supported(case):
         return None
     model = SpatialModel(case)
-    best, free = model.channels(case.times, model.integrate(case.times, SETTINGS))
-    loose, _ = model.channels(case.times, model.integrate(case.times, CHECK))
+    settings, loose_settings = model.settings()
+    ys = model.integrate(case.times, settings)
+    best, free = model.channels(case.times, ys)
+    loose, _ = model.channels(case.times, model.integrate(case.times, loose_settings))
     skip = set(free) | set(undetermined)
-    out = {"method": describe(SETTINGS) + "; reactions from the multipliers",
-           "settings": dict(SETTINGS),
+    out = {"method": describe(settings) + "; reactions from the multipliers",
+           "settings": dict(settings),
            "undetermined": sorted(free)}
     out |= compare(case, best, reference, skip)
     out["estimated_error"] = {c: estimated_error(best[c], loose[c], len(case.times))
                               for c in out["max_abs_diff"]}
     out["estimated_error_method"] = ("max |derivation - its run at "
-                                     f"{CHECK['method']} rtol {CHECK['rtol']:g}|")
+                                     f"{loose_settings['method']} "
+                                     f"rtol {loose_settings['rtol']:g}|")
+    balances = _damped_balances(case)
+    if balances:
+        exact, _ = model.channels(case.times, ys, work="exact")
+        out["exact_work"] = compare(case, exact[["t", *balances]], reference,
+                                    skip)["max_abs_diff"]
+        out["exact_work_method"] = ("max |reference - derivation| of the energy balance "
+                                    "with the dampers' work exact (integrated with the "
+                                    "motion), not over the samples")
     return out

@@ -507,8 +507,11 @@ def _independent_line(meta: dict | None, units: dict[str, str]) -> str:
     diffs = ind.get("max_abs_diff") if isinstance(ind.get("max_abs_diff"), dict) else {}
     parts = [f"{k} {num(v):.2g} {units.get(k, '')}".rstrip() for k, v in diffs.items()
              if num(v) is not None]
-    return "independent check: " + ", ".join([str(ind.get("method", "?")),
-                                              "max |diff| " + ", ".join(parts or ["—"])])
+    exact = ind.get("exact_work") if isinstance(ind.get("exact_work"), dict) else {}
+    extra = [f"{k} {num(v):.2g} J" for k, v in exact.items() if num(v) is not None]
+    return "independent check: " + ", ".join(
+        [str(ind.get("method", "?")), "max |diff| " + ", ".join(parts or ["—"])]) + (
+        "; against the exact dampers' work " + ", ".join(extra) if extra else "")
 
 
 def _read_bench(results_dir: Path) -> tuple[dict | None, str]:
