@@ -132,10 +132,23 @@ def _coordinate_names(model) -> list[str]:
     return names() if names else [f"q[{k}]" for k in range(model.n)]
 
 
-def multipliers(model, cs: ConstraintSystem, t: float, q, qd, qdd) -> np.ndarray:
-    """Minimum-norm lambda (m_all,) of Phi_q^T lambda = F - M qdd (Eq. (54))."""
-    J = cs.jacobian(q, t)
-    return np.linalg.lstsq(J.T, model.forces(t, q, qd) - model.M @ qdd, rcond=None)[0]
+def multipliers(model, cs: ConstraintSystem, t, q, qd, qdd) -> np.ndarray:
+    """Minimum-norm lambda of Phi_q^T lambda = F - M qdd (Eq. (54)): (m_all,) at one state
+    t, q, qd, qdd (n,); (T, m_all) along samples t (T,), q, qd, qdd (T, n), by stacked
+    pseudo-inverses (LAPACK's loop over the samples) a chunk at a time."""
+    if np.ndim(q) == 1:
+        J = cs.jacobian(q, t)
+        return np.linalg.lstsq(J.T, model.forces(t, q, qd) - model.M @ qdd, rcond=None)[0]
+    out = np.zeros((len(t), cs.m))
+    step = max(1, (1 << 20) // max(1, cs.m * cs.n))
+    for a in range(0, len(t), step):
+        b = slice(a, a + step)
+        F = (np.array([model.forces(*x) for x in zip(t[b], q[b], qd[b], strict=True)])
+             if any(getattr(model, k, ()) for k in ("torques", "springs", "body_forces"))
+             or not hasattr(model, "Q0") else np.broadcast_to(model.Q0, q[b].shape))
+        Jt = cs.jacobian(q[b], t[b]).transpose(0, 2, 1)
+        out[b] = (np.linalg.pinv(Jt) @ (F - qdd[b] @ model.M.T)[..., None])[..., 0]
+    return out
 
 
 def compiled_forces(model) -> tuple | None:

@@ -146,9 +146,16 @@ class QuadraticConstraints:
         return np.append(q, last)
 
     def phi(self, q: np.ndarray) -> np.ndarray:
-        """Constraint values Phi(q): (m,)."""
-        qh = self._qh(q)
-        return 0.5 * np.bincount(self.k, self.v * qh[self.i] * qh[self.j], minlength=self.m)
+        """Constraint values Phi(q): (m,) at q (n,), or (T, m) at T samples q (T, n)."""
+        q = np.asarray(q, float)
+        if q.ndim == 1:
+            qh = self._qh(q)
+            return 0.5 * np.bincount(self.k, self.v * qh[self.i] * qh[self.j],
+                                     minlength=self.m)
+        qh = np.concatenate([q, np.ones((len(q), 1))], 1)
+        flat = (np.arange(len(q))[:, None] * self.m + self.k).ravel()
+        vals = (self.v * qh[:, self.i] * qh[:, self.j]).ravel()
+        return 0.5 * np.bincount(flat, vals, minlength=len(q) * self.m).reshape(len(q), -1)
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         """Phi_q: (m, n) dense Jacobian at q (n,), or (T, m, n) at T samples q (T, n) (one

@@ -133,6 +133,20 @@ class ConstraintSystem:
         cd = -(2.0 * Ad[:, :-1] @ qd + Add @ np.append(q, 1.0))
         return np.concatenate([c, cd])
 
+    def drift(self, q: np.ndarray, qd: np.ndarray, t: np.ndarray) -> tuple[float, float]:
+        """(max |Phi|, max |Phi_q qd + Phi_t|) over samples q, qd (T, n) at times t (T,)."""
+        if not len(t):
+            return 0.0, 0.0
+        p, J = self.con.phi(q), self.con.jacobian(q)
+        v = np.einsum("tmn,tn->tm", J, qd)
+        if self.k:
+            A, Ad, _ = self._coef(np.asarray(t, float))
+            qh = np.concatenate([q, np.ones((len(q), 1))], 1)
+            p = np.concatenate([p, np.einsum("tkn,tn->tk", A, qh)], 1)
+            v = np.concatenate([v, np.einsum("tkn,tn->tk", A[..., :-1], qd)
+                                + np.einsum("tkn,tn->tk", Ad, qh)], 1)
+        return float(np.max(np.abs(p), initial=0.0)), float(np.max(np.abs(v), initial=0.0))
+
     def all(self, q: np.ndarray, qd: np.ndarray, t: float = 0.0):
         """(Phi, Phi_q, Phi_t, c) in one pass (the driver coefficients evaluated once)."""
         con = self.con
