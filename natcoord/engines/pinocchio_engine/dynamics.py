@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...errors import Unsupported
-from ..planar import cross
+from .applied import Applied
 from .model import Built
 
 
@@ -36,14 +36,12 @@ class Dynamics:
                                          int(s["max_iter"]))
         self.iters = 0
         self.zero = np.zeros(b.model.nv)
-        self.loaded = sorted({x[0] for x in b.loads} | {e[0] for sp in b.springs
-                                                         for e in sp[1:3]} - {0})
-        groups = {}
-        for name, (ja, pa), (jb, pb), k, c, l0 in b.springs:
-            groups.setdefault((ja, jb), []).append((name, pa, pb, k, c, l0))
-        self.groups = [(ja, jb, np.array([x[1] for x in g]), np.array([x[2] for x in g]),
-                        *(np.array([x[i] for x in g]) for i in (3, 4, 5)),
-                        [x[0] for x in g]) for (ja, jb), g in groups.items()]
+        self.applied = Applied(b.loads, b.springs, self.aux)
+        self.loaded = self.applied.joints
+        self.fext_ = pin.StdVec_Force()  # aba's external forces, rewritten in place
+        for _ in range(b.model.njoints):
+            self.fext_.append(pin.Force.Zero())
+        self.views = [self.fext_[j].vector for j in self.loaded]  # views into fext_
         self.const_tau = None
         if not self.loaded:
             self.const_tau = self.zero
@@ -54,41 +52,11 @@ class Dynamics:
     def fext(self, q, v):
         """Applied loads and spring forces as Pinocchio external forces, (njoints, 6) in
         joint frames (linear, angular), and the spring tensions (name -> N)."""
-        pin, data = self.pin, self.aux
-        pin.forwardKinematics(self.model, data, q, v)
+        self.pin.forwardKinematics(self.model, self.aux, q, v)
+        Fs = self.applied()
         F = np.zeros((self.model.njoints, 6))
-        frames = {}
-        for jid in self.loaded:
-            M, vel = data.oMi[jid], data.v[jid]
-            frames[jid] = (M.rotation, M.translation, vel.linear, vel.angular)
-        for jid, p, fw, mw in self.b.loads:
-            R = frames[jid][0]
-            fl = R.T @ fw
-            F[jid, :3] += fl
-            F[jid, 3:] += cross(p, fl) + R.T @ mw
-        tension = {}
-        for ja, jb, Pa, Pb, k, c, l0, names in self.groups:  # vectorized per joint pair
-            ra, va = self._ends(frames, ja, Pa)
-            rb, vb = self._ends(frames, jb, Pb)
-            d = rb - ra
-            ln = np.sqrt(np.einsum("ij,ij->i", d, d))
-            e = d / ln[:, None]
-            T = k * (ln - l0) + c * np.einsum("ij,ij->i", vb - va, e)
-            tension.update(zip(names, T, strict=True))
-            for jid, P, sgn in ((ja, Pa, 1.0), (jb, Pb, -1.0)):
-                if jid:
-                    fl = (sgn * T[:, None] * e) @ frames[jid][0]  # rows R^T f
-                    F[jid, :3] += fl.sum(0)
-                    F[jid, 3:] += cross(P.T, fl.T).sum(1)
-        return F, tension
-
-    @staticmethod
-    def _ends(frames, jid, P):
-        """World positions and velocities (n, 3) of points P (n, 3) of joint jid."""
-        if jid == 0:
-            return P, 0.0
-        R, tr, vl, w = frames[jid]
-        return P @ R.T + tr, (vl[:, None] + cross(w[:, None], P.T)).T @ R.T
+        F[self.loaded] = Fs[1:]
+        return F, dict(zip(self.applied.names, self.applied.T.tolist(), strict=True))
 
     def tau(self, q, v):
         """Generalized applied forces J^T f, (nv,)."""
@@ -112,11 +80,11 @@ class Dynamics:
             return a.copy()
         if not self.loaded:
             return pin.aba(self.model, self.data, q, v, self.zero).copy()
-        f, _ = self.fext(q, v)
-        fext = pin.StdVec_Force()
-        for x in f:
-            fext.append(pin.Force(x))
-        return pin.aba(self.model, self.data, q, v, self.zero, fext).copy()
+        pin.forwardKinematics(self.model, self.aux, q, v)
+        Fs = self.applied()
+        for s, view in enumerate(self.views, 1):
+            view[:] = Fs[s]
+        return pin.aba(self.model, self.data, q, v, self.zero, self.fext_).copy()
 
     @property
     def lam(self):
