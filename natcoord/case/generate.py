@@ -126,11 +126,14 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "reference): 6.4e-10 m. Tolerances ~4x",
     },
     "mujoco": {
+        "settings": "{ dt = 4e-4, solref_steps = 2.5 }",
         "tolerance": "{ position = 1e-3, velocity = 6e-3, energy = 2.5e-3 }",
-        "reason": "RK4 dt 1e-4, 40 loops closed by connect equalities (solref 10 dt, solimp "
-                  "0.9999), N = 2's settings: against the exact one-equation solution "
-                  "2.9e-4 m, 2.0e-3 m/s, energy 8.5e-4 J (drift -8.5e-4 J) over 20 s "
-                  "(200000 steps, ~27 s stepping on a loaded machine); ~3x",
+        "reason": "RK4 dt 4e-4, 40 loops closed by connect equalities (solref 2.5 dt = 1 ms, "
+                  "N = 2's time constant; solimp 0.9999): against the exact one-equation "
+                  "solution 2.9e-4 m, 2.0e-3 m/s, energy 8.5e-4 J over 20 s, the same to two "
+                  "digits as dt 1e-4 and 2e-4 with a 1 ms time constant (the soft loops set "
+                  "the error, not RK4; dt 2e-4 at 10 dt = 2 ms: 7.4e-4 m, 2.1e-3 J); 50000 "
+                  "steps, 16 s (11 s stepping) on a loaded machine, 54 s at dt 1e-4; ~3x",
     },
     "pinocchio": {
         "unsupported": "constraintDynamics (RK4 dt 1e-3, mu 1e-8) returns a non-finite "
