@@ -252,6 +252,21 @@ def test_flexible_parallelogram_springs_as_external_forces():
     assert run.n_steps == 2000
 
 
+def test_external_forces_are_the_same_through_views_or_copies(monkeypatch):
+    """aba's external forces and the joint placements are read and written through views of
+    Pinocchio's storage; where the bindings copy instead, the adapter writes and reads them
+    at every call: the same motion, bit for bit (parallelogram_3d_flexible, 20 ms)."""
+    from natcoord.engines.pinocchio_engine import applied, dynamics
+
+    case = dataclasses.replace(ec.case("parallelogram_3d_flexible"), duration=0.02)
+    a = evaluate_channels(case, _run(case, _settings(case)).motion)
+    for mod in (applied, dynamics):
+        monkeypatch.setattr(mod, "is_view", lambda read: False)
+    b = evaluate_channels(case, _run(case, _settings(case)).motion)
+    assert len(a) == 3 and np.isfinite(a.to_numpy()).all()
+    np.testing.assert_array_equal(a.to_numpy(), b.to_numpy())
+
+
 def test_radau_option_agrees_with_rk4_on_the_springs():
     """method = "radau" (scipy Radau IIA on aba, finite-difference Jacobian): slower than
     RK4 at dt 1e-5 over the full run here, kept as an option. 0.01 s: measured 2e-16 m,
@@ -268,7 +283,8 @@ def test_radau_option_agrees_with_rk4_on_the_springs():
         _run(ec.case("five_bar"), {"method": "radau"})
 
 
-def test_compiled_spring_and_load_forces_obey_the_spring_law_and_newtons_third_law():
+def test_compiled_spring_and_load_forces_obey_the_spring_law_and_newtons_third_law(
+        monkeypatch):
     """The packed kernel (applied.py) on two free bodies with random poses and rates: the
     tension is k (l - l0) + c dl/dt (dl/dt by central differences of the integrated poses,
     agreeing to 1e-6 relative), a stretched spring pulls its ends together, and the world
@@ -318,6 +334,18 @@ def test_compiled_spring_and_load_forces_obey_the_spring_law_and_newtons_third_l
     towards_a = data.oMi[1].act(P[0]) - data.oMi[2].act(P[1])
     assert alone.T[0] > 0 and np.dot(Fb, towards_a) > 0
     np.testing.assert_allclose(np.linalg.norm(Fb), alone.T[0], rtol=1e-12)
+    # the placements are read once as views of data's storage; bindings that copy are
+    # read at every call, with the same forces
+    from natcoord.engines.pinocchio_engine import applied as mod
+
+    assert applied.live and mod.is_view(lambda: data.oMi[1].rotation)
+    assert not mod.is_view(lambda: np.array(data.oMi[1].rotation))
+    monkeypatch.setattr(mod, "is_view", lambda read: False)
+    copied = Applied([(1, p, f, m)], springs, data)
+    pin.forwardKinematics(model, data, q, v)
+    assert not copied.live
+    np.testing.assert_array_equal(copied(), applied())
+    np.testing.assert_array_equal(copied.T, applied.T)
 
 
 # Two pendulums from the ground, the first one double; joints in breadth-first file order

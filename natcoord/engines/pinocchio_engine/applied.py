@@ -80,6 +80,12 @@ def joint_forces(X, L, S, F, T):
             _add(F, X, sb, S[i, 5:8], -T[i] * e0, -T[i] * e1, -T[i] * e2)
 
 
+def is_view(read) -> bool:
+    """Whether ``read()`` returns a view of the binding's storage (two reads share memory),
+    not a copy: a view read once follows every later change."""
+    return bool(np.shares_memory(read(), read()))
+
+
 class Applied:
     """The loads and springs of a built model (``model.Built.loads``, ``.springs``) packed
     per slot, read from the Pinocchio ``data`` whose kinematics the caller updates;
@@ -91,13 +97,16 @@ class Applied:
         slot = {0: 0} | {j: s for s, j in enumerate(self.joints, 1)}
         self.X = np.zeros((len(self.joints) + 1, SLOT))
         self.X[0, :9] = np.eye(3).ravel()  # the ground: identity, at rest
-        # (destination, source) views: a slot's rows, and data's placement and velocity
-        # (Eigen storage, rewritten in place by forwardKinematics)
-        self.copies = [(self.X[s, a:b].reshape(shape), src)
-                       for s, j in enumerate(self.joints, 1)
-                       for a, b, shape, src in ((0, 9, (3, 3), data.oMi[j].rotation),
-                                                (9, 12, (3,), data.oMi[j].translation),
-                                                (12, 18, (6,), data.v[j].vector))]
+        # (destination, read): a slot's rows, and data's placement and velocity, read once
+        # as views of its Eigen storage (rewritten in place by forwardKinematics) when the
+        # bindings give views, else read at every call
+        reads = [(self.X[s, a:b].reshape(shape), read)
+                 for s, j in enumerate(self.joints, 1)
+                 for a, b, shape, read in ((0, 9, (3, 3), lambda j=j: data.oMi[j].rotation),
+                                           (9, 12, (3,), lambda j=j: data.oMi[j].translation),
+                                           (12, 18, (6,), lambda j=j: data.v[j].vector))]
+        self.live = all(is_view(read) for _, read in reads)
+        self.copies = [(dst, read() if self.live else read) for dst, read in reads]
         self.L = np.array([[slot[j], *p, *f, *m] for j, p, f, m in loads],
                           dtype=float).reshape(-1, LOAD)
         self.S = np.array([[slot[a[0]], slot[b[0]], *a[1], *b[1], k, c, l0]
@@ -111,6 +120,6 @@ class Applied:
         ``forwardKinematics``); the spring tensions stay in ``self.T`` (N). Both arrays are
         rewritten by the next call."""
         for dst, src in self.copies:
-            dst[...] = src
+            dst[...] = src if self.live else src()
         joint_forces(self.X, self.L, self.S, self.F, self.T)
         return self.F

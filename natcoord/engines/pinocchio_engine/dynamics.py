@@ -14,7 +14,7 @@ import numpy as np
 from numba import njit
 
 from ...errors import Unsupported
-from .applied import Applied
+from .applied import Applied, is_view
 from .model import Built
 
 
@@ -42,7 +42,8 @@ class Dynamics:
         self.fext_ = pin.StdVec_Force()  # aba's external forces, rewritten in place
         for _ in range(b.model.njoints):
             self.fext_.append(pin.Force.Zero())
-        self.views = [self.fext_[j].vector for j in self.loaded]  # views into fext_
+        self.views = ([self.fext_[j].vector for j in self.loaded]  # views into fext_
+                      if is_view(lambda: self.fext_[0].vector) else None)
         self.const_tau = None
         if not self.loaded:
             self.const_tau = self.zero
@@ -83,8 +84,12 @@ class Dynamics:
             return pin.aba(self.model, self.data, q, v, self.zero).copy()
         pin.forwardKinematics(self.model, self.aux, q, v)
         Fs = self.applied()
-        for s, view in enumerate(self.views, 1):
-            view[:] = Fs[s]
+        if self.views is not None:
+            for s, view in enumerate(self.views, 1):
+                view[:] = Fs[s]
+        else:  # bindings that copy: a new Force per loaded joint
+            for s, jid in enumerate(self.loaded, 1):
+                self.fext_[jid] = pin.Force(Fs[s])
         return pin.aba(self.model, self.data, q, v, self.zero, self.fext_).copy()
 
     @property
