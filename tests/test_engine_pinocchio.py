@@ -334,6 +334,9 @@ def test_compiled_spring_and_load_forces_obey_the_spring_law_and_newtons_third_l
     towards_a = data.oMi[1].act(P[0]) - data.oMi[2].act(P[1])
     assert alone.T[0] > 0 and np.dot(Fb, towards_a) > 0
     np.testing.assert_allclose(np.linalg.norm(Fb), alone.T[0], rtol=1e-12)
+    # a body-fixed load (f, m in the joint frame): applied as given, whatever the pose
+    fixed = Applied([(2, p, f, m, True)], [], data)
+    np.testing.assert_allclose(fixed()[1], np.r_[f, np.cross(p, f) + m], rtol=0, atol=1e-15)
     # the placements are read once as views of data's storage; bindings that copy are
     # read at every call, with the same forces
     from natcoord.engines.pinocchio_engine import applied as mod

@@ -6,7 +6,8 @@ The right-hand side of an explicit integrator calls this four times a step (stif
 kernel computes them all: no Python loop, no temporary arrays per spring.
 
 * Load: force ``f`` (3,) N at point ``p`` (3,) m (joint frame) and torque ``m`` (3,) N m,
-  constant in world axes: ``R^T f`` and ``p x R^T f + R^T m``.
+  constant in world axes: ``R^T f`` and ``p x R^T f + R^T m``; or body-fixed (``local``, in
+  the joint frame already): ``f`` and ``p x f + m``.
 * Spring-damper between points ``Pa`` of slot ``a`` and ``Pb`` of slot ``b``: tension
   ``T = k (l - l0) + c dl/dt`` (N, > 0 pulls the ends together), ``+T e`` on ``a`` and ``-T e``
   on ``b``, ``e`` the unit vector from a's end to b's.
@@ -19,14 +20,18 @@ from numba import njit
 
 # Packed rows (few arguments: numba's dispatch costs ~0.3 us per argument, 4 calls a step):
 # a slot: R (row-major, 9), t (3), V (linear, angular in joint axes, 6);
-# a load: slot, p (3), f (3), m (3); a spring: slot a, slot b, Pa (3), Pb (3), k, c, l0.
-SLOT, LOAD, SPRING = 18, 10, 11
+# a load: slot, p (3), f (3), m (3), the slot whose rotation turns f and m into joint axes
+# (its own; 0, the identity, for a body-fixed load); a spring: slot a, slot b, Pa (3),
+# Pb (3), k, c, l0.
+SLOT, LOAD, SPRING = 18, 11, 11
 
 
 @njit(cache=True)
-def _add(F, X, s, P, f0, f1, f2):
-    """F[s] += the world force f at the point P (3,) (joint frame) of slot s, joint axes."""
-    R = X[s]
+def _add(F, X, s, r, P, f0, f1, f2):
+    """F[s] += the force f at the point P (3,) (joint frame) of slot s, in joint axes: f in
+    world axes turned by slot r's rotation (r = s; r = 0, the identity, when f is in joint
+    axes already)."""
+    R = X[r]
     a0 = R[0] * f0 + R[3] * f1 + R[6] * f2  # R^T f
     a1 = R[1] * f0 + R[4] * f1 + R[7] * f2
     a2 = R[2] * f0 + R[5] * f1 + R[8] * f2
@@ -57,9 +62,9 @@ def joint_forces(X, L, S, F, T):
     S (springs, SPRING)."""
     F[:] = 0.0
     for i in range(L.shape[0]):
-        s = int(L[i, 0])
-        _add(F, X, s, L[i, 1:4], L[i, 4], L[i, 5], L[i, 6])
-        R = X[s]
+        s, r = int(L[i, 0]), int(L[i, 10])
+        _add(F, X, s, r, L[i, 1:4], L[i, 4], L[i, 5], L[i, 6])
+        R = X[r]
         m0, m1, m2 = L[i, 7], L[i, 8], L[i, 9]
         F[s, 3] += R[0] * m0 + R[3] * m1 + R[6] * m2
         F[s, 4] += R[1] * m0 + R[4] * m1 + R[7] * m2
@@ -75,9 +80,9 @@ def joint_forces(X, L, S, F, T):
         T[i] = S[i, 8] * (ln - S[i, 10]) + S[i, 9] * (
             (vb[0] - va[0]) * e0 + (vb[1] - va[1]) * e1 + (vb[2] - va[2]) * e2)
         if sa:
-            _add(F, X, sa, S[i, 2:5], T[i] * e0, T[i] * e1, T[i] * e2)
+            _add(F, X, sa, sa, S[i, 2:5], T[i] * e0, T[i] * e1, T[i] * e2)
         if sb:
-            _add(F, X, sb, S[i, 5:8], -T[i] * e0, -T[i] * e1, -T[i] * e2)
+            _add(F, X, sb, sb, S[i, 5:8], -T[i] * e0, -T[i] * e1, -T[i] * e2)
 
 
 def is_view(read) -> bool:
@@ -87,9 +92,10 @@ def is_view(read) -> bool:
 
 
 class Applied:
-    """The loads and springs of a built model (``model.Built.loads``, ``.springs``) packed
-    per slot, read from the Pinocchio ``data`` whose kinematics the caller updates;
-    ``joints`` the loaded joint ids (slot s is ``joints[s - 1]``), ``names`` the springs'."""
+    """The loads ((joint, p, f, m) or (joint, p, f, m, local): ``model.Built.loads``) and
+    springs (``.springs``) of a built model packed per slot, read from the Pinocchio ``data``
+    whose kinematics the caller updates; ``joints`` the loaded joint ids (slot s is
+    ``joints[s - 1]``), ``names`` the springs'."""
 
     def __init__(self, loads: list, springs: list, data):
         self.joints = sorted({x[0] for x in loads} | {e[0] for sp in springs
@@ -107,8 +113,8 @@ class Applied:
                                            (12, 18, (6,), lambda j=j: data.v[j].vector))]
         self.live = all(is_view(read) for _, read in reads)
         self.copies = [(dst, read() if self.live else read) for dst, read in reads]
-        self.L = np.array([[slot[j], *p, *f, *m] for j, p, f, m in loads],
-                          dtype=float).reshape(-1, LOAD)
+        self.L = np.array([[slot[j], *p, *f, *m, 0 if local and local[0] else slot[j]]
+                           for j, p, f, m, *local in loads], dtype=float).reshape(-1, LOAD)
         self.S = np.array([[slot[a[0]], slot[b[0]], *a[1], *b[1], k, c, l0]
                            for _, a, b, k, c, l0 in springs], dtype=float).reshape(-1, SPRING)
         self.F = np.zeros((len(self.X), 6))
