@@ -252,6 +252,21 @@ def test_flexible_parallelogram_springs_as_external_forces():
     assert run.n_steps == 2000
 
 
+def test_external_forces_are_the_same_through_views_or_copies(monkeypatch):
+    """aba's external forces and the joint placements are read and written through views of
+    Pinocchio's storage; where the bindings copy instead, the adapter writes and reads them
+    at every call: the same motion, bit for bit (parallelogram_3d_flexible, 20 ms)."""
+    from natcoord.engines.pinocchio_engine import applied, dynamics
+
+    case = dataclasses.replace(ec.case("parallelogram_3d_flexible"), duration=0.02)
+    a = evaluate_channels(case, _run(case, _settings(case)).motion)
+    for mod in (applied, dynamics):
+        monkeypatch.setattr(mod, "is_view", lambda read: False)
+    b = evaluate_channels(case, _run(case, _settings(case)).motion)
+    assert len(a) == 3 and np.isfinite(a.to_numpy()).all()
+    np.testing.assert_array_equal(a.to_numpy(), b.to_numpy())
+
+
 def test_radau_option_agrees_with_rk4_on_the_springs():
     """method = "radau" (scipy Radau IIA on aba, finite-difference Jacobian): slower than
     RK4 at dt 1e-5 over the full run here, kept as an option. 0.01 s: measured 2e-16 m,
@@ -266,6 +281,74 @@ def test_radau_option_agrees_with_rk4_on_the_springs():
         assert np.max(np.abs(a[c.name] - b[c.name])) <= bound, c.name
     with pytest.raises(Unsupported, match="radau"):
         _run(ec.case("five_bar"), {"method": "radau"})
+
+
+def test_compiled_spring_and_load_forces_obey_the_spring_law_and_newtons_third_law(
+        monkeypatch):
+    """The packed kernel (applied.py) on two free bodies with random poses and rates: the
+    tension is k (l - l0) + c dl/dt (dl/dt by central differences of the integrated poses,
+    agreeing to 1e-6 relative), a stretched spring pulls its ends together, and the world
+    wrench on both bodies is the load's alone (the springs' pairs cancel, to round-off)."""
+    import pinocchio as pin
+
+    from natcoord.engines.pinocchio_engine.applied import Applied
+
+    rng = np.random.default_rng(7)
+    model = pin.Model()
+    for name in ("a", "b"):
+        model.addJoint(0, pin.JointModelFreeFlyer(), pin.SE3.Identity(), name)
+    data = model.createData()
+    q = pin.integrate(model, pin.neutral(model), rng.normal(size=12))
+    v = rng.normal(size=12)
+    P = rng.normal(size=(4, 3))
+    springs = [("s1", (1, P[0]), (2, P[1]), 2e3, 0.0, 0.5),
+               ("s2", (2, P[2]), (1, P[3]), 5e2, 30.0, 1.5)]
+    f, m, p = np.array([1.0, -2.0, 3.0]), np.array([0.5, 0.0, -1.0]), rng.normal(size=3)
+    applied = Applied([(1, p, f, m)], springs, data)
+
+    def lengths(qq):
+        pin.forwardKinematics(model, data, qq)
+        return [np.linalg.norm(data.oMi[jb].act(pb) - data.oMi[ja].act(pa))
+                for _, (ja, pa), (jb, pb), *_ in springs]
+
+    eps = 1e-6
+    rate = (np.array(lengths(pin.integrate(model, q, eps * v)))
+            - lengths(pin.integrate(model, q, -eps * v))) / (2 * eps)
+    ln = np.array(lengths(q))
+    pin.forwardKinematics(model, data, q, v)
+    F = applied().copy()
+    law = [k * (x - l0) + c * r for (_, _, _, k, c, l0), x, r in zip(springs, ln, rate,
+                                                                     strict=True)]
+    np.testing.assert_allclose(applied.T, law, rtol=1e-6)
+    wrench = np.zeros(6)
+    for s, jid in enumerate(applied.joints, 1):
+        M = data.oMi[jid]
+        fw = M.rotation @ F[s, :3]
+        wrench += np.r_[fw, np.cross(M.translation, fw) + M.rotation @ F[s, 3:]]
+    load = np.r_[f, np.cross(data.oMi[1].act(p), f) + m]
+    np.testing.assert_allclose(wrench, load, atol=1e-9 * np.abs(applied.T).max())
+    # s1 alone (stretched, no damping): body b is pulled towards a's end
+    alone = Applied([], springs[:1], data)
+    pin.forwardKinematics(model, data, q, v)
+    Fb = data.oMi[2].rotation @ alone()[2, :3]
+    towards_a = data.oMi[1].act(P[0]) - data.oMi[2].act(P[1])
+    assert alone.T[0] > 0 and np.dot(Fb, towards_a) > 0
+    np.testing.assert_allclose(np.linalg.norm(Fb), alone.T[0], rtol=1e-12)
+    # a body-fixed load (f, m in the joint frame): applied as given, whatever the pose
+    fixed = Applied([(2, p, f, m, True)], [], data)
+    np.testing.assert_allclose(fixed()[1], np.r_[f, np.cross(p, f) + m], rtol=0, atol=1e-15)
+    # the placements are read once as views of data's storage; bindings that copy are
+    # read at every call, with the same forces
+    from natcoord.engines.pinocchio_engine import applied as mod
+
+    assert applied.live and mod.is_view(lambda: data.oMi[1].rotation)
+    assert not mod.is_view(lambda: np.array(data.oMi[1].rotation))
+    monkeypatch.setattr(mod, "is_view", lambda read: False)
+    copied = Applied([(1, p, f, m)], springs, data)
+    pin.forwardKinematics(model, data, q, v)
+    assert not copied.live
+    np.testing.assert_array_equal(copied(), applied())
+    np.testing.assert_array_equal(copied.T, applied.T)
 
 
 # Two pendulums from the ground, the first one double; joints in breadth-first file order

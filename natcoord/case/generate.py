@@ -126,11 +126,14 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "reference): 6.4e-10 m. Tolerances ~4x",
     },
     "mujoco": {
+        "settings": "{ dt = 4e-4, solref_steps = 2.5 }",
         "tolerance": "{ position = 1e-3, velocity = 6e-3, energy = 2.5e-3 }",
-        "reason": "RK4 dt 1e-4, 40 loops closed by connect equalities (solref 10 dt, solimp "
-                  "0.9999), N = 2's settings: against the exact one-equation solution "
-                  "2.9e-4 m, 2.0e-3 m/s, energy 8.5e-4 J (drift -8.5e-4 J) over 20 s "
-                  "(200000 steps, ~27 s stepping on a loaded machine); ~3x",
+        "reason": "RK4 dt 4e-4, 40 loops closed by connect equalities (solref 2.5 dt = 1 ms, "
+                  "N = 2's time constant; solimp 0.9999): against the exact one-equation "
+                  "solution 2.9e-4 m, 2.0e-3 m/s, energy 8.5e-4 J over 20 s, the same to two "
+                  "digits as dt 1e-4 and 2e-4 with a 1 ms time constant (the soft loops set "
+                  "the error, not RK4; dt 2e-4 at 10 dt = 2 ms: 7.4e-4 m, 2.1e-3 J); 50000 "
+                  "steps, 16 s (11 s stepping) on a loaded machine, 54 s at dt 1e-4; ~3x",
     },
     "pinocchio": {
         "unsupported": "constraintDynamics (RK4 dt 1e-3, mu 1e-8) returns a non-finite "
@@ -153,13 +156,16 @@ N_FOUR_BAR_MEASURED: dict[int, dict[str, dict[str, str]]] = {2: {
                   "rho_inf 0.8 or modified Newton give the same errors. ~2x",
     },
     "dart": {
-        "settings": '{ dt = 2e-4, erp = 1.0, loop_constraint = "ball" }',
-        "tolerance": "{ position = 6e-6, velocity = 3e-3, energy = 0.7 }",
-        "reason": "semi-implicit Euler dt 2e-4, ERP 1.0, 40 ball-joint loop constraints: "
-                  "measured 2.6e-6 m, 1.2e-3 m/s, energy 0.31 J (spread 0.62 J, drift "
-                  "-4.2e-2 J of ~620 J: first order, symplectic) over 20 s, ~87 s; dt 1e-4 "
-                  "(N = 2's) halves the errors (6.5e-7 m, 5.7e-4 m/s, 0.16 J) but takes "
-                  "~180 s. ~2x",
+        "settings": '{ dt = 4e-4, erp = 1.0, loop_constraint = "ball" }',
+        "tolerance": "{ position = 2.5e-5, velocity = 6e-3, energy = 1.5 }",
+        "reason": "semi-implicit Euler dt 4e-4, ERP 1.0, 40 ball-joint loop constraints: "
+                  "measured 1.0e-5 m, 2.3e-3 m/s, energy 0.62 J (first order, symplectic; "
+                  "~620 J) over 20 s against the exact solution, 50000 steps, 73 s CPU (117 s "
+                  "wall, loaded machine; DART's step, ~1.4 ms with 40 loop constraints, is "
+                  "the whole cost). dt 2e-4: "
+                  "2.6e-6 m, 1.2e-3 m/s, 0.31 J in ~160 s; dt 1e-4 (N = 2's) 6.5e-7 m, "
+                  "5.7e-4 m/s, 0.16 J; dt 1e-3 6.1e-5 m, 5.6e-3 m/s, 1.5 J and still ~42 s. "
+                  "~2.5x",
     },
     "simbody": {
         "settings": "{ accuracy = 1e-6 }",

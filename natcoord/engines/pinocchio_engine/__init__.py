@@ -42,7 +42,7 @@ Model (:mod:`.model`)
 * Applied loads (torque, force at a point, constant in world axes) and spring-dampers:
   external forces in ``aba``, or ``tau += J^T f`` for ``constraintDynamics`` (which takes
   no ``fext``; constant when every rotation is about one fixed axis and the loads are pure
-  moments).
+  moments), all computed by one compiled call (:mod:`.applied`).
 * Drivers (prescribed motions) are not modelled: Unsupported.
 
 Loops (:mod:`.loops`): ``RigidConstraintModel(CONTACT_3D)`` at the joint point, ``LOCAL``;

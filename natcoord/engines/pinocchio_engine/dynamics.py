@@ -11,9 +11,10 @@
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 
 from ...errors import Unsupported
-from ..planar import cross
+from .applied import Applied, is_view
 from .model import Built
 
 
@@ -36,14 +37,13 @@ class Dynamics:
                                          int(s["max_iter"]))
         self.iters = 0
         self.zero = np.zeros(b.model.nv)
-        self.loaded = sorted({x[0] for x in b.loads} | {e[0] for sp in b.springs
-                                                         for e in sp[1:3]} - {0})
-        groups = {}
-        for name, (ja, pa), (jb, pb), k, c, l0 in b.springs:
-            groups.setdefault((ja, jb), []).append((name, pa, pb, k, c, l0))
-        self.groups = [(ja, jb, np.array([x[1] for x in g]), np.array([x[2] for x in g]),
-                        *(np.array([x[i] for x in g]) for i in (3, 4, 5)),
-                        [x[0] for x in g]) for (ja, jb), g in groups.items()]
+        self.applied = Applied(b.loads, b.springs, self.aux)
+        self.loaded = self.applied.joints
+        self.fext_ = pin.StdVec_Force()  # aba's external forces, rewritten in place
+        for _ in range(b.model.njoints):
+            self.fext_.append(pin.Force.Zero())
+        self.views = ([self.fext_[j].vector for j in self.loaded]  # views into fext_
+                      if is_view(lambda: self.fext_[0].vector) else None)
         self.const_tau = None
         if not self.loaded:
             self.const_tau = self.zero
@@ -55,41 +55,11 @@ class Dynamics:
     def fext(self, q, v):
         """Applied loads and spring forces as Pinocchio external forces, (njoints, 6) in
         joint frames (linear, angular), and the spring tensions (name -> N)."""
-        pin, data = self.pin, self.aux
-        pin.forwardKinematics(self.model, data, q, v)
+        self.pin.forwardKinematics(self.model, self.aux, q, v)
+        Fs = self.applied()
         F = np.zeros((self.model.njoints, 6))
-        frames = {}
-        for jid in self.loaded:
-            M, vel = data.oMi[jid], data.v[jid]
-            frames[jid] = (M.rotation, M.translation, vel.linear, vel.angular)
-        for jid, p, fw, mw, local in self.b.loads:
-            R = frames[jid][0]
-            fl, ml = (fw, mw) if local else (R.T @ fw, R.T @ mw)
-            F[jid, :3] += fl
-            F[jid, 3:] += cross(p, fl) + ml
-        tension = {}
-        for ja, jb, Pa, Pb, k, c, l0, names in self.groups:  # vectorized per joint pair
-            ra, va = self._ends(frames, ja, Pa)
-            rb, vb = self._ends(frames, jb, Pb)
-            d = rb - ra
-            ln = np.sqrt(np.einsum("ij,ij->i", d, d))
-            e = d / ln[:, None]
-            T = k * (ln - l0) + c * np.einsum("ij,ij->i", vb - va, e)
-            tension.update(zip(names, T, strict=True))
-            for jid, P, sgn in ((ja, Pa, 1.0), (jb, Pb, -1.0)):
-                if jid:
-                    fl = (sgn * T[:, None] * e) @ frames[jid][0]  # rows R^T f
-                    F[jid, :3] += fl.sum(0)
-                    F[jid, 3:] += cross(P.T, fl.T).sum(1)
-        return F, tension
-
-    @staticmethod
-    def _ends(frames, jid, P):
-        """World positions and velocities (n, 3) of points P (n, 3) of joint jid."""
-        if jid == 0:
-            return P, 0.0
-        R, tr, vl, w = frames[jid]
-        return P @ R.T + tr, (vl[:, None] + cross(w[:, None], P.T)).T @ R.T
+        F[self.loaded] = Fs[1:]
+        return F, dict(zip(self.applied.names, self.applied.T.tolist(), strict=True))
 
     def tau(self, q, v):
         """Generalized applied forces J^T f, (nv,)."""
@@ -113,47 +83,77 @@ class Dynamics:
             return a.copy()
         if not self.loaded:
             return pin.aba(self.model, self.data, q, v, self.zero).copy()
-        f, _ = self.fext(q, v)
-        fext = pin.StdVec_Force()
-        for x in f:
-            fext.append(pin.Force(x))
-        return pin.aba(self.model, self.data, q, v, self.zero, fext).copy()
+        pin.forwardKinematics(self.model, self.aux, q, v)
+        Fs = self.applied()
+        if self.views is not None:
+            for s, view in enumerate(self.views, 1):
+                view[:] = Fs[s]
+        else:  # bindings that copy: a new Force per loaded joint
+            for s, jid in enumerate(self.loaded, 1):
+                self.fext_[jid] = pin.Force(Fs[s])
+        return pin.aba(self.model, self.data, q, v, self.zero, self.fext_).copy()
 
     @property
     def lam(self):
         return self.data.lambda_c if self.looped else np.zeros(0)
 
 
+@njit(cache=True)
+def _rk4_stage(q, Z, s: int, c: float, vec: bool):
+    """RK4 stage s + 1 (s = 1, 2, 3) in Z's rows (0 v, 1-3 the stage velocities, 4-7 the
+    stage accelerations, 8 the stage position or, when not ``vec``, its increment):
+    velocity v + c A_s, position q + c V_s."""
+    for i in range(Z.shape[1]):
+        Z[s, i] = Z[0, i] + c * Z[3 + s, i]
+        Z[8, i] = (q[i] if vec else 0.0) + c * Z[s - 1, i]
+
+
+@njit(cache=True)
+def _rk4_combine(q, Z, dt6: float, vec: bool):
+    """The step's new v (row 0) and position (q in place when ``vec``, else its increment
+    in row 8) from the four stages, summed in the textbook order."""
+    for i in range(Z.shape[1]):
+        Z[8, i] = (q[i] if vec else 0.0) + dt6 * (Z[0, i] + 2 * Z[1, i] + 2 * Z[2, i]
+                                                  + Z[3, i])
+        Z[0, i] = Z[0, i] + dt6 * (Z[4, i] + 2 * Z[5, i] + 2 * Z[6, i] + Z[7, i])
+        if vec:
+            q[i] = Z[8, i]
+
+
 def rk4_samples(acc, lam, step, q0, v0, nq: int, nl: int, times, k: int, dt: float,
                 context: str = ""):
     """Classic RK4 from (q0, v0), k steps per sample, ``acc(q, v)`` the acceleration, ``lam()``
-    the constraint forces of its last call, ``step(q, dv)`` the position update: sampled
-    Q (T, nq), V, A (T, nv), L (T, nl) and the step count. ``context`` is added to the
-    error's dt."""
+    the constraint forces of its last call, ``step(q, dv)`` the position update (None: a
+    vector configuration, q + dv): sampled Q (T, nq), V, A (T, nv), L (T, nl) and the step
+    count. ``context`` is added to the error's dt. The stage arithmetic is two compiled
+    calls (numpy on vectors this short costs ~1 us an operation, 24 a step)."""
     T, nv = len(times), len(v0)
     Q, V, A, L = (np.empty((T, nq)), np.empty((T, nv)), np.empty((T, nv)), np.empty((T, nl)))
     h, dt6 = dt / 2, dt / 6
-    q, v = q0.copy(), v0.copy()
+    vec = step is None
+    q = q0.astype(float)
+    Z = np.zeros((9, nv))
+    Z[0] = v0
+    v, dq = Z[0], Z[8]
+    stages = [(s, c, Z[s], Z[4 + s]) for s, c in ((1, h), (2, h), (3, dt))]
     n = 0
     for i in range(T):
-        a1 = acc(q, v)  # the sample's own state: its lambda gives the reactions
-        Q[i], V[i], A[i], L[i] = q, v, a1, lam()
-        if not (np.isfinite(a1).all() and np.isfinite(L[i]).all()):
+        Z[4] = acc(q, v)  # the sample's own state: its lambda gives the reactions
+        Q[i], V[i], A[i], L[i] = q, v, Z[4], lam()
+        if not (np.isfinite(Z[4]).all() and np.isfinite(L[i]).all()):
             raise RuntimeError(f"pinocchio: non-finite acceleration or constraint force at "
                                f"t = {times[i]:g} s (dt {dt:g} s{context})")
         if i == T - 1:
             break
         for j in range(k):
             if j:
-                a1 = acc(q, v)
-            v2 = v + h * a1
-            a2 = acc(step(q, h * v), v2)
-            v3_ = v + h * a2
-            a3 = acc(step(q, h * v2), v3_)
-            v4 = v + dt * a3
-            a4 = acc(step(q, dt * v3_), v4)
-            q = step(q, dt6 * (v + 2 * v2 + 2 * v3_ + v4))
-            v = v + dt6 * (a1 + 2 * a2 + 2 * a3 + a4)
+                Z[4] = acc(q, v)
+            for s, c, vs, a_s in stages:
+                _rk4_stage(q, Z, s, c, vec)
+                a_s[:] = acc(dq if vec else step(q, dq), vs)
+            _rk4_combine(q, Z, dt6, vec)
+            if not vec:
+                q = step(q, dq)
             n += 1
     return Q, V, A, L, n
 
@@ -162,7 +162,7 @@ def integrate_rk4(pin, b: Built, dyn: Dynamics, times, k: int, dt: float, contex
     """Classic RK4, k steps of dt (s) per sample: sampled (Q, V, A, L) and step count."""
     model = b.model
     lie = model.nq != model.nv
-    step = (lambda q, dv: pin.integrate(model, q, dv)) if lie else (lambda q, dv: q + dv)
+    step = (lambda q, dv: pin.integrate(model, q, dv)) if lie else None
     return rk4_samples(dyn, lambda: dyn.lam, step, b.q0, b.v0, model.nq,
                        3 * len(dyn.cmodels), times, k, dt, context)
 
