@@ -673,8 +673,9 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             clock.add({(k, c, e): 0.0 for (c, e) in (*plan.reuse, *plan.timed)
                        for k in ("bench", "sweep")})
             clock.budget({(c, e) for c, e in plan.spare}, bench_budget)
-            out.print(f"[bold]bench[/]: {repeats} calibrated sample(s) per measured cell; "
-                      + _policy_line(plan, bench_budget))
+            out.print("[bold]bench[/]: every cell timed by its accuracy run (quick)" if quick
+                      else f"[bold]bench[/]: {repeats} calibrated sample(s) per measured "
+                      "cell; " + _policy_line(plan, bench_budget))
             bench_result = bench.bench(
                 selected, bench_engines, repeats=repeats, timeout_s=timeout,
                 references=references, reuse={**plan.reuse, **plan.timed}, cold=not quick,
