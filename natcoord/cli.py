@@ -38,7 +38,7 @@ out = Console(soft_wrap=True)
 err = Console(stderr=True, soft_wrap=True)
 
 DEFAULT_TIMEOUT_S = 600.0
-NIGHT_BUDGET_S = 120.0  # `suite --bench-budget`: see natcoord.suite.policy
+NIGHT_BUDGET_S = 60.0  # `suite --bench-budget`: see natcoord.suite.policy
 RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
 ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
 CasesDir = Annotated[Path | None, typer.Option(
@@ -679,7 +679,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             bench_result = bench.bench(
                 selected, bench_engines, repeats=repeats, timeout_s=timeout,
                 references=references, reuse={**plan.reuse, **plan.timed}, cold=not quick,
-                spare=plan.spare, budget=budget,
+                spare=plan.spare, budget=budget, cell_budget_s=policy.CELL_BUDGET_S,
                 progress=_progress_printer(len(selected) * len(bench_engines),
                                            "serial, one core", _ticker(clock, "bench")))
             run_timed = {(r["case"], r["engine"]): r["timed_by"]["why"]
@@ -839,6 +839,7 @@ def _nightly_sweeps(result: dict, catalogue, names, references, timeout, skip: s
     points = bench.work_precision(catalogue, names, references=references, repeats=3,
                                   timeout_s=timeout, sweeps=policy.NIGHTLY_SWEEPS,
                                   skip=skip, budget=budget, free=policy.ALWAYS,
+                                  cell_budget_s=policy.CELL_BUDGET_S,
                                   progress=_progress_printer(
                                       total, "serial, one core", left))
     points += [p for p in kept if p.get("case") in names_in]

@@ -79,8 +79,8 @@ def test_the_budget_takes_the_never_measured_first_and_long_runs_are_run_timed(
                               "build_time_s": 0.1, "settings": {"dt": 1e-3}}
     summary = {"records": [run("stale8", 0.5), run("stale9", 0.5), run("fresh", 0.5),
                            run("new_dear", 2.0), run("new_cheap", 0.01), run("timed", 0.2),
-                           run("long", 2 * policy.bench.BUDGET_S),
-                           run("long", 2 * policy.bench.BUDGET_S) | {"engine": "natcoord"},
+                           run("long", 2 * policy.CELL_BUDGET_S),
+                           run("long", 2 * policy.CELL_BUDGET_S) | {"engine": "natcoord"},
                            run("short", 0.1) | {"engine": "natcoord"}]}
     plan = policy.plan(summary, previous, ["mujoco", "natcoord"], repeats=7, machine="m",
                        when=NOW)
@@ -90,9 +90,9 @@ def test_the_budget_takes_the_never_measured_first_and_long_runs_are_run_timed(
     assert [c for c, _ in plan.spare] == ["new_cheap", "timed", "new_dear", "stale9",
                                           "stale8"]
     long = plan.timed[("long", "mujoco")]
-    assert long["samples_s"] == [2 * policy.bench.BUDGET_S] and long["repeats"] == 1
+    assert long["samples_s"] == [2 * policy.CELL_BUDGET_S] and long["repeats"] == 1
     assert "its accuracy run is its timing" in long["timed_by"]["why"]
-    assert long["us_per_step"] == pytest.approx(1e6 * 2 * policy.bench.BUDGET_S / 100)
+    assert long["us_per_step"] == pytest.approx(1e6 * 2 * policy.CELL_BUDGET_S / 100)
     spare = plan.spare[("new_cheap", "mujoco")]
     assert "over tonight's bench budget" in spare["timed_by"]["why"]
     from natcoord.suite.stored import carried

@@ -153,16 +153,16 @@ def explain_cost(full: dict, short: dict | None) -> dict:
 
 
 def timed_runs(job, engine: str, tmp: Path, timeout_s: float, repeats: int,
-               settings: dict | None = None) -> list[dict]:
+               settings: dict | None = None, budget_s: float = BUDGET_S) -> list[dict]:
     """The run record of one timed cell (a list of one), pinned to the bench's core: one
-    engine process that takes ``repeats`` calibrated samples within ``BUDGET_S``; their
+    engine process that takes ``repeats`` calibrated samples within ``budget_s``; their
     times per run are in the record's ``samples_s`` (and ``cpu_samples_s``)."""
-    job = dataclasses.replace(as_job(job), batch_s=MIN_BATCH_S, budget_s=BUDGET_S)
+    job = dataclasses.replace(as_job(job), batch_s=MIN_BATCH_S, budget_s=budget_s)
     return [run_subprocess(job, engine, tmp, timeout_s, settings, repeat=repeats, cpu=CORE)]
 
 
 def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
-            references: Path | None = None) -> dict:
+            references: Path | None = None, budget_s: float = BUDGET_S) -> dict:
     """One cell's benchmark record: every sample's time per run (``samples_s``, wall;
     ``cpu_samples_s``, CPU, where measured; ``batch_runs``, runs per batch), best, median,
     spread, build time, steps and cost counters; the cost fit (``fixed_s``,
@@ -170,7 +170,7 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
     ``[benchmark]``, the benchmark error of the run (``benchmark_error``)."""
     case = job.case
     job = dataclasses.replace(as_job(job), truncate=FIT_FRACTION)
-    (run,) = timed_runs(job, engine, tmp, timeout_s, repeats)
+    (run,) = timed_runs(job, engine, tmp, timeout_s, repeats, budget_s=budget_s)
     from ..engines.registry import adapter_digest
 
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
@@ -280,13 +280,15 @@ def cold_start(job, tmp: Path, repeats: int = COLD_REPEATS, timeout_s: float = 6
 def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
           timeout_s: float = 600.0, progress: Callable[[str, dict], None] | None = None,
           references: Path | None = None, reuse: dict | None = None,
-          cold: bool = True, spare: dict | None = None, budget=None) -> dict:
+          cold: bool = True, spare: dict | None = None, budget=None,
+          cell_budget_s: float = BUDGET_S) -> dict:
     """Benchmark and return ``{"records": [...], "machine": ..., "generated": ...}`` (and
     ``cold_start`` when natcoord is benchmarked and ``cold``). ``reuse``: ``{(case, engine):
     record}`` taken as they are instead of measured; ``spare``: ``{(case, engine): record}``
     measured after the others, in this order, while ``budget`` (a
     :class:`natcoord.suite.policy.Budget`) lasts, else taken as they are
-    (:mod:`natcoord.suite.policy`)."""
+    (:mod:`natcoord.suite.policy`); ``cell_budget_s``: process time a cell's samples may
+    take."""
     jobs = [as_job(c) for c in cases]
     reuse, spare = reuse or {}, spare or {}
     todo = [(job, engine) for job in jobs for engine in engines]
@@ -303,7 +305,8 @@ def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
             elif key in spare and budget is not None and not budget.left():
                 rec = spare[key]
             else:
-                rec = measure(job, engine, repeats, timeout_s, Path(tmp), references)
+                rec = measure(job, engine, repeats, timeout_s, Path(tmp), references,
+                              cell_budget_s)
                 if key in spare and budget is not None:
                     budget.charge(rec)
             found[key] = rec
@@ -342,7 +345,7 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                    progress: Callable[[str, dict], None] | None = None,
                    sweeps: dict[str, list[dict]] | None = None,
                    skip: set | frozenset = frozenset(), budget=None,
-                   free: Sequence[str] = ()) -> list[dict]:
+                   free: Sequence[str] = (), cell_budget_s: float = BUDGET_S) -> list[dict]:
     """Error of the first angle channel (``error``) and, for a case with a ``[benchmark]``,
     the benchmark's error (``benchmark_error``) against CPU time over each engine's sweep:
     every sweep point timed as a bench cell (:func:`timed_runs`: ``repeats`` calibrated
@@ -352,7 +355,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
     reach each error in TARGETS (the cheapest point at or below it; None if none does).
     ``sweeps``: the settings per engine (default :data:`SWEEPS`); ``skip``: (case, engine)
     pairs not swept; ``budget`` (a :class:`natcoord.suite.policy.Budget`): an engine not in
-    ``free`` starts a case's sweep only while it lasts, and its points are charged to it.
+    ``free`` starts a case's sweep only while it lasts, and its points are charged to it;
+    ``cell_budget_s``: process time a point's samples may take.
     """
 
     sweeps = SWEEPS if sweeps is None else sweeps
@@ -371,7 +375,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
                 if charged and not budget.left():
                     continue
                 for setting in sweeps.get(engine, []):
-                    runs = timed_runs(job, engine, Path(tmp), timeout_s, repeats, setting)
+                    runs = timed_runs(job, engine, Path(tmp), timeout_s, repeats, setting,
+                                      cell_budget_s)
                     if charged:
                         budget.charge(runs[-1])
                     ok = [r for r in runs if r["status"] == "ok"]
