@@ -604,8 +604,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               quick: Annotated[bool, typer.Option(
                   "--quick", help="A first look: natcoord, mujoco and pinocchio (or "
                   "--engines), every cell timed by its accuracy run (no bench process), no "
-                  "work-precision sweeps, no speed gate; not recorded in the history, "
-                  "reports/latest not moved.")] = False):
+                  "sweeps, no speed gate; not recorded in the history, reports/latest not "
+                  "moved.")] = False):
     """The nightly job: run all, bench, report, gate (accuracy, and speed against the
     history), record history; reports/latest then points at it. Exits with the gate's code
     (4: a significant slowdown). Bench policy: natcoord measured every night, another

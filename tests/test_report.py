@@ -276,7 +276,7 @@ def test_sparse_records(tmp_path):
     (tmp_path / "results" / "c1" / "newengine.csv").write_text("t,q\n0,1\n1,2\n")
     (tmp_path / "results" / "c1" / "natcoord.csv").write_text("")
     html = write_report(tmp_path, references=tmp_path / "none").read_text(encoding="utf-8")
-    assert "newengine" in html and 'class="cell failed"' in html
+    assert "newengine" in html and 'class="cell failed' in html
     assert "No reference for this case yet" in html
 
 

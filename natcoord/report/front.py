@@ -16,6 +16,8 @@ LOG_RANGE = (-14.0, -2.0)
 VIRIDIS = ("#fde725", "#90d743", "#35b779", "#21918c", "#31688e", "#443983", "#440154")
 
 
+SHORT = {"unsupported": "unsupp.", "no reference": "no ref."}  # accuracy-map words
+
 def worst_motion(rec: dict | None) -> tuple[float | None, str]:
     """(worst relative error, channel) over a run's gated motion channels: determined
     angle / position / velocity / acceleration channels with a tolerance."""
@@ -62,14 +64,15 @@ def accuracy_map(by_key: dict, cases: list[str], engines: list[str], cell_for: C
             rec = by_key.get((case, e))
             c = cell_for(rec)
             v, ch = worst_motion(rec) if c["key"] in ("pass", "fail") else (None, "")
-            if v is None:
-                cells.append({"engine": e, "css": c["css"], "text": c["label"], "mark": "",
+            if v is None:  # a short word in the cell (the map stays within a window)
+                cells.append({"engine": e, "css": c["css"] + " map", "mark": "",
+                              "text": SHORT.get(c["label"], c["label"]),
                               "style": "", "title": f"{e} · {c['label']}"
                               + (f": {c['reason']}" if c["reason"] else "")})
                 continue
             bg, fg = colour(v)
             ok = c["key"] == "pass"
-            cells.append({"engine": e, "css": ("pass" if ok else "fail") + " acc",
+            cells.append({"engine": e, "css": ("pass" if ok else "fail") + " acc map",
                           "text": fmt_num(v), "mark": "✓" if ok else "✗",
                           "style": f"background:{bg};color:{fg}",
                           "title": f"{e} · {c['label']}: worst relative error {fmt_num(v)} "

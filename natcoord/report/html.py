@@ -434,7 +434,7 @@ def _channel_cell(ch: dict | None, rec: dict) -> dict:
     sub = []
     if tol is not None:
         sub.append(f"tol {fmt_num(tol, unit)}")
-    rel_text = f"; {fmt_num(rel)} of the channel’s range" if rel is not None else ""
+    rel_text = f"; {fmt_num(rel)} of its range" if rel is not None else ""
     if ch.get("determined") is False:
         css, title = "undet", "undetermined redundant reaction: shown, not gated"
         sub.append("not gated")

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-MAX_POINTS = 600  # samples per plotted series (about one per pixel of a figure's width)
+MAX_POINTS = 400  # samples per plotted series (about one per pixel of a figure's width)
 
 
 def stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
@@ -31,7 +31,7 @@ def minmax(t: np.ndarray, y: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarra
     """Downsample a curve (T,) to at most m samples that keep its envelope: each of m/2
     buckets gives its smallest and largest value (the earlier one first), drawn at the
     bucket's first and last sample time (so every series on the same times shares one
-    time axis; a value moves by less than a bucket, 1/300 of the span); NaN stays NaN."""
+    time axis; a value moves by less than a bucket, 1/200 of the span); NaN stays NaN."""
     t, y = series(t), series(y)
     n = len(y)
     if n <= m:
