@@ -804,7 +804,7 @@ def _policy_line(plan, budget_s: float) -> str:
                  f"{dates[0]}{' to ' + dates[-1] if dates[-1] != dates[0] else ''})")
     if plan.timed:
         text += (f", {len(plan.timed)} timed by their accuracy run (one run longer than a "
-                 "bench cell's timing budget)")
+                 "nightly cell's timing budget)")
     return text
 
 
