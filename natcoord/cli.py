@@ -693,8 +693,11 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                              if k not in run_timed}}
             phases["bench"] = clock.clock()
             if catalogue:
+                swept = {(p.get("case"), p.get("engine")) for p in plan.kept}  # a reused
+                # cell without points (its night's budget ran out) is swept when it can be
                 _nightly_sweeps(bench_result, catalogue, names, references, timeout,
-                                set(plan.reuse) | set(run_timed), plan.kept, clock, budget)
+                                (set(plan.reuse) & swept) | set(run_timed), plan.kept, clock,
+                                budget)
                 phases["work-precision"] = clock.clock()
             bench_result["policy"]["spent_s"] = round(budget.spent, 1)
             if not quick:
