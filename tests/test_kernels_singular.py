@@ -78,7 +78,7 @@ def _with_extra_forces(model: Model, rng) -> Model:
     G = crank.G
     bodies = {**model.bodies, "rod": dataclasses.replace(crank, name="rod", G=G[:1]),
               "pair": dataclasses.replace(crank, name="pair", G=np.stack([G[0], 2.0 * G[0]]))}
-    torques = tuple((b, rng.normal(size=3)) for b in ("crank", "rod", "pair", "coupler"))
+    torques = tuple((b, rng.normal(size=3), None) for b in ("crank", "rod", "pair", "coupler"))
     springs = tuple(Spring(f"s{k}", rng.normal(size=(3, model.n + 1)),
                            rng.normal(size=(3, model.n + 1)), 1e3 * rng.random(),
                            10.0 * rng.random(), rng.random()) for k in range(3))
@@ -116,7 +116,7 @@ def test_forces_of_2d_model_and_unknown_force_models():
     custom = Custom(**{f.name: getattr(nm, f.name) for f in dataclasses.fields(nm)})
     assert compiled_forces(custom) is None
     assert not Index1Loop(custom, {}, Counters()).compiled_candidate("dop853", None)
-    bad = dataclasses.replace(nm, torques=(("135", np.ones(3)),))  # 3-D torque in 2-D
+    bad = dataclasses.replace(nm, torques=(("135", np.ones(3), None),))  # 3-D torque in 2-D
     assert compiled_forces(bad) is None
 
 
