@@ -203,7 +203,7 @@ def test_front_page_answers(front_page, real_run):
     for r in summary["records"]:
         v, _ = worst_motion(r)
         assert v is not None and r["verdict"] == "pass"
-        cell = re.search(rf'<td class="cell pass acc" style="background:{colour(v)[0]};'
+        cell = re.search(rf'<td class="cell pass acc map" style="background:{colour(v)[0]};'
                          rf'[^"]*" title="{r["engine"]} · pass: worst relative error ', html)
         assert cell, (r["case"], r["engine"])
     assert html.count('<span class="mark">✓</span>') == len(summary["records"])
