@@ -248,7 +248,7 @@ def resultant(model, t, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray) -> np.nd
     t, q, qd, qdd (n,), or (T, n) along samples t (T,), q, qd, qdd (T, n)."""
     if np.ndim(q) == 1:
         return model.forces(t, q, qd) - model.M @ qdd
-    if getattr(model, "torques", ()) or getattr(model, "springs", ()):
+    if any(getattr(model, k, ()) for k in ("torques", "springs", "body_forces")):
         F = np.array([model.forces(*x) for x in zip(t, q, qd, strict=True)])
     else:
         F = np.broadcast_to(model.Q0, np.shape(q))
