@@ -17,8 +17,8 @@ import os
 import pickle
 import queue
 import tempfile
+import threading
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 from ..errors import NatcoordError
@@ -55,10 +55,13 @@ class Cores:
 
 
 def local(jobs, engines, out: Path, timeout_s: float, workers: int,
-          first: dict | None = None) -> Iterator[tuple]:
+          first: dict | None = None, before: dict | None = None) -> Iterator[tuple]:
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
-    no long run is left to the end while the other cores idle)."""
+    no long run is left to the end while the other cores idle). ``before``: ``{engine:
+    [command, ...]}``, processes that prepare an engine (natcoord's compiled loops: see
+    :mod:`natcoord.suite.warm`); they start first, and that engine's runs wait for all of
+    them while the other engines' runs go on (so that no two runs compile the same loop)."""
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
@@ -66,25 +69,93 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
         for i, (job, engine) in enumerate(todo):
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
-    pool = ThreadPoolExecutor(max_workers=workers)
     order = sorted(range(len(todo)), key=lambda i: -(first or {}).get(
         (todo[i][0].case.name, todo[i][1]), 0.0))
+    board = _Board(order, {e: list(c) for e, c in (before or {}).items()
+                           if c and e in engines}, lambda i: todo[i][1])
     cores = Cores(workers)
+    done: queue.SimpleQueue = queue.SimpleQueue()
 
-    def run(job, engine):
-        with cores.one() as cpu:
-            return run_subprocess(job, engine, out, timeout_s, cpu=cpu)
+    def work():
+        while (task := board.take()) is not None:
+            kind, x = task
+            try:
+                with cores.one() as cpu:
+                    if kind == "before":
+                        _prepare(x, cpu, timeout_s)
+                    else:
+                        done.put((x, run_subprocess(todo[x][0], todo[x][1], out, timeout_s,
+                                                    cpu=cpu)))
+            except BaseException as e:  # noqa: BLE001 - handed to the caller's thread
+                done.put((x if kind == "cell" else None, e))
+            finally:
+                board.finished(kind, x)
 
-    futures = {pool.submit(run, todo[i][0], todo[i][1]): i for i in order}
+    threads = [threading.Thread(target=work, daemon=True) for _ in range(workers)]
+    for t in threads:
+        t.start()
     try:
-        for f in as_completed(futures):
-            yield futures[f], f.result()
+        for _ in range(len(todo)):
+            i, rec = done.get()
+            if isinstance(rec, BaseException):
+                raise rec
+            yield i, rec
     except BaseException:  # an interruption: stop what waits, then what runs
-        pool.shutdown(wait=False, cancel_futures=True)
+        board.stop()
         kill_all()
         raise
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        board.stop()
+        for t in threads:
+            t.join()
+
+
+class _Board:
+    """The work of :func:`local`: preparing processes first, then the runs in ``order``;
+    the runs of an engine with preparing processes only once all of them have finished."""
+
+    def __init__(self, order: list[int], before: dict[str, list], engine_of):
+        self.cond = threading.Condition()
+        self.pre = [c for cmds in before.values() for c in cmds]
+        self.waiting = set(before)  # engines whose runs wait
+        self.pre_left = len(self.pre)
+        self.order, self.engine_of, self.stopped = list(order), engine_of, False
+
+    def take(self):
+        """The next task, ``("before", command)`` or ``("cell", index)``; None: no more."""
+        with self.cond:
+            while not self.stopped:
+                if self.pre:
+                    return "before", self.pre.pop(0)
+                for k, i in enumerate(self.order):
+                    if self.pre_left == 0 or self.engine_of(i) not in self.waiting:
+                        return "cell", self.order.pop(k)
+                if not self.order:
+                    return None
+                self.cond.wait()
+            return None
+
+    def finished(self, kind: str, _) -> None:
+        with self.cond:
+            if kind == "before":
+                self.pre_left -= 1
+                self.cond.notify_all()
+
+    def stop(self) -> None:
+        with self.cond:
+            self.stopped = True
+            self.cond.notify_all()
+
+
+def _prepare(command: list[str], cpu: int | None, timeout_s: float) -> None:
+    """Run one preparing process; its failure only costs the runs the time it would have
+    saved (each run still prepares what it needs itself)."""
+    from .runner import run_command
+
+    try:
+        run_command(command, timeout_s, cpu)
+    except Exception:  # noqa: BLE001 - a time limit, a stopping command, an OS error
+        pass
 
 
 def remote_run(job_bytes: bytes, engine: str, timeout_s: float) -> dict:

@@ -107,9 +107,40 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     cmd, env = worker_command(job_file, out)
     timeout_s = time_limit(case, timeout_s) * max(1, repeat)
     t0 = time.perf_counter()
-    if _STOPPING.is_set():
-        job_file.unlink(missing_ok=True)
+    try:
+        returncode, err = run_command(cmd, timeout_s, cpu, env)
+    except subprocess.TimeoutExpired:
+        return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
+    except _Stopping:
         return _failed(case, engine, "not started: the command is stopping")
+    finally:
+        job_file.unlink(missing_ok=True)
+    record_file = folder / f"{engine}.json"
+    if returncode != 0 or not record_file.exists():
+        if returncode and returncode < 0:
+            why = f"engine process killed by signal {signal.Signals(-returncode).name}"
+        else:
+            why = f"engine process exited with status {returncode}"
+        tail = "\n".join((err or "").strip().splitlines()[-3:])
+        return _failed(case, engine, f"{why}{': ' + tail if tail else ''}")
+    record = read_json(record_file)
+    record["process_time_s"] = time.perf_counter() - t0
+    return record
+
+
+class _Stopping(Exception):
+    """The command is stopping (:func:`kill_all`): no new process starts."""
+
+
+def run_command(cmd: list[str], timeout_s: float, cpu: int | None = None,
+                env: dict | None = None) -> tuple[int, str]:
+    """Run a child process of this command (killed with it, by :func:`kill_all`, or after
+    ``timeout_s``: subprocess.TimeoutExpired); ``cpu``: pin it to that core. Returns its
+    exit status and standard error. The environment defaults to an engine process's."""
+    if env is None:
+        env = worker_command(Path("-"), Path("-"))[1]
+    if _STOPPING.is_set():
+        raise _Stopping
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env, start_new_session=True,
                             preexec_fn=lambda: _die_with_parent(cpu))
@@ -121,26 +152,13 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     except subprocess.TimeoutExpired:
         _kill(proc)
         proc.communicate()
-        job_file.unlink(missing_ok=True)
-        return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
+        raise
     except BaseException:  # Ctrl-C, SIGTERM (see natcoord.cli), an error: no orphan worker
         _kill(proc)
-        job_file.unlink(missing_ok=True)
         raise
     finally:
         _LIVE.discard(proc)
-    job_file.unlink(missing_ok=True)
-    record_file = folder / f"{engine}.json"
-    if proc.returncode != 0 or not record_file.exists():
-        if proc.returncode and proc.returncode < 0:
-            why = f"engine process killed by signal {signal.Signals(-proc.returncode).name}"
-        else:
-            why = f"engine process exited with status {proc.returncode}"
-        tail = "\n".join((err or "").strip().splitlines()[-3:])
-        return _failed(case, engine, f"{why}{': ' + tail if tail else ''}")
-    record = read_json(record_file)
-    record["process_time_s"] = time.perf_counter() - t0
-    return record
+    return proc.returncode, err or ""
 
 
 def _die_with_parent(cpu: int | None = None) -> None:  # pragma: no cover - in the child
@@ -221,7 +239,7 @@ def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
     ``scheduler`` (see :mod:`natcoord.suite.parallel`; ``first``: expected seconds per
     (case, engine), the longest started first here). Records keep the order of the cells
     whatever order they finish in."""
-    from . import parallel
+    from . import parallel, warm
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -229,8 +247,10 @@ def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
     prepared = [as_job(c) for c in cases]
     todo = parallel.cells(prepared, engines)
     found: dict[int, dict] = {}
+    before = {warm.ENGINE: warm.commands(prepared)} if jobs > 1 else {}
     runs = (parallel.distributed(prepared, engines, out, timeout_s, scheduler, _failed)
-            if scheduler else parallel.local(prepared, engines, out, timeout_s, jobs, first))
+            if scheduler else parallel.local(prepared, engines, out, timeout_s, jobs, first,
+                                             before))
     for i, raw in runs:
         case, engine = todo[i][0].case, todo[i][1]
         found[i] = compare_record(case, raw, out, references)
