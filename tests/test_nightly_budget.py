@@ -10,11 +10,13 @@ import os
 import sqlite3
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
 from natcoord.suite import eta, policy
 
+ROOT = Path(__file__).resolve().parents[1]
 NOW = dt.datetime(2026, 11, 26, 12, tzinfo=dt.UTC)
 
 
@@ -248,6 +250,17 @@ def test_with_no_budget_left_the_external_cell_is_timed_by_its_accuracy_run(tmp_
     assert b["policy"]["budget_s"] == 0 and b["policy"]["spent_s"] == 0
     assert list(b["policy"]["timed_by_accuracy_run"]) == ["slider_crank_3d/mujoco"]
     assert {p["engine"] for p in b["work_precision"]} == {"natcoord"}
+    # scored all the same, from the accuracy run: its benchmark error and stepping time
+    from natcoord.case.casefile import load_case
+    from natcoord.suite.bench import benchmark_error
+    score = {x["engine"]: x for x in b["scoring"]}["mujoco"]
+    err = benchmark_error(load_case(ROOT / "cases" / "slider_crank_3d.toml"),
+                          tmp_path / "n" / "results" / "slider_crank_3d" / "mujoco.csv",
+                          ROOT / "references")
+    assert score["error"] == run["mujoco"]["benchmark_error"] == err
+    assert 0 < err <= score["precision"]
+    assert score["time_to_precision"] == run["mujoco"]["wall_time_s"]
+    assert score["reached_by"] == "case settings (accuracy run)"
     with sqlite3.connect(db) as con:
         rows = con.execute("SELECT engine, COUNT(*) FROM bench GROUP BY engine").fetchall()
     assert dict(rows) == {"natcoord": 1}

@@ -409,8 +409,9 @@ def scoring(cases: Sequence[Case], records: list[dict], points: list[dict]) -> l
     """IFToMM-style scoring, per case with a ``[benchmark]`` x engine: the benchmark error at
     the case's settings (``error``, from the bench record), and the least wall time of a run
     within the benchmark's precision (``time_to_precision``: over the case's settings, best
-    of the bench's repeats, and every work-precision sweep point, each timed once; None:
-    not reached) with the setting that reached it (``reached_by``)."""
+    of the bench's repeats or, for a cell the bench did not time, the stepping time of its
+    accuracy run; and every work-precision sweep point, each timed once; None: not reached)
+    with the setting that reached it (``reached_by``)."""
     out = []
     for case in (c.case if hasattr(c, "case") else c for c in cases):
         spec = case.benchmark
@@ -425,7 +426,9 @@ def scoring(cases: Sequence[Case], records: list[dict], points: list[dict]) -> l
             cand = []
             if r.get("status") == "ok" and err is not None and err <= prec and r.get(
                     "wall_time_s"):
-                cand.append((r["wall_time_s"], "case settings"))
+                cand.append((r["wall_time_s"], "case settings" + (
+                    f" ({r['timed_by'].get('run', 'accuracy run')})" if r.get("timed_by")
+                    else "")))
             for p in points:
                 e = p.get("benchmark_error")
                 if (p.get("case"), p.get("engine")) == (case.name, engine) and (

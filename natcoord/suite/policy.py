@@ -162,7 +162,8 @@ def from_run(run: dict, why: str) -> dict:
             "settings": run.get("settings") or {},
             "counters": {k: counters[k] for k in bench.COUNTERS
                          if isinstance(counters.get(k), (int, float))},
-            "timed_by": {"run": "accuracy run", "why": why}}
+            "timed_by": {"run": "accuracy run", "why": why}} | (
+        {"benchmark_error": run["benchmark_error"]} if "benchmark_error" in run else {})
 
 
 def _cost(run: dict, repeats: int) -> float:

@@ -226,6 +226,10 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
         # one unreadable result fails its own cell, never the whole run
         return {**record, "status": "failed", "channels": {}, "verdict": "n/a",
                 "reason": f"results of this run could not be compared: {e}"}
+    if case.benchmark:  # the IFToMM-style score's error (natcoord.suite.bench.scoring)
+        from .bench import benchmark_error
+        record["benchmark_error"] = benchmark_error(
+            case, out / "results" / case.name / f"{record['engine']}.csv", references)
     return {**record, "files": files, **judged}
 
 
