@@ -7,8 +7,9 @@ model the walk costs more than the arithmetic: this module writes those lists ou
 Python source with one statement per entry -- constants folded (M^-1 Q0, the rows'
 coefficients), W factored as L D L^T without square roots and the factor's structural zeros
 dropped, no index array, no loop --
-and compiles it with numba into six C-callable functions (``cfunc``) of one signature
-each, whatever the model:
+and compiles it to machine code (:mod:`natcoord.compiled.native`: through LLVM, in well under
+a second; numba's ``cfunc`` where the source leaves the translator's subset) as six
+C-callable functions of one signature each, whatever the model:
 
     phi(q, out)              out (m,) = Phi(q), every row summed in two doubles
     refactor(q, ws) -> int   J, Y = M^-1 J^T and L D L^T = J Y at q into ws; dependent rows
@@ -478,6 +479,7 @@ SIGNATURES = {"phi": "types.void(P, P)", "refactor": "types.int64(P, P)",
               "rhs": "types.void(P, P, P, P)", "newton": "types.void(P, P, P)",
               "jx": "types.float64(P, P, P)", "acc": "types.void(P, P, P, P)"}
 NAMES = tuple(SIGNATURES)
+RETURNS = {k: v.split("(")[0].removeprefix("types.") for k, v in SIGNATURES.items()}
 
 
 def source(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> str:
@@ -519,6 +521,14 @@ def load(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> np.ndarray
     if not supported(plan, frc):
         return None
     text = source(plan, frc, M)
+    try:  # straight to machine code through LLVM: well under a second
+        from . import native
+        addresses = native.load(text, RETURNS, cache_dir())
+        return np.array([addresses[k] for k in NAMES], np.int64)
+    except NotImplementedError:  # outside the translator's subset: numba compiles it
+        pass
+    except OSError:
+        return None
     import numba
     digest = hashlib.sha1((text + numba.__version__).encode()).hexdigest()[:20]
     name = f"natcoord_kernels_{digest}"
