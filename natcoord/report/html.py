@@ -28,10 +28,8 @@ from typing import Any
 import jinja2
 import numpy as np
 import pandas as pd
-import plotly.graph_objects as go
 import plotly.offline
 from markupsafe import Markup, escape
-from plotly.subplots import make_subplots
 
 from ..case.mechanism import FORCE_KINDS
 from ..engines import engine_names
@@ -291,10 +289,11 @@ def channel_figure(
     runs: dict[str, pd.DataFrame],
     colors: dict[str, str],
     undetermined: bool = False,
-) -> go.Figure:
-    """One figure per channel: values over the reference (dashed) and |error| (log)."""
+) -> dict:
+    """One figure per channel: values over the reference (dashed) and |error| (log), as a
+    plotly spec ``{"data", "layout"}`` (written as data: plotly's figure objects validate
+    every property, which cost most of a report's time)."""
     has_ref = ref is not None and name in ref.columns
-    has_err = False
     ref_t = ref_y = None
     if has_ref:
         ref_t = ref["t"].to_numpy(float)
@@ -308,20 +307,13 @@ def channel_figure(
                 e[e <= 0] = np.nan  # log axis: exact agreement is not drawable
                 if np.any(np.isfinite(e)):
                     errors[eng] = e
-                    has_err = True
-    rows = 2 if has_err else 1
-    if rows == 2:
-        fig = make_subplots(
-            rows=2, cols=1, shared_xaxes=True, vertical_spacing=0.07, row_heights=[0.6, 0.4]
-        )
-    else:
-        fig = go.Figure()
+    two = bool(errors)
+    data: list[dict] = []
 
-    def add(trace: go.Scatter, row: int) -> None:
-        if rows == 2:
-            fig.add_trace(trace, row=row, col=1)
-        else:
-            fig.add_trace(trace)
+    def add(trace: dict, row: int) -> None:
+        if two:
+            trace |= {"xaxis": "x" if row == 1 else "x2", "yaxis": "y" if row == 1 else "y2"}
+        data.append({"type": "scatter", "mode": "lines", **trace})
 
     for eng, df in runs.items():
         if name not in df.columns:
@@ -339,67 +331,52 @@ def channel_figure(
             hover = (f"{eng}: within {fmt_num(np.nanmax(err), unit)} of the reference"
                      "<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>")
         x, y = minmax(t, y)
-        add(
-            go.Scatter(
-                x=x, y=y, name=eng, mode="lines", legendgroup=eng,
-                line={"color": colors[eng], "width": 1.5}, hovertemplate=hover,
-            ),
-            1,
-        )
+        add({"x": x, "y": y, "name": eng, "legendgroup": eng,
+             "line": {"color": colors[eng], "width": 1.5}, "hovertemplate": hover}, 1)
     if has_ref:  # drawn last: its dashes stay visible over engines that agree with it
         x, y = minmax(ref_t, ref_y)
-        add(
-            go.Scatter(
-                x=x, y=y, name="reference", mode="lines",
-                legendgroup="reference",
-                line={"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
-                hovertemplate="reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>",
-            ),
-            1,
-        )
+        add({"x": x, "y": y, "name": "reference", "legendgroup": "reference",
+             "line": {"color": REFERENCE_COLOR, "dash": "dash", "width": 1.8},
+             "hovertemplate": "reference<br>t=%{x:.4g} s<br>%{y:.4g}<extra></extra>"}, 1)
     for eng, e in errors.items():
         te, ee = envelope(ref_t, e)
-        add(
-            go.Scatter(
-                x=series(te), y=series(ee), name=eng, mode="lines", legendgroup=eng,
-                showlegend=False, line={"color": colors[eng], "width": 1.2},
-                hovertemplate=f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>",
-            ),
-            2,
-        )
+        add({"x": series(te), "y": series(ee), "name": eng, "legendgroup": eng,
+             "showlegend": False, "line": {"color": colors[eng], "width": 1.2},
+             "hovertemplate": f"{eng} |error|<br>t=%{{x:.4g}} s<br>%{{y:.3g}}<extra></extra>"},
+            2)
     ulabel = f" [{unit}]" if unit else ""
     axis = {
         "showline": True, "linecolor": "#999", "ticks": "outside", "tickcolor": "#999",
         "gridcolor": "#e8e8e8", "zeroline": False, "mirror": True,
         "exponentformat": "power", "automargin": True,  # tick labels are never clipped
     }
-    fig.update_layout(
-        template="none",
-        height=FIG_HEIGHT,
-        margin={"l": 64, "r": 14, "t": 30, "b": 70},
-        font={"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif", "size": 12},
-        legend={"orientation": "h", "x": 0, "xanchor": "left", "y": -50 / (FIG_HEIGHT - 100),
-                "yanchor": "top", "font": {"size": 11}},
-        hovermode="closest",
-        paper_bgcolor="white",
-        plot_bgcolor="white",
-    )
-    fig.update_xaxes(**axis)
-    fig.update_yaxes(**axis)
-    if rows == 2:
-        fig.update_yaxes(title_text=f"{name}{ulabel}", row=1, col=1)
-        fig.update_yaxes(
-            title_text=f"|error|{ulabel}", type="log", row=2, col=1, exponentformat="power"
-        )
-        fig.update_xaxes(title_text="t [s]", row=2, col=1)
+    layout = {
+        "template": {"data": {"scatter": [{"type": "scatter"}]}},  # plotly's "none"
+        "height": FIG_HEIGHT,
+        "margin": {"l": 64, "r": 14, "t": 30, "b": 70},
+        "font": {"family": "system-ui, -apple-system, 'Segoe UI', Roboto, sans-serif",
+                 "size": 12},
+        "legend": {"orientation": "h", "x": 0, "xanchor": "left",
+                   "y": -50 / (FIG_HEIGHT - 100), "yanchor": "top", "font": {"size": 11}},
+        "hovermode": "closest", "paper_bgcolor": "white", "plot_bgcolor": "white",
+    }
+    if two:  # two rows sharing the time axis, 60 % / 40 % of the height, 7 % apart
+        layout |= {
+            "xaxis": {"anchor": "y", "domain": [0.0, 1.0], "matches": "x2",
+                      "showticklabels": False, **axis},
+            "yaxis": {"anchor": "x", "domain": [0.442, 1.0], **axis,
+                      "title": {"text": f"{name}{ulabel}"}},
+            "xaxis2": {"anchor": "y2", "domain": [0.0, 1.0], **axis,
+                       "title": {"text": "t [s]"}},
+            "yaxis2": {"anchor": "x2", "domain": [0.0, 0.372], **axis, "type": "log",
+                       "title": {"text": f"|error|{ulabel}"}}}
     else:
-        fig.update_yaxes(title_text=f"{name}{ulabel}")
-        fig.update_xaxes(title_text="t [s]")
-    if not fig.data:
-        fig.add_annotation(
-            text="no data", showarrow=False, xref="paper", yref="paper", x=0.5, y=0.5
-        )
-    return fig
+        layout |= {"xaxis": {**axis, "title": {"text": "t [s]"}},
+                   "yaxis": {**axis, "title": {"text": f"{name}{ulabel}"}}}
+    if not data:
+        layout["annotations"] = [{"text": "no data", "showarrow": False, "xref": "paper",
+                                  "yref": "paper", "x": 0.5, "y": 0.5}]
+    return {"data": data, "layout": layout}
 
 
 # ---------------------------------------------------------------- building the page

@@ -93,7 +93,10 @@ def decoded(node: dict) -> np.ndarray:
 
 
 def _compact(node: Any) -> Any:
-    """A figure's spec with every float typed array in the stored form."""
+    """A figure's spec with every float typed array (plotly's form, or a float array of a
+    spec written as data) in the stored form."""
+    if isinstance(node, np.ndarray) and node.dtype.kind == "f" and node.ndim == 1:
+        return encode(node)
     if isinstance(node, dict):
         if isinstance(node.get("bdata"), str):
             y = _decode(node)
@@ -116,13 +119,15 @@ class FigureStore:
         self.prefix = prefix
         self.specs: dict[str, dict] = {}
 
-    def add(self, fig: go.Figure, config: dict, height: int | None = None) -> dict:
-        """Payload of one figure: ``{"id", "height" (px)}``."""
-        spec = json.loads(pio.to_json(fig, validate=False))
+    def add(self, fig: go.Figure | dict, config: dict, height: int | None = None) -> dict:
+        """Payload of one figure (a plotly figure, or its spec ``{"data", "layout"}`` with
+        numpy arrays): ``{"id", "height" (px)}``."""
+        spec = fig if isinstance(fig, dict) else json.loads(pio.to_json(fig, validate=False))
         fid = f"{self.prefix}-{len(self.specs) + 1}"
-        self.specs[fid] = {"data": _compact(spec.get("data", [])),
-                           "layout": spec.get("layout", {}), "config": config}
-        return {"id": fid, "height": height or int(fig.layout.height or 450)}
+        layout = spec.get("layout", {})
+        self.specs[fid] = {"data": _compact(spec.get("data", [])), "layout": layout,
+                           "config": config}
+        return {"id": fid, "height": height or int(layout.get("height") or 450)}
 
     def blob(self) -> Markup:
         return Markup(to_text(pack(self.specs)))

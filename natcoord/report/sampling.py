@@ -22,9 +22,18 @@ def series(a) -> np.ndarray:
     return np.asarray(a, dtype=float)
 
 
-def _buckets(n: int, k: int) -> list[tuple[int, int]]:
+def _buckets(n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(first, end) indices (K,) of k near-equal buckets of n samples, the empty dropped."""
     edges = np.linspace(0, n, k + 1).astype(int)
-    return [(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+    keep = edges[1:] > edges[:-1]
+    return edges[:-1][keep], edges[1:][keep]
+
+
+def _first(y: np.ndarray, value: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per bucket [a, b), the index of the first sample equal to its ``value``."""
+    which = np.repeat(np.arange(len(a)), b - a)
+    idx = np.where(y == value[which], np.arange(len(y)), len(y))
+    return np.minimum.reduceat(idx, a)
 
 
 def minmax(t: np.ndarray, y: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarray, np.ndarray]:
@@ -36,17 +45,13 @@ def minmax(t: np.ndarray, y: np.ndarray, m: int = MAX_POINTS) -> tuple[np.ndarra
     n = len(y)
     if n <= m:
         return t, y
-    xs, ys = [], []
-    for a, b in _buckets(n, m // 2):
-        seg = y[a:b]
-        if np.all(np.isnan(seg)):
-            pair = (np.nan, np.nan)
-        else:
-            lo, hi = int(np.nanargmin(seg)), int(np.nanargmax(seg))
-            pair = (seg[lo], seg[hi]) if lo <= hi else (seg[hi], seg[lo])
-        xs += [t[a], t[b - 1]]
-        ys += pair
-    return np.asarray(xs), np.asarray(ys)
+    a, b = _buckets(n, m // 2)
+    with np.errstate(invalid="ignore"):
+        lo, hi = np.fmin.reduceat(y, a), np.fmax.reduceat(y, a)  # NaN: the bucket's all NaN
+    later = _first(y, lo, a, b) > _first(y, hi, a, b)  # the minimum after the maximum
+    first, second = np.where(later, hi, lo), np.where(later, lo, hi)
+    return (np.column_stack([t[a], t[b - 1]]).ravel(),
+            np.column_stack([first, second]).ravel())
 
 
 def envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS // 2
@@ -57,9 +62,6 @@ def envelope(t: np.ndarray, e: np.ndarray, m: int = MAX_POINTS // 2
     n = len(e)
     if n <= m:
         return t, e
-    xs, ys = [], []
-    for a, b in _buckets(n, m):
-        seg = e[a:b]
-        xs.append(t[b - 1])
-        ys.append(np.nan if np.all(np.isnan(seg)) else np.nanmax(seg))
-    return np.asarray(xs, dtype=float), np.asarray(ys, dtype=float)
+    a, b = _buckets(n, m)
+    with np.errstate(invalid="ignore"):
+        return series(t)[b - 1], np.fmax.reduceat(series(e), a)
