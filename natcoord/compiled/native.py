@@ -218,17 +218,24 @@ class _Function:
 
 
 def _kinds(node: ast.FunctionDef) -> dict:
-    """Every local name's type: int64 when its first assignment is an integer literal,
-    else double."""
+    """Every local name's type: int64 when every value given to it is an integer literal
+    (``dep = 0``, ``dep += 1``), else double (numba unifies the same way)."""
     kinds: dict[str, ir.Type] = {}
+
+    def give(target: ast.expr, value: ast.expr | None) -> None:
+        names = target.elts if isinstance(target, ast.Tuple) else [target]
+        for name in names:
+            if isinstance(name, ast.Name):
+                lit = (isinstance(value, ast.Constant) and type(value.value) is int
+                       and not isinstance(target, ast.Tuple))
+                kinds[name.id] = I64 if lit and kinds.get(name.id, I64) == I64 else D
+
     for st in ast.walk(node):
         if isinstance(st, ast.Assign):
             for t in st.targets:
-                names = t.elts if isinstance(t, ast.Tuple) else [t]
-                for name in names:
-                    if isinstance(name, ast.Name) and name.id not in kinds:
-                        lit = isinstance(st.value, ast.Constant) and type(st.value.value) is int
-                        kinds[name.id] = I64 if lit else D
+                give(t, st.value)
+        elif isinstance(st, ast.AugAssign):
+            give(st.target, st.value)
     return kinds
 
 
@@ -261,6 +268,7 @@ def _object_code(ir_text: str) -> bytes:
     mod = llvm.parse_assembly(ir_text)
     mod.verify()
     tm = _target_machine()
+    mod.data_layout = str(tm.target_data)
     pto = llvm.create_pipeline_tuning_options(speed_level=3)
     pb = llvm.create_pass_builder(tm, pto)
     pb.getModulePassManager().run(mod, pb)
