@@ -12,6 +12,7 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from types import SimpleNamespace
 
 from natcoord.case.casefile import load_case
 from natcoord.suite import parallel, warm
@@ -91,3 +92,15 @@ def test_two_at_a_time_with_preparation_gives_the_serial_results(tmp_path):
     assert [(r["case"], r["engine"], r["status"], r["verdict"])
             for r in two["records"]] == key
     assert all(r["status"] == "ok" for r in two["records"])
+
+
+def test_the_longest_expected_start_first_and_among_unknowns_the_largest_case():
+    jobs = [SimpleNamespace(case=load_case(CASES / f"{n}.toml"))
+            for n in ("four_bar", "a01_pendulum", "a02_four_bar_n40")]
+    todo = parallel.cells(jobs, ["natcoord", "mujoco"])
+    names = lambda order: [(todo[i][0].case.name, todo[i][1]) for i in order]  # noqa: E731
+    assert names(parallel._order(todo, {}))[:4] == [  # 2000 s x 2 bodies, 20 s x 82
+        ("a01_pendulum", "natcoord"), ("a01_pendulum", "mujoco"),
+        ("a02_four_bar_n40", "natcoord"), ("a02_four_bar_n40", "mujoco")]
+    assert names(parallel._order(todo, {("four_bar", "mujoco"): 9.0}))[0] == (
+        "four_bar", "mujoco")

@@ -58,7 +58,8 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
           first: dict | None = None, before: dict | None = None) -> Iterator[tuple]:
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
-    no long run is left to the end while the other cores idle). ``before``: ``{engine:
+    no long run is left to the end while the other cores idle; among equals, the largest
+    case). ``before``: ``{engine:
     [command, ...]}``, processes that prepare an engine (natcoord's compiled loops: see
     :mod:`natcoord.suite.warm`); they start first, and that engine's runs wait for all of
     them while the other engines' runs go on (so that no two runs compile the same loop)."""
@@ -69,9 +70,7 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
         for i, (job, engine) in enumerate(todo):
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
-    order = sorted(range(len(todo)), key=lambda i: -(first or {}).get(
-        (todo[i][0].case.name, todo[i][1]), 0.0))
-    board = _Board(order, {e: list(c) for e, c in (before or {}).items()
+    board = _Board(_order(todo, first), {e: list(c) for e, c in (before or {}).items()
                            if c and e in engines}, lambda i: todo[i][1])
     cores = Cores(workers)
     done: queue.SimpleQueue = queue.SimpleQueue()
@@ -108,6 +107,19 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
         board.stop()
         for t in threads:
             t.join()
+
+
+def _order(todo: list[tuple], first: dict | None) -> list[int]:
+    """Indices of ``todo`` ((job, engine) cells), the longest expected first."""
+    return sorted(range(len(todo)), key=lambda i: (-(first or {}).get(
+        (todo[i][0].case.name, todo[i][1]), 0.0), -_size(todo[i][0].case)))
+
+
+def _size(case) -> float:
+    """A run's size before any was measured (simulated seconds x bodies): among runs
+    expected to take equally long (none measured on this machine), the largest start
+    first."""
+    return float(case.duration) * (1 + len(case.bodies))
 
 
 class _Board:
