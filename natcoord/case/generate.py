@@ -26,7 +26,8 @@ from ..errors import NatcoordError
 # fixed RK4 steps of 1 ms projected to round-off (adaptive dop853 on these coordinates
 # stalls at a singular pass from N = 64: step-size underflow at t = 2.69 s at rtol 5e-12,
 # 4.65 s at 1e-12). Measured over 10 s (10 singular passes) against the exact reduction:
-# B0 1.39e-9 m (N = 8), 1.37e-9 (16), 1.33e-9 (64); h 1.5 ms 7.6e-9 m, 2 ms 3.8e-8 m.
+# B0 1.39e-9 m (N = 8), 1.37e-9 (16), 1.33e-9 (64), 1.25e-9 (512); at N = 8 h 1.5 ms
+# 7.6e-9 m, 2 ms 3.8e-8 m.
 N_FOUR_BAR_LINEAR = ('{ coordinates = "joints", method = "rk4", h = 1e-3, linsolve = '
                      '"schur", project_tol = 1e-14, reference = { method = "rk4", h = 5e-4, '
                      'linsolve = "schur", project_tol = 1e-14 }, reference_check = { '
@@ -291,7 +292,7 @@ def n_four_bar(n: int, *, name: str | None = None, duration: float | None = None
     measured = N_FOUR_BAR_MEASURED.get(n if duration == (20.0 if n == 40 else 10.0) else -1)
     if measured is None:
         lines += ["# natcoord: the linear-cost settings (joints, RK4 h 1 ms), within 1.4e-9 m of",
-                  "# the exact reduction for N = 8, 16 and 64; the other engines' settings as",
+                  "# the exact reduction for N = 8 to 512; the other engines' settings as",
                   f"# measured for N = 2 and 40. Tolerances for N = {n} are not measured: run",
                   "# the case and add tolerance blocks with their reasons.",
                   ""]
