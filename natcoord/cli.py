@@ -495,12 +495,14 @@ def _scaling(sizes: str, quiet: bool = False) -> dict:
     say(f"scaling: natcoord on N-four-bars N = {', '.join(map(str, ns))}")
     result = scaling.scaling(ns)
     table = Table(title=f"natcoord cost per step by size ({result['method']})")
-    for col in ("N", "coordinates", "rows", "build s", "plan s", "us/step", "us/rhs"):
+    for col in ("N", "coordinates", "rows", "build s", "plan s", "steps", "us/step",
+                "us/rhs", "s per simulated s", "B0 error m"):
         table.add_column(col)
     for r in result["records"]:
         table.add_row(str(r["N"]), str(r["n"]), str(r["m"]), f"{r['build_time_s']:.2f}",
-                      f"{r['plan_time_s']:.3f}", f"{r['us_per_step']:.1f}",
-                      f"{r['us_per_rhs']:.2f}")
+                      f"{r['plan_time_s']:.3f}", str(r["steps"]), f"{r['us_per_step']:.1f}",
+                      f"{r['us_per_rhs']:.2f}", f"{r['s_per_simulated_s']:.3g}",
+                      f"{r['error_m']:.2g}")
     say(table)
     if "step_cost_ratio" in result:
         say(f"cost per step grew {result['step_cost_ratio']:.1f}x for {result['size_ratio']:g}x "

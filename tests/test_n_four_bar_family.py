@@ -1,0 +1,97 @@
+"""Generated N-four-bars (IFToMM A02 for any N) run whole at the generator's settings: the
+singular positions passed, the exact reduction matched, a cost per step linear in N
+(asserted on the sparsity plan's sizes, never by timing), and `bench --scaling` measuring
+those same runs."""
+
+from __future__ import annotations
+
+import tomllib
+
+import numpy as np
+import pytest
+
+from natcoord import evaluate_channels
+from natcoord.case.generate import N_FOUR_BAR_MEASURED, n_four_bar
+from natcoord.compiled import sparsity
+from natcoord.derivations import exact
+from natcoord.engines import adapter
+from natcoord.engines.base import initial_body_states
+from natcoord.model import casemodel
+from natcoord.model.drivers import ConstraintSystem
+from natcoord.suite import scaling
+
+
+def test_a_generated_n_four_bar_passes_its_singular_positions_on_the_exact_solution():
+    """N = 8 (an N no one measured) for 3 s, three singular passes (Phi_q loses rank 8),
+    run whole by natcoord's engine at the generated settings: B0 within 1e-8 m of the
+    one-equation reduction (measured 2.5e-10 m; over 10 s 1.4e-9 m)."""
+    case = scaling.generated_case(8, duration=3.0)
+    run = adapter("natcoord").run(case, initial_body_states(case),
+                                  case.engine("natcoord").settings)
+    df = evaluate_channels(case, run.motion)
+    ex = exact.n_four_bar(8, case.times)
+    assert np.sum(np.diff(np.floor(ex["phi"] / np.pi)) != 0) == 3
+    for c, k in (("x_B0", "x"), ("y_B0", "y")):
+        assert np.max(np.abs(df[c].to_numpy() - ex[k])) < 1e-8, c
+    assert run.n_steps == 3000  # fixed 1 ms steps: no stall at the passes
+
+
+@pytest.mark.parametrize("n", [3, 7, 40, 64, 512])
+def test_the_generator_writes_the_linear_cost_path_for_an_unmeasured_n(n):
+    """Every body its own points (M block-diagonal), the Schur path, fixed RK4 steps; no
+    tolerance claimed for any engine at an N nobody measured (N = 40 for 10 s included:
+    only its 20 s member is measured). The file's text is read (loading a large member
+    runs the loader's dense model checks, minutes at N = 512)."""
+    engines = tomllib.loads(n_four_bar(n, duration=10.0))["engines"]
+    s = engines["natcoord"]["settings"]
+    assert (s["coordinates"], s["method"], s["h"], s["linsolve"]) == (
+        "joints", "rk4", 1e-3, "schur")
+    assert s["reference"]["h"] < s["h"]
+    for name, block in engines.items():
+        assert "tolerance" not in block, name
+
+
+def test_the_measured_members_keep_their_measured_settings():
+    for n in N_FOUR_BAR_MEASURED:
+        case = scaling.generated_case(n)
+        assert case.engine("natcoord").settings["coordinates"] == "shared"
+        assert case.engine("natcoord").tolerance
+
+
+def _plan(n: int, coordinates: str):
+    cm = casemodel.build(scaling.generated_case(n, duration=1.0), coordinates)
+    return sparsity.schur_plan(ConstraintSystem(cm.model).con, np.asarray(cm.model.M, float))
+
+
+def _sizes(plan) -> np.ndarray:
+    """What one evaluation's work is proportional to: rows, J's entries, the products
+    forming Y = M^-1 J^T and W = J Y, the envelope of W's Cholesky factor."""
+    return np.array([plan.m, len(plan.J_row), len(plan.y_j), len(plan.w_j), plan.envelope])
+
+
+def test_the_generated_settings_cost_linearly_in_n():
+    """Each of the plan's sizes grows by the same amount for every 16 couplers more (exactly
+    linear) and L's rows stay 7 wide; with shared points (N = 40's settings) the envelope
+    of W is its whole triangle, quadratic in N."""
+    coordinates = scaling.generated_case(16).engine("natcoord").settings["coordinates"]
+    a, b, c = (_sizes(_plan(n, coordinates)) for n in (16, 32, 48))
+    assert np.array_equal(c - b, b - a) and np.all(b - a > 0)
+    plan = _plan(48, coordinates)
+    assert int(np.max(np.arange(plan.m) - plan.env_first)) + 1 == 7
+    shared = [_plan(n, "shared") for n in (16, 32)]
+    assert [p.envelope for p in shared] == [p.m * (p.m + 1) // 2 for p in shared]
+
+
+def test_scaling_measures_whole_generated_runs():
+    """`bench --scaling`'s records: the generated case's own settings, every output sample
+    of its duration, build apart from stepping, and the error against the exact reduction."""
+    out = scaling.scaling([4, 8], duration=1.5, repeats=1)
+    assert "rk4" in out["method"] and out["size_ratio"] == 2.0
+    for rec in out["records"]:
+        assert (rec["coordinates"], rec["method"], rec["h"]) == ("joints", "rk4", 1e-3)
+        assert rec["steps"] == 1500 and rec["duration_s"] == 1.5
+        assert rec["error_m"] < 1e-8
+        assert rec["build_time_s"] > 0 and len(rec["samples_s"]) == 1
+        assert rec["us_per_step"] == pytest.approx(1e6 * rec["wall_time_s"] / 1500)
+        assert rec["s_per_simulated_s"] == pytest.approx(rec["wall_time_s"] / 1.5)
+    assert out["step_cost_ratio"] > 0
