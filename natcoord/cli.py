@@ -604,7 +604,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                   "left over is timed by its accuracy run and measured on a later "
                   "night.")] = NIGHT_BUDGET_S,
               quick: Annotated[bool, typer.Option(
-                  "--quick", help="A first look: natcoord, mujoco and pinocchio (or "
+                  "--quick", help="A first look: natcoord and mujoco (or "
                   "--engines), every cell timed by its accuracy run (no bench process), no "
                   "sweeps, no speed gate; not recorded in the history, reports/latest not "
                   "moved.")] = False):

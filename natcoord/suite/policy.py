@@ -43,7 +43,7 @@ NIGHTLY_SWEEPS = {"natcoord": [{"formulation": "index1", "method": "dop853", "h"
                                 "rtol": r, "atol": r * 1e-2}
                                for r in (1e-5, 1e-8, 1e-11)]}
 NIGHTLY_SWEEPS |= {e: s[::2] for e, s in bench.SWEEPS.items() if e not in NIGHTLY_SWEEPS}
-QUICK_ENGINES = ("natcoord", "mujoco", "pinocchio")  # `suite --quick`: the fastest to start
+QUICK_ENGINES = ("natcoord", "mujoco")  # `suite --quick`: a first look within 2 minutes
 
 
 def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict | None]:
