@@ -59,10 +59,10 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
     no long run is left to the end while the other cores idle; among equals, the largest
-    case). ``before``: ``{engine:
-    [command, ...]}``, processes that prepare an engine (natcoord's compiled loops: see
-    :mod:`natcoord.suite.warm`); they start first, and that engine's runs wait for all of
-    them while the other engines' runs go on (so that no two runs compile the same loop)."""
+    case). ``before``: ``{engine: [command, ...]}``, processes that prepare an engine
+    (natcoord's compiled loops: see :mod:`natcoord.suite.warm`); they start first, and that
+    engine's runs wait for all of them while the other engines' runs go on (so that no two
+    runs compile the same loop)."""
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
