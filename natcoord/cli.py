@@ -218,7 +218,7 @@ def _progress_printer(total: int, where: str = "here", left=None):
             stop.set()
         elapsed = last[0] - start
         if left is not None:
-            when = f"~{left(key):4.0f} s left in the suite"
+            when = f"~{left(key, rec):4.0f} s left in the suite"
         elif done[0] < total:
             when = f"~{elapsed / done[0] * (total - done[0]):4.0f} s left"
         else:
@@ -662,7 +662,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         first = {(c, e): t for (k, c, e), t in clock.expected.items() if k == "run"}
         summary = run_suite(selected, names, staging, references=references,
                             timeout_s=timeout, jobs=n, scheduler=scheduler, first=first,
-                            progress=_progress_printer(total, where, _ticker(clock, "run")))
+                            progress=_progress_printer(total, where, _ticker(clock, "run", n)))
         if quick:
             summary["mode"] = "quick"
             write_json(staging / "summary.json", summary)
@@ -782,12 +782,15 @@ def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summar
     return eta.cap(out, budgeted, budget_s)
 
 
-def _ticker(clock, kind: str):
-    """``left(key)`` for a progress printer: marks the piece ``key`` ('case/engine') of
-    ``kind`` done and returns the suite's time left."""
-    def left(key: str) -> float:
+def _ticker(clock, kind: str, shared: int = 1):
+    """``left(key, rec)`` for a progress printer: marks the piece ``key`` ('case/engine')
+    of ``kind`` done, with its record's process time over the ``shared`` cores it ran
+    beside others on, and returns the suite's time left."""
+    def left(key: str, rec: dict | None = None) -> float:
         case, _, engine = key.partition("/")
-        clock.done((kind, case, engine))
+        t = (rec or {}).get("process_time_s")
+        clock.done((kind, case, engine),
+                   t / shared if isinstance(t, (int, float)) else None)
         return clock.left()
     return left
 
@@ -833,12 +836,17 @@ def _nightly_sweeps(result: dict, catalogue, names, references, timeout, skip: s
               "their accuracy run")
     seen: dict = {}
 
-    def left(key: str) -> float:
+    took: dict = {}
+
+    def left(key: str, rec: dict | None = None) -> float:
         cell = key.split(" ")[0]
         case, _, engine = cell.partition("/")
         seen[(case, engine)] = seen.get((case, engine), 0) + 1
+        t = (rec or {}).get("process_time_s")
+        took[(case, engine)] = took.get((case, engine), 0.0) + (
+            t if isinstance(t, (int, float)) else 0.0)
         if seen[(case, engine)] >= per.get((case, engine), 0):
-            clock.done(("sweep", case, engine))
+            clock.done(("sweep", case, engine), took[(case, engine)])
         return clock.left()
 
     points = bench.work_precision(catalogue, names, references=references, repeats=3,

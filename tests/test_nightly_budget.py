@@ -172,6 +172,22 @@ def test_time_left_comes_from_the_last_durations_and_tonights_pace():
     assert clock.left() == pytest.approx(36.0)
 
 
+def test_the_pace_comes_from_measured_times_while_pieces_run_side_by_side():
+    """Two cores: a long piece finishes after 100 s of wall clock, while the other core's
+    piece is still running. Its measured time (60 s of process time over 2 cores = 30 s,
+    as expected 50 s: tonight 0.6x) sets the pace; the wall clock alone (100 s for 50
+    expected) would have doubled the estimate."""
+    now = [0.0]
+    exp = {("run", "long", "e"): 50.0} | {("run", f"c{i}", "e"): 5.0 for i in range(90)}
+    clock = eta.Eta(exp, clock=lambda: now[0])
+    wall = eta.Eta(exp, clock=lambda: now[0])  # no measured time: the wall clock's pace
+    now[0] = 100.0
+    clock.done(("run", "long", "e"), 30.0)
+    assert clock.left() == pytest.approx(450.0 * 0.6)
+    wall.done(("run", "long", "e"))
+    assert wall.left() == pytest.approx(450.0 * 2.0)
+
+
 def _suite(*args, timeout=1200):
     return subprocess.run([sys.executable, "-m", "natcoord.cli", "suite", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout,

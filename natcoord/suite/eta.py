@@ -5,7 +5,9 @@ take what the same piece took last time (its engine process's time, s; the accur
 shared over ``jobs`` cores), a piece never seen as long as the median of the same engine's
 pieces of that kind (else of every piece of that kind, else :data:`UNKNOWN_S`). The time
 left is the expected time of what is left, scaled by how tonight's finished pieces compare
-with their expectation (tonight's load), fully so once a tenth of the work is done.
+with their expectation (tonight's load: their measured process times against the expected
+ones, as the wall clock misleads while pieces run side by side), fully so once a tenth of
+the work is done.
 """
 
 from __future__ import annotations
@@ -65,11 +67,13 @@ def cap(expected: dict[tuple, float], cells: set[tuple], seconds: float
 
 class Eta:
     """Time left of a suite: ``expected`` seconds per piece (wall time: a parallel piece
-    already divided by the cores it shares); :meth:`done` as pieces finish."""
+    already divided by the cores it shares); :meth:`done` as pieces finish, with the
+    seconds each took where measured (on the same footing as its expectation)."""
 
     def __init__(self, expected: dict[tuple, float], clock=time.monotonic):
         self.expected, self.clock = dict(expected), clock
         self.start, self.finished = clock(), set()
+        self.took: dict[tuple, float] = {}  # finished pieces' measured seconds
 
     def add(self, expected: dict[tuple, float]) -> None:
         """More pieces (a later phase whose pieces are known only now)."""
@@ -80,8 +84,22 @@ class Eta:
         ``seconds``: their expectations are scaled down to fit it."""
         self.expected = cap(self.expected, cells, seconds)
 
-    def done(self, piece: tuple) -> None:
+    def done(self, piece: tuple, took: float | None = None) -> None:
+        """``piece`` finished; ``took``: its measured seconds (a run's engine-process time
+        over the cores it shared), which sets tonight's pace better than the wall clock
+        while several pieces run at once."""
         self.finished.add(piece)
+        if took is not None and took >= 0:
+            self.took[piece] = self.took.get(piece, 0.0) + float(took)
+
+    def pace(self, done: float) -> float:
+        """Tonight's seconds per expected second: from the pieces measured (their own
+        times against their expectations), else the wall clock since the start."""
+        timed = [p for p in self.took if self.expected.get(p, 0.0) > 0]
+        want = sum(self.expected[p] for p in timed)
+        if want > 0:
+            return sum(self.took[p] for p in timed) / want
+        return (self.clock() - self.start) / done
 
     def left(self) -> float:
         total = sum(self.expected.values())
@@ -90,5 +108,4 @@ class Eta:
         if total <= 0 or done <= 0:
             return rest
         w = min(1.0, done / total / 0.1)  # trust tonight's pace once a tenth is done
-        pace = (self.clock() - self.start) / done
-        return rest * ((1 - w) + w * pace)
+        return rest * ((1 - w) + w * self.pace(done))
