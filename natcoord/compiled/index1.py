@@ -147,8 +147,9 @@ def _settle_general(gen, frc, q, qd, qdd, ptol, wg, cnt):
 
 
 @njit(cache=True)
-def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
-    """Quintic Hermite of q on [0, h] at s in [0, 1] and its derivative."""
+def _sample(y0, f0, y1, f1, n, h, s, q, qd):
+    """Quintic Hermite of q (n,) on [0, h] at s in [0, 1] and its derivative qd, from
+    y = [q, qd] (2n,) and f = [qd, qdd] at both ends (y0, f0 and y1, f1)."""
     s2 = s * s
     s3 = s2 * s
     s4 = s3 * s
@@ -166,11 +167,12 @@ def _sample(q0, v0, a0, q1, v1, a1, h, s, q, qd):
     d11 = -12 * s2 + 28 * s3 - 15 * s4
     d21 = 0.5 * (3 * s2 - 8 * s3 + 5 * s4)
     hh = h * h
-    for a in range(q0.shape[0]):
-        q[a] = (h00 * q0[a] + h10 * h * v0[a] + h20 * hh * a0[a]
-                + h01 * q1[a] + h11 * h * v1[a] + h21 * hh * a1[a])
-        qd[a] = ((d00 * q0[a] + d01 * q1[a]) / h + d10 * v0[a] + d20 * h * a0[a]
-                 + d11 * v1[a] + d21 * h * a1[a])
+    for a in range(n):
+        q0, v0, a0, q1, v1, a1 = y0[a], y0[n + a], f0[n + a], y1[a], y1[n + a], f1[n + a]
+        q[a] = (h00 * q0 + h10 * h * v0 + h20 * hh * a0
+                + h01 * q1 + h11 * h * v1 + h21 * hh * a1)
+        qd[a] = ((d00 * q0 + d01 * q1) / h + d10 * v0 + d20 * h * a0
+                 + d11 * v1 + d21 * h * a1)
 
 
 @njit(cache=True)
@@ -253,10 +255,26 @@ def expand(dep, X, XD, XDD, Q, QD, QDD):
 
 
 @njit(cache=True)
+def _put(Q, k, x, off, n):
+    """Q[k, :n] = x[off:off + n] (element by element: a view costs reference counts)."""
+    for a in range(n):
+        Q[k, a] = x[off + a]
+
+
+@njit(cache=True)
+def _settle(sp, gen, wg, q, qd, qdd, ptol, cnt, factored):
+    """Project (q, qd) (n,) in place and evaluate qdd there, on the sparse path or (``wg``
+    given) the general one; a status code."""
+    if wg is None:
+        return kernels_sparse.settle(sp, q, qd, qdd, ptol, cnt, factored)
+    return _settle_general(gen, sp[2], q, qd, qdd, ptol, wg, cnt)
+
+
+@njit(cache=True)
 def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
-    """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n,) at times[0], projected
-    on the constraints first: adaptive (embedded pair, steps cross the samples, dense
-    output) or fixed steps (landing on every sample).
+    """Explicit Runge-Kutta over ``times`` (T,) from (q0, qd0) (n_model,) at times[0],
+    projected on the constraints first: adaptive (embedded pair, steps cross the samples,
+    dense output) or fixed steps (landing on every sample).
 
     ``wg`` None: the sparse Schur path ``sp`` = (P, gk, frc, ws, w): the work array ``ws``
     and its vector ``w`` (:mod:`natcoord.compiled.sparse`), by the generic kernels on the
@@ -267,57 +285,64 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     None with generated kernels (they carry the forces). What a path does not use goes as
     None: a tuple's arrays cost time at every call, and numba compiles the None branches
     away (which is why ``wg`` is an argument of its own). ``tab`` =
-    (A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal): the method's tableau
-    (:func:`tableau`); ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step
-    control (h0 <= 0: Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed,
-    no error control) and projection tolerance; ``dep``: the coordinates an elimination
-    removed (:func:`_dep_norm`), which the error norm counts as the state's; ``out`` =
-    (Q, QD, QDD (T, n_r), cnt (N_COUNTERS,), tfail (1,)) filled in place (tfail: the time
-    the loop had reached when it stopped). Returns a status code (0 = ok).
+    (A, B, E5, E3, expo, dop853, n_ext, D, fsal): the method's tableau, A (s + n_ext,
+    s + n_ext) the step's s stages and the extension's n_ext (:func:`packed_tableau`);
+    ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step control (h0 <= 0: Hairer's
+    initial step; h_fixed > 0: fixed steps of at most h_fixed, no error control) and
+    projection tolerance; ``dep``: the coordinates an elimination removed
+    (:func:`_dep_norm`), which the error norm counts as the state's, and those it kept
+    (q0, qd0 are read there); ``out`` = (X, XD, XDD (T, n_r): the samples over the
+    coordinates kept, Q, QD, QDD (T, n_model): all of them (X is Q without an
+    elimination), cnt (N_COUNTERS,) zeroed here, tfail (1,): the time the loop had reached
+    when it stopped), filled in place. Returns a status code (0 = ok).
+
+    Hot loops index elements and pass offsets: a slice or row view costs two atomic
+    reference counts, which on a small model is a tenth of an evaluation.
     """
-    A, B, C, E5, E3, expo, dop853, Aext, Cext, D, fsal = tab
+    A, B, E5, E3, expo, dop853, n_ext, D, fsal = tab
     rtol, atol, h0, ptol, max_steps, h_fixed = ctl
-    Q, QD, QDD, cnt, tfail = out
-    frc = sp[2]  # the forces (None with generated kernels)
+    X, XD, XDD, Q, QD, QDD, cnt, tfail = out
+    keep = dep[4]
+    for i in range(cnt.shape[0]):
+        cnt[i] = 0.0
     fixed = h_fixed > 0.0
-    n = q0.shape[0]
+    n = keep.shape[0]
     N = 2 * n
     Nn = N + 2 * (dep[0].shape[0] - 1)  # the components the error norm averages over
     s_st = B.shape[0]
-    n_ext = Aext.shape[0]
-    K = np.zeros((s_st + n_ext, N))
-    Aall = np.zeros((s_st + n_ext, s_st + n_ext))  # the step's and the extension's stages
-    Aall[:s_st, :s_st] = A
-    Aall[s_st:, :] = Aext[:, :s_st + n_ext]
-    B2, E52, E32 = B.reshape((1, s_st)), E5.reshape((1, s_st)), E3.reshape((1, s_st))
+    K = np.zeros((s_st + n_ext, N))  # the step's and the extension's stages
     Fd = np.zeros((D.shape[0] + 3, N))  # dop853 continuous extension (order 7)
-    zero = np.zeros(N)
     x5 = np.zeros(N)   # the error estimates' combinations of the stages
     x3 = np.zeros(N)
-    yu = np.zeros(N)
     y = np.zeros(N)
     yn = np.zeros(N)
     ys = np.zeros(N)
     f0 = np.zeros(N)   # f at the (projected) start of the step
     f1 = np.zeros(N)   # f at the (projected) end of the step
-    qs = np.zeros(n)
+    qs = np.zeros(n)   # the step's end, projected in place
     qds = np.zeros(n)
     qdd = np.zeros(n)
-    rk = (Aall, K, ys, qdd)  # what the stages work on
-    y[:n] = q0
-    y[n:] = qd0
+    zq = np.zeros(n)   # a sample, projected in place
+    zqd = np.zeros(n)
+    B2 = B.reshape((1, s_st))
+    rk = (A, K, ys, qdd)  # what the stages work on
+    for a in range(n):
+        qs[a] = q0[keep[a]]
+        qds[a] = qd0[keep[a]]
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = (kernels_sparse.settle(sp, y[:n], y[n:], qdd, ptol, cnt, False)
-               if wg is None else _settle_general(gen, frc, y[:n], y[n:], qdd, ptol, wg, cnt))
+    st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, False)
     if st_code != OK:
         return st_code
-    f0[:n] = y[n:]
-    f0[n:] = qdd
-    Q[0] = y[:n]
-    QD[0] = y[n:]
-    QDD[0] = qdd
+    for a in range(n):
+        y[a] = qs[a]
+        y[n + a] = qds[a]
+        f0[a] = qds[a]
+        f0[n + a] = qdd[a]
+    _put(X, 0, y, 0, n)
+    _put(XD, 0, y, n, n)
+    _put(XDD, 0, f0, n, n)
     k_out = 1
     # initial step (Hairer)
     h = h0
@@ -342,40 +367,46 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
         else:
             hh = min(h, tend - t)
         # stages
-        K[0] = f0
+        for a in range(N):
+            K[0, a] = f0[a]
         st_code = _stages(sp, gen, wg, cnt, y, hh, 1, s_st, rk)
         if st_code != OK:
             return st_code
         if fsal:  # the last stage is at the new point
-            yn[:] = ys
+            for a in range(N):
+                yn[a] = ys[a]
         else:
             _combine(y, hh, B2, 0, s_st, K, yn)
-        # error norm
+        # error norm: E5 K, E3 K per component (each sum in _combine's order) and its sums
         err = 0.0
-        if fixed:
-            pass
-        elif dop853:
+        if not fixed:
             e5 = 0.0
             e3 = 0.0
-            _combine(zero, 1.0, E52, 0, s_st, K, x5)
-            _combine(zero, 1.0, E32, 0, s_st, K, x3)
             for a in range(N):
+                v5 = 0.0
+                v3 = 0.0
+                for p in range(s_st):
+                    if E5[p] != 0.0:
+                        v5 += E5[p] * K[p, a]
+                    if dop853 and E3[p] != 0.0:
+                        v3 += E3[p] * K[p, a]
+                x5[a] = v5
+                x3[a] = v3
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
-                e5 += (x5[a] / sc) ** 2
-                e3 += (x3[a] / sc) ** 2
-            if Nn > N:
-                e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)
-                e3 += _dep_norm(dep, x3, y, yn, atol, rtol, False)
-            err = stepcontrol.dop853_norm(e5, e3, Nn, hh)  # (E5 K, E3 K without h)
-        else:
-            e5 = 0.0
-            _combine(zero, 1.0, E52, 0, s_st, K, x5)
-            for a in range(N):
-                sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
-                e5 += (hh * x5[a] / sc) ** 2
-            if Nn > N:
-                e5 += hh * hh * _dep_norm(dep, x5, y, yn, atol, rtol, False)
-            err = stepcontrol.rms_norm(e5, Nn)
+                if dop853:
+                    e5 += (v5 / sc) ** 2
+                    e3 += (v3 / sc) ** 2
+                else:
+                    e5 += (hh * v5 / sc) ** 2
+            if dop853:
+                if Nn > N:
+                    e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)
+                    e3 += _dep_norm(dep, x3, y, yn, atol, rtol, False)
+                err = stepcontrol.dop853_norm(e5, e3, Nn, hh)  # (E5 K, E3 K without h)
+            else:
+                if Nn > N:
+                    e5 += hh * hh * _dep_norm(dep, x5, y, yn, atol, rtol, False)
+                err = stepcontrol.rms_norm(e5, Nn)
         if not (err == err):
             return ERR_NONFINITE
         if err > 1.0:
@@ -397,9 +428,11 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
             if st_code != OK:
                 return st_code
             stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
-        st_code = (  # a last stage at yn (fsal) factored there: Newton from it
-            kernels_sparse.settle(sp, yn[:n], yn[n:], qdd, ptol, cnt, fsal)
-            if wg is None else _settle_general(gen, frc, yn[:n], yn[n:], qdd, ptol, wg, cnt))
+        for a in range(n):
+            qs[a] = yn[a]
+            qds[a] = yn[n + a]
+        # a last stage at yn (fsal) factored there: Newton from it
+        st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, fsal)
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
             h = stepcontrol.PROJECTION_FAILURE_FACTOR * hh  # and try a shorter one
@@ -408,41 +441,44 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
             continue
         if st_code != OK:
             return st_code
-        f1[:n] = yn[n:]
-        f1[n:] = qdd
+        for a in range(n):
+            yn[a] = qs[a]
+            yn[n + a] = qds[a]
+            f1[a] = qds[a]
+            f1[n + a] = qdd[a]
         nsteps += 1
         cnt[C_STEPS] += 1
         # samples in (t, t1]
         while k_out < T_out and times[k_out] <= t1 + tol_t:
             tk = times[k_out]
             if abs(tk - t1) <= tol_t:
-                Q[k_out] = yn[:n]
-                QD[k_out] = yn[n:]
-                QDD[k_out] = f1[n:]
+                _put(X, k_out, yn, 0, n)
+                _put(XD, k_out, yn, n, n)
+                _put(XDD, k_out, f1, n, n)
             else:
                 x = (tk - t) / hh
                 if dop853:
-                    stepcontrol.dense_at(Fd, y, x, yu)
-                    qs[:] = yu[:n]
-                    qds[:] = yu[n:]
+                    stepcontrol.dense_split(Fd, y, x, n, zq, zqd)
                 else:
-                    _sample(y[:n], y[n:], f0[n:], yn[:n], yn[n:], f1[n:], hh, x, qs, qds)
-                st_code = (  # true Newton from the sample: the M-orthogonal projection
-                    # (a factorization from elsewhere lands it elsewhere on the manifold,
-                    # which near a singular position shows in the reactions)
-                    kernels_sparse.settle(sp, qs, qds, qdd, ptol, cnt, False)
-                    if wg is None else _settle_general(gen, frc, qs, qds, qdd, ptol, wg, cnt))
+                    _sample(y, f0, yn, f1, n, hh, x, zq, zqd)
+                # true Newton from the sample: the M-orthogonal projection (a
+                # factorization from elsewhere lands it elsewhere on the manifold, which
+                # near a singular position shows in the reactions)
+                st_code = _settle(sp, gen, wg, zq, zqd, qdd, ptol, cnt, False)
                 if st_code != OK:
                     return st_code
-                Q[k_out] = qs
-                QD[k_out] = qds
-                QDD[k_out] = qdd
+                _put(X, k_out, zq, 0, n)
+                _put(XD, k_out, zqd, 0, n)
+                _put(XDD, k_out, qdd, 0, n)
             k_out += 1
         t = t1
-        y[:] = yn
-        f0[:] = f1
+        for a in range(N):
+            y[a] = yn[a]
+            f0[a] = f1[a]
         if not fixed:
             h = hh * stepcontrol.accept_factor(err, expo)
+    if dep[5].shape[0] > 0:
+        expand(dep, X, XD, XDD, Q, QD, QDD)
     return OK
 
 
@@ -474,7 +510,7 @@ def warm_up_model() -> tuple:
     """(constraints, packed forces) of the warm-up runs: a particle on a unit circle under
     gravity, n = 2, m = 1, Phi = (x^2 + y^2 - 1) / 2."""
     con = SimpleNamespace(k=np.zeros(3, np.int64), i=np.arange(3), j=np.arange(3),
-                          v=np.array([1.0, 1.0, -1.0]), m=1)
+                          v=np.array([1.0, 1.0, -1.0]), m=1, n=2)
     return con, pack_forces(np.array([0.0, -9.81]), np.zeros((2, 2)))
 
 
@@ -494,11 +530,6 @@ def warm_up(path: str) -> None:
     if path == "sparse":
         sample_outputs(plan, frc, Q, QD, np.zeros((len(Q), 1)), SimpleNamespace(
             max_phi=0.0, max_phi_dot=0.0), args)
-    # an elimination expands the samples after the loop
-    dep = (np.array([0, 1], np.int64), np.zeros(1, np.int64), np.ones(1),
-           np.zeros(1), np.arange(2, dtype=np.int64),
-           np.array([2], np.int64))  # a third coordinate equal to the first
-    expand(dep, Q, QD, Q, *(np.zeros((len(Q), 3)) for _ in range(3)))
 
 
 class Steps(NamedTuple):
@@ -530,23 +561,38 @@ class Route(NamedTuple):
     dep: tuple | None = None
 
 
-def run(name: str, con, frc, times, q0, qd0, steps: Steps, route: Route | None = None,
-        cnt=None):
-    """Integrate with the compiled loop by method ``name``; returns (Q, QD, QDD) (T, n) (n
-    of the model when ``route.dep`` is given). ``frc`` from :func:`pack_forces`; ``cnt``:
-    counters added to. Raises RuntimeError."""
+@functools.cache
+def packed_tableau(name: str) -> tuple:
+    """:func:`tableau` of ``name`` as :func:`run_index1` takes it: (A, B, E5, E3, expo,
+    dop853, n_ext, D, fsal), A holding the step's and the extension's stages."""
+    A, B, _, E5, E3, expo, Aext, _, D, fsal = tableau(name)
+    s_st, n_ext = B.shape[0], Aext.shape[0]
+    Aall = np.zeros((s_st + n_ext, s_st + n_ext))
+    Aall[:s_st, :s_st] = A
+    Aall[s_st:, :] = Aext[:, :s_st + n_ext]
+    return Aall, B, E5, E3, expo, name == "dop853", n_ext, D, fsal
+
+
+def prepare(name: str, con, frc, times, steps: Steps, route: Route | None = None):
+    """Everything of a compiled run but the start, packed once (a benchmark repeats the
+    run): returns ``go(q0, qd0, out, cnt)`` that integrates with method ``name`` from (q0,
+    qd0) (n_model,), float64, contiguous) into out = (Q, QD, QDD) (T, n_model) in place
+    and adds to the counters ``cnt`` (None: none); n_model is the loop's n, or all
+    coordinates when ``route.dep`` is given. ``frc`` from :func:`pack_forces`. ``go``
+    raises RuntimeError naming the method, the time and a singular position's hint."""
     rtol, atol, ptol, h, h0, max_steps = steps
     plan, kern, M, rank_tol, dep = route or Route()
-    A, B, C, E5, E3, expo, Aext, Cext, D, fsal = tableau(name)
-    tab = (A, B, C, E5, E3, expo, name == "dop853", Aext, Cext, D, fsal)
     if (h is None and name not in ADAPTIVE) or (h is not None and name not in FIXED_STEP):
         raise ValueError(f"{name} (compiled): " + ("give a fixed step h" if h is None else
                                                    "adaptive only"))
-    Tn, n = len(times), len(q0)
-    if dep is None:  # no coordinate eliminated
+    tab = packed_tableau(name)
+    times = np.ascontiguousarray(times, float)
+    Tn, n = len(times), int(con.n) if dep is None else len(dep[4])  # the loop's n
+    if dep is None:  # no coordinate eliminated: the loop's coordinates are the model's
         dep = (np.zeros(1, np.int64), np.zeros(0, np.int64), np.zeros(0), np.zeros(0),
                np.arange(n, dtype=np.int64), np.zeros(0, np.int64))
-    Q, QD, QDD = np.zeros((Tn, n)), np.zeros((Tn, n)), np.zeros((Tn, n))
+    elim = len(dep[5]) > 0
+    X = tuple(np.zeros((Tn, n)) for _ in range(3)) if elim else None  # the kept ones
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
     gen = None if plan is not None else kernels_general.general(con, M, rank_tol)
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
@@ -558,20 +604,29 @@ def run(name: str, con, frc, times, q0, qd0, steps: Steps, route: Route | None =
     generated = kern is not None and plan is not None  # they serve the sparse path
     sp = (None if generated else args, kern if generated else kernels_sparse.NO_GK,
           None if generated else frc, ws, w)
-    status = run_index1(sp, gen, wg, tab, ctl, dep, np.ascontiguousarray(times, float),
-                        np.array(q0, float), np.array(qd0, float), (Q, QD, QDD, c, tfail))
-    add_counters(c, cnt)
-    if status != OK:
-        k = int(np.searchsorted(times, tfail[0], side="right")) - 1  # last sample reached
-        J = np.zeros((int(con.m), n))
-        kernels_general.jacobian(con, Q[max(k, 0)], J)
-        raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)} at "
-                           f"t = {tfail[0]:.6g} s" + singular_hint(J, rank_tol))
-    if len(dep[5]) == 0:
-        return Q, QD, QDD
-    nq = n + len(dep[5])
-    out = np.zeros((Tn, nq)), np.zeros((Tn, nq)), np.zeros((Tn, nq))
-    expand(dep, Q, QD, QDD, *out)
+
+    def go(q0, qd0, out, cnt=None):
+        status = run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0,
+                            (*(X or out), *out, c, tfail))
+        add_counters(c, cnt)
+        if status != OK:
+            k = int(np.searchsorted(times, tfail[0], side="right")) - 1  # last sample
+            J = np.zeros((int(con.m), n))
+            kernels_general.jacobian(con, (X or out)[0][max(k, 0)], J)
+            raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)} at "
+                               f"t = {tfail[0]:.6g} s" + singular_hint(J, rank_tol))
+    return go
+
+
+def run(name: str, con, frc, times, q0, qd0, steps: Steps, route: Route | None = None,
+        cnt=None):
+    """Integrate with the compiled loop by method ``name`` from (q0, qd0) (n_model,):
+    returns (Q, QD, QDD) (T, n_model), as :func:`prepare` once. ``cnt``: counters added
+    to. Raises RuntimeError."""
+    go = prepare(name, con, frc, times, steps, route)
+    n = len(q0)
+    out = np.zeros((len(times), n)), np.zeros((len(times), n)), np.zeros((len(times), n))
+    go(np.ascontiguousarray(q0, float), np.ascontiguousarray(qd0, float), out, cnt)
     return out
 
 

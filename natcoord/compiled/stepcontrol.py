@@ -303,8 +303,9 @@ def dense_dop853(y, yn, h, K, s_st, D, Fd):
         Fd[0, a] = dy
         Fd[1, a] = h * K[0, a] - dy
         Fd[2, a] = 2.0 * dy - h * (K[s_st - 1, a] + K[0, a])
-    for r in range(D.shape[0]):
-        Fd[3 + r] = 0.0
+    for r in range(D.shape[0]):  # (element loops: a row view costs two reference counts)
+        for a in range(y.shape[0]):
+            Fd[3 + r, a] = 0.0
         for p in range(D.shape[1]):
             if D[r, p] != 0.0:
                 for a in range(y.shape[0]):
@@ -317,14 +318,23 @@ def dense_dop853(y, yn, h, K, s_st, D, Fd):
 def dense_at(Fd, y, x, out):
     """out (N,) = y(t + x h), x in [0, 1], from :func:`dense_dop853`'s Fd: y + the sum of
     Fd[i] times alternating factors x, 1 - x (Horner)."""
+    dense_split(Fd, y, x, y.shape[0], out, out)
+
+
+@njit(cache=True)
+def dense_split(Fd, y, x, n, q, qd):
+    """:func:`dense_at` into two arrays, q (n,) the first n components and qd the rest
+    (q may be qd when n = N): the same Horner sums, per component, with no temporary."""
     nF = Fd.shape[0]
-    out[:] = 0.0
-    for i in range(nF):
-        fac = x if i % 2 == 0 else 1.0 - x
-        for a in range(y.shape[0]):
-            out[a] = (out[a] + Fd[nF - 1 - i, a]) * fac
+    x1 = 1.0 - x
     for a in range(y.shape[0]):
-        out[a] += y[a]
+        v = 0.0
+        for i in range(nF):
+            v = (v + Fd[nF - 1 - i, a]) * (x if i % 2 == 0 else x1)
+        if a < n:
+            q[a] = v + y[a]
+        else:
+            qd[a - n] = v + y[a]
 
 
 @njit(cache=True)

@@ -209,7 +209,8 @@ class FormulationLoop:
     A formulation with a compiled loop says so in ``compiled_candidate(method, h)``, sets
     itself up in ``prepare_compiled(q0) -> Prepared`` (model only: not stepping time; the
     loop's path among :data:`natcoord.compiled.cache.PATHS`) and runs the whole integration in
-    ``run_compiled(times, y, method, rtol, atol, h) -> (Q, QD, QDD)`` from ``init``'s y.
+    ``run_compiled(times, y, method, rtol, atol, h) -> (Q, QD, QDD)`` from ``init``'s y
+    (``compiled_runner`` packs it once for repeated runs).
     """
 
     options: type  # the formulation's options (a Formulation), whose defaults fill ``options``
@@ -233,6 +234,15 @@ class FormulationLoop:
 
     def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         return Prepared(self.compiled_path, self._frc)
+
+    def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
+        """``go(Q, QD, QDD)``: the whole compiled run from (q0, qd0) at t0 into (T, n) in
+        place, set up before the timed part (a benchmark repeats ``go``); by default
+        ``init`` and ``run_compiled`` at every call."""
+        def go(Q, QD, QDD):
+            Q[:], QD[:], QDD[:] = self.run_compiled(times, self.init(t0, q0, qd0), method,
+                                                    rtol, atol, h)
+        return go
 
     @functools.cached_property
     def _frc(self) -> tuple | None:

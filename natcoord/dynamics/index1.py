@@ -161,19 +161,28 @@ class Index1Loop(FormulationLoop):
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.compiled.index1.run`: (Q, QD, QDD) (T, n) at ``times``
-        (the sparse Schur path for a regular M or one left regular by an elimination, else
-        the QR null-space form with M, on the coordinates kept where there is one), after
-        :meth:`prepare_compiled` (made here when it was not)."""
+        from y = [q, qd] (:meth:`compiled_runner` once)."""
+        out = tuple(np.zeros((len(times), self.n)) for _ in range(3))
+        self.compiled_runner(times, 0.0, y[:self.n], y[self.n:], method, rtol, atol, h)(*out)
+        return out
+
+    def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
+        """``go(Q, QD, QDD)``: the whole run from (q0, qd0) at ``times`` into (T, n) in place
+        (:func:`natcoord.compiled.index1.prepare`: the sparse Schur path for a regular M or
+        one left regular by an elimination, else the QR null-space form with M, on the
+        coordinates kept where there is one), after :meth:`prepare_compiled` (made here
+        when it was not); no ``init`` needed (the loop projects the start itself)."""
         from ..compiled import index1 as kernels
         if not hasattr(self, "_plan_args"):
             self.prepare_compiled()
-        q, qd, e = y[:self.n], y[self.n:], self.elimination
+        e = self.elimination
         con, frc, M = self._loop_model()
-        return kernels.run(method, con, frc, times, q if e is None else q[e.keep],
-                           qd if e is None else qd[e.keep],
-                           kernels.Steps(rtol, atol, self.opt["project_tol"], h),
-                           kernels.Route(self._plan_args, self._kern, M, self.opt["rank_tol"],
-                                         None if e is None else e.dep_map), self.cnt)
+        go = kernels.prepare(method, con, frc, times,
+                             kernels.Steps(rtol, atol, self.opt["project_tol"], h),
+                             kernels.Route(self._plan_args, self._kern, M, self.opt["rank_tol"],
+                                           None if e is None else e.dep_map))
+        q0, qd0, cnt = np.ascontiguousarray(q0, float), np.ascontiguousarray(qd0, float), self.cnt
+        return lambda Q, QD, QDD: go(q0, qd0, (Q, QD, QDD), cnt)
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]
