@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-MAX_POINTS = 400  # samples per plotted series (about one per pixel of a figure's width)
+MAX_POINTS = 300  # samples per plotted series (one per 3-4 pixels of a 1,000-pixel-wide figure)
 
 
 def stride(n: int, m: int = MAX_POINTS) -> np.ndarray:
