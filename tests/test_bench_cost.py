@@ -218,7 +218,9 @@ def test_real_bench_explains_the_cost(tiny_bench):
         assert full["duration_s"] == 10.0 and short["duration_s"] == pytest.approx(2.5)
         assert full["n_steps"] == r["n_steps"] == r["counters"]["steps"]
         assert short["n_steps"] < full["n_steps"] and short["rhs"] < full["rhs"]
-        assert full["repeats"] == short["repeats"] == len(r["samples_s"]) == 3
+        # 3 asked; fewer when a loaded machine makes them outgrow the cell's budget
+        assert 1 <= full["repeats"] == short["repeats"] == len(r["samples_s"]) <= 3
+        assert r["requested_repeats"] == 3
         assert full["wall_s"] == r["wall_time_s"] == min(r["samples_s"])
     # pinocchio's RK4 at dt 1e-3 over 10 s: 4 evaluations a step, exactly
     assert recs["pinocchio"]["n_steps"] == 10000
