@@ -52,8 +52,7 @@ class _Function:
         entry = fn.append_basic_block("entry")
         self.b = ir.IRBuilder(entry)
         self.vars: dict[str, tuple] = {}  # name -> (alloca, type)
-        self.kinds = _kinds(node)
-        for name, kind in self.kinds.items():
+        for name, kind in _kinds(node).items():
             self.vars[name] = (self.b.alloca(kind, name=name), kind)
         self._block(node.body)
         if not self.b.block.is_terminated:
@@ -265,6 +264,8 @@ def _target_machine():
 
 
 def _object_code(ir_text: str) -> bytes:
+    if not hasattr(llvm, "create_pass_builder"):  # llvmlite < 0.44: numba compiles instead
+        raise NotImplementedError("llvmlite without the new pass manager")
     mod = llvm.parse_assembly(ir_text)
     mod.verify()
     tm = _target_machine()

@@ -78,11 +78,17 @@ def worker_command(job_file: Path, out: Path) -> tuple[list[str], dict]:
     directory off the import path and PYTHONPATH starts with the folder of the natcoord
     this command runs, so the worker imports that natcoord (never a ``natcoord/`` folder
     where the command happens to be started)."""
+    return ([sys.executable, "-P", "-m", "natcoord.suite.worker", str(job_file), str(out)],
+            worker_env())
+
+
+def worker_env() -> dict:
+    """An engine process's environment: this natcoord first on the import path, BLAS on
+    one thread."""
     package_root = str(Path(__file__).resolve().parents[2])
     path = os.pathsep.join(filter(None, (package_root, os.environ.get("PYTHONPATH"))))
-    env = {**os.environ, "PYTHONPATH": path, "OPENBLAS_NUM_THREADS": "1",
-           "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    return [sys.executable, "-P", "-m", "natcoord.suite.worker", str(job_file), str(out)], env
+    return {**os.environ, "PYTHONPATH": path, "OPENBLAS_NUM_THREADS": "1",
+            "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
 def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
@@ -138,7 +144,7 @@ def run_command(cmd: list[str], timeout_s: float, cpu: int | None = None,
     ``timeout_s``: subprocess.TimeoutExpired); ``cpu``: pin it to that core. Returns its
     exit status and standard error. The environment defaults to an engine process's."""
     if env is None:
-        env = worker_command(Path("-"), Path("-"))[1]
+        env = worker_env()
     if _STOPPING.is_set():
         raise _Stopping
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
