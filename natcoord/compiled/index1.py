@@ -175,7 +175,7 @@ def _sample(y0, f0, y1, f1, n, h, s, q, qd):
                  + d11 * v1 + d21 * h * a1)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _combine(y, h, C, row, s, K, out):
     """out = y + h sum_{p < s} C[row, p] K[p] (rows of K; zero weights skipped)."""
     N = y.shape[0]
@@ -188,7 +188,25 @@ def _combine(y, h, C, row, s, K, out):
                 out[a] += w * K[p, a]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
+def _weigh(E5, E3, dop853, K, s, x5, x3):
+    """x5 (N,) = E5 K, x3 = E3 K over the first s stages (x3 zero unless ``dop853``): per
+    component the sum in stage order, zero weights skipped; stages outer, so that each pass
+    over the components vectorises."""
+    N = x5.shape[0]
+    for a in range(N):
+        x5[a] = 0.0
+        x3[a] = 0.0
+    for p in range(s):
+        if E5[p] != 0.0:
+            for a in range(N):
+                x5[a] += E5[p] * K[p, a]
+        if dop853 and E3[p] != 0.0:
+            for a in range(N):
+                x3[a] += E3[p] * K[p, a]
+
+
+@njit(cache=True, inline="always")
 def _stages(sp, gen, wg, cnt, y, h, lo, hi, rk):
     """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]), ``rk``
     = (A, K, ys, qdd) (ys, qdd: scratch); ``sp``, ``gen``, ``wg`` as in :func:`run_index1`;
@@ -254,7 +272,7 @@ def expand(dep, X, XD, XDD, Q, QD, QDD):
                                    + (b[d] if affine else 0.0))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _put(Q, k, x, off, n):
     """Q[k, :n] = x[off:off + n] (element by element: a view costs reference counts)."""
     for a in range(n):
@@ -380,24 +398,16 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
         # error norm: E5 K, E3 K per component (each sum in _combine's order) and its sums
         err = 0.0
         if not fixed:
+            _weigh(E5, E3, dop853, K, s_st, x5, x3)
             e5 = 0.0
             e3 = 0.0
             for a in range(N):
-                v5 = 0.0
-                v3 = 0.0
-                for p in range(s_st):
-                    if E5[p] != 0.0:
-                        v5 += E5[p] * K[p, a]
-                    if dop853 and E3[p] != 0.0:
-                        v3 += E3[p] * K[p, a]
-                x5[a] = v5
-                x3[a] = v3
                 sc = atol + rtol * max(abs(y[a]), abs(yn[a]))
                 if dop853:
-                    e5 += (v5 / sc) ** 2
-                    e3 += (v3 / sc) ** 2
+                    e5 += (x5[a] / sc) ** 2
+                    e3 += (x3[a] / sc) ** 2
                 else:
-                    e5 += (hh * v5 / sc) ** 2
+                    e5 += (hh * x5[a] / sc) ** 2
             if dop853:
                 if Nn > N:
                     e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)

@@ -345,7 +345,7 @@ def _generated_acc(gk, pq, pqd, qdd, ws, cnt, fresh):
     _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, _ptr(qdd), _ptr(ws))
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def acc_state(P, gk, frc, y, qdd, ws, cnt):
     """qdd (n,) at the state y = [q, qd] (2n,), factoring there (a stage of the loop); a
     status code. The generated kernels get pointers into y: slicing it costs two atomic

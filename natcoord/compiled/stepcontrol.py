@@ -293,7 +293,7 @@ def underflow(h, t):
 
 
 # ---- continuous extensions ---------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def dense_dop853(y, yn, h, K, s_st, D, Fd):
     """The coefficients Fd (3 + d, N) of DOP853's continuous extension (order 7, Hairer's
     CONTD8) on a step of h from y to yn (N,), from its stages K (s_st + 3, N): the step's
@@ -321,20 +321,28 @@ def dense_at(Fd, y, x, out):
     dense_split(Fd, y, x, y.shape[0], out, out)
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def dense_split(Fd, y, x, n, q, qd):
     """:func:`dense_at` into two arrays, q (n,) the first n components and qd the rest
-    (q may be qd when n = N): the same Horner sums, per component, with no temporary."""
-    nF = Fd.shape[0]
+    (q may be qd when n = N): per component the same Horner sum, with q and qd holding it
+    while it runs, rows outer so that each pass over the components vectorises."""
+    nF, N = Fd.shape[0], y.shape[0]
     x1 = 1.0 - x
-    for a in range(y.shape[0]):
-        v = 0.0
-        for i in range(nF):
-            v = (v + Fd[nF - 1 - i, a]) * (x if i % 2 == 0 else x1)
-        if a < n:
-            q[a] = v + y[a]
-        else:
-            qd[a - n] = v + y[a]
+    for a in range(n):
+        q[a] = 0.0
+    for a in range(N - n):
+        qd[a] = 0.0
+    for i in range(nF):
+        r = nF - 1 - i
+        f = x if i % 2 == 0 else x1
+        for a in range(n):
+            q[a] = (q[a] + Fd[r, a]) * f
+        for a in range(N - n):
+            qd[a] = (qd[a] + Fd[r, n + a]) * f
+    for a in range(n):
+        q[a] += y[a]
+    for a in range(N - n):
+        qd[a] += y[n + a]
 
 
 @njit(cache=True)
