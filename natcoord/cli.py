@@ -785,11 +785,14 @@ def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summar
 def _ticker(clock, kind: str, shared: int = 1):
     """``left(key, rec)`` for a progress printer: marks the piece ``key`` ('case/engine')
     of ``kind`` done, with its record's process time over the ``shared`` cores it ran
-    beside others on, and returns the suite's time left."""
+    beside others on (none for a bench record carried from elsewhere), and returns the
+    suite's time left."""
+    from .suite.stored import carried
+
     def left(key: str, rec: dict | None = None) -> float:
         case, _, engine = key.partition("/")
-        t = (rec or {}).get("process_time_s")
-        clock.done((kind, case, engine),
+        t = None if rec is None or carried(rec) else rec.get("process_time_s")  # a cell
+        clock.done((kind, case, engine),  # reused or timed by its run spent nothing tonight
                    t / shared if isinstance(t, (int, float)) else None)
         return clock.left()
     return left

@@ -172,20 +172,38 @@ def test_time_left_comes_from_the_last_durations_and_tonights_pace():
     assert clock.left() == pytest.approx(36.0)
 
 
-def test_the_pace_comes_from_measured_times_while_pieces_run_side_by_side():
+def test_the_pace_blends_measured_times_with_the_wall_clock():
     """Two cores: a long piece finishes after 100 s of wall clock, while the other core's
     piece is still running. Its measured time (60 s of process time over 2 cores = 30 s,
-    as expected 50 s: tonight 0.6x) sets the pace; the wall clock alone (100 s for 50
-    expected) would have doubled the estimate."""
+    as expected 50 s: 0.6x) and the wall clock (100 s for 50 expected: 2x) set the pace as
+    their geometric mean; with nothing measured, the wall clock alone."""
     now = [0.0]
     exp = {("run", "long", "e"): 50.0} | {("run", f"c{i}", "e"): 5.0 for i in range(90)}
     clock = eta.Eta(exp, clock=lambda: now[0])
     wall = eta.Eta(exp, clock=lambda: now[0])  # no measured time: the wall clock's pace
     now[0] = 100.0
     clock.done(("run", "long", "e"), 30.0)
-    assert clock.left() == pytest.approx(450.0 * 0.6)
+    assert clock.left() == pytest.approx(450.0 * (0.6 * 2.0) ** 0.5)
     wall.done(("run", "long", "e"))
     assert wall.left() == pytest.approx(450.0 * 2.0)
+
+
+def test_other_engines_sweeps_are_not_expected_once_the_bench_spent_the_budget():
+    """The night's budget (60 s) covers two external cells' bench and sweep pieces
+    (expected 40 s each): while nothing is spent they share the 60 s; once the bench
+    pieces measured 60 s, the sweeps are expected to take nothing."""
+    now = [0.0]
+    cells = {("a", "x"), ("b", "x")}
+    exp = {(k, c, e): 40.0 for c, e in cells for k in ("bench", "sweep")}
+    exp[("sweep", "a", "natcoord")] = 10.0  # natcoord's: outside the budget
+    clock = eta.Eta(exp, clock=lambda: now[0])
+    clock.budget(cells, 60.0)
+    assert clock.left() == pytest.approx(70.0)  # 60 s of budget + natcoord's 10 s
+    now[0] = 60.0
+    clock.done(("bench", "a", "x"), 30.0)
+    clock.done(("bench", "b", "x"), 30.0)
+    # tonight's pace: 60 s measured and 60 s of wall clock for 80 s expected
+    assert clock.left() == pytest.approx(10.0 * 0.75)  # only natcoord's sweep is left
 
 
 def _suite(*args, timeout=1200):
