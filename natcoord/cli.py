@@ -193,7 +193,8 @@ def _progress_printer(total: int, where: str = "here", left=None):
     """A line per finished run with the time left (from the runs so far, or ``left(key)``:
     the whole suite's, see :mod:`natcoord.suite.eta`); during a silent stretch of more than
     30 s a line says that runs are still going (a first numba compile of natcoord's kernels
-    takes about 30 s on a new machine)."""
+    takes about 30 s on a new machine), with the suite's time left once a piece has
+    finished (``left.peek()``, None before)."""
     import threading
     import time
 
@@ -205,8 +206,11 @@ def _progress_printer(total: int, where: str = "here", left=None):
     def heartbeat():
         while not stop.wait(5.0):
             if time.monotonic() - last[0] > 30.0 and done[0] < total:
+                peek = getattr(left, "peek", lambda: None)()
                 out.print(Text(f"      ... {total - done[0]} run(s) still going ({where}), "
-                               f"{time.monotonic() - start:.0f} s so far", style="dim"))
+                               f"{time.monotonic() - start:.0f} s so far"
+                               + ("" if peek is None else f", ~{peek:.0f} s left in the suite"),
+                               style="dim"))
                 last[0] = time.monotonic()
 
     threading.Thread(target=heartbeat, daemon=True).start()
@@ -795,6 +799,7 @@ def _ticker(clock, kind: str, shared: int = 1):
         clock.done((kind, case, engine),  # reused or timed by its run spent nothing tonight
                    t / shared if isinstance(t, (int, float)) else None)
         return clock.left()
+    left.peek = lambda: clock.left() if clock.finished else None  # for the heartbeat
     return left
 
 

@@ -331,3 +331,17 @@ def test_a_reused_cell_is_not_judged_as_a_new_measurement(tmp_path):
     slow = {"records": [r | {"samples_s": [3 * s for s in r["samples_s"]]}
                         for r in (fresh, reused)]}
     assert [s.case for s in speed.compare_bench({"records": [fresh, reused]}, slow)] == ["a"]
+
+
+def test_the_heartbeat_shows_the_time_left_once_a_piece_has_finished():
+    """The 'still going' line of a long silent stretch carries the suite's time left, but
+    only once a piece has finished (before that nothing says how tonight goes)."""
+    from natcoord.cli import _ticker
+
+    now = [0.0]
+    clock = eta.Eta({("run", f"c{i}", "e"): 10.0 for i in range(4)}, clock=lambda: now[0])
+    tick = _ticker(clock, "run")
+    assert tick.peek() is None
+    now[0] = 10.0
+    assert tick("c0/e", {"process_time_s": 10.0}) == pytest.approx(30.0)
+    assert tick.peek() == pytest.approx(30.0)
