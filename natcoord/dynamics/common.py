@@ -99,6 +99,15 @@ def null_space(J: np.ndarray, tol: float = 1e-9) -> np.ndarray:
     return Vt[r:].T
 
 
+def _min_eig(M: np.ndarray) -> float:
+    """Least eigenvalue of a symmetric M (n, n), block by block over the coordinates it
+    couples (linear in n for a block-diagonal M); -inf for an empty M."""
+    from ..compiled.sparsity import blocks
+
+    return min((float(np.linalg.eigvalsh(M[np.ix_(b, b)])[0]) for b in blocks(M)),
+               default=-np.inf)
+
+
 def check_existence(model, q: np.ndarray, t: float = 0.0, tol: float = 1e-9) -> None:
     """Raise ExistenceError unless ker M ∩ ker Phi_q = {0} at q (Eq. (37)).
 
@@ -106,6 +115,8 @@ def check_existence(model, q: np.ndarray, t: float = 0.0, tol: float = 1e-9) -> 
     (Eq. (53)): every motion allowed by the constraints carries kinetic energy. The error
     names the coordinates (and bodies) of the motion that carries none.
     """
+    if _min_eig(model.M) > tol * max(np.max(np.abs(model.M)), 1e-300):
+        return  # M positive definite: R^T M R >= lambda_min(M) for any orthonormal R
     cs = ConstraintSystem(model)
     R = null_space(cs.jacobian(q, t), tol)
     if R.shape[1] == 0:

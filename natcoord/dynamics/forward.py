@@ -46,6 +46,8 @@ class Solution:
     lam: np.ndarray
     counters: dict = field(default_factory=dict)
     wall_time_s: float = 0.0
+    unique: np.ndarray | None = None  # (T,) bool: lam there is the unique one (no dependent
+    # row on the sparse Schur path), the same for every reaction method
 
 
 def integrate(model, state: State, times: np.ndarray, solver: Solver | None = None, *,
@@ -114,7 +116,7 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
                                 "compiled": bool(compiled), "compile_time_s": compile_s,
                                 "path": prep.path if compiled else "python",
                                 "plan_time_s": plan_s} | batches.counters()
-    return Solution(times, Q, QD, QDD, LAM, counters, wall)
+    return Solution(times, Q, QD, QDD, LAM, counters, wall, done)
 
 
 def accelerations(model, q: np.ndarray, qd: np.ndarray,

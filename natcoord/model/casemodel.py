@@ -32,6 +32,7 @@ import numpy as np
 from ..case.mechanism import GROUND, PLANES, Case
 from ..errors import AssemblyError, ModelError
 from ..outputs import reactions
+from . import sparserank
 from .builder import Builder
 from .drivers import ConstraintSystem
 from .inertia import rod_second_moment, second_moment
@@ -355,8 +356,12 @@ def initial_positions(cm: CaseModel) -> np.ndarray:
 
 
 def mobility(cm: CaseModel, q: np.ndarray) -> tuple[int, int, int, int]:
-    """(n coordinates, rank of Phi_q, rank with the driver rows, number of drivers) at q."""
+    """(n coordinates, rank of Phi_q, rank with the driver rows, number of drivers) at q:
+    from a sparse certificate when every row is independent (linear in the model's size),
+    else by dense SVDs."""
     con = ConstraintSystem(cm.model)
+    if sparserank.full_row_rank(sparserank.jacobian(con, q)):  # every row independent (and
+        return con.n, con.m0, con.m, con.k                     # so those of Phi_q alone)
     J = con.jacobian(q)
     rank = reactions.left_null_space(J[:con.m0])[1] if con.m0 else 0
     return con.n, rank, reactions.left_null_space(J)[1] if con.m else 0, con.k

@@ -14,8 +14,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from ..errors import AssemblyError
+from . import sparserank
 from .drivers import ConstraintSystem
 from .model import J2
 
@@ -81,8 +84,12 @@ def assemble(model, q0: np.ndarray, fix: list[Prescribed] = (), *, tol: float = 
         r = np.concatenate([con.phi(q, t), B @ np.append(q, 1.0)])
         if np.max(np.abs(r), initial=0.0) < tol and it > 1:
             return q, it - 1
-        A = np.vstack([con.jacobian(q, t), B[:, :-1]])
-        dq = np.linalg.lstsq(A, -r, rcond=None)[0]
+        As = sp.vstack([sparserank.jacobian(con, q, t), sp.csr_matrix(B[:, :-1])])
+        if sparserank.full_row_rank(As):  # the same minimum-norm step, linear in the size
+            dq = sparserank.min_norm_solve(As, -r)
+        else:
+            A = np.vstack([con.jacobian(q, t), B[:, :-1]])
+            dq = np.linalg.lstsq(A, -r, rcond=None)[0]
         q += dq
         if np.max(np.abs(dq)) < tol * max(1.0, np.max(np.abs(q))) and \
                 np.max(np.abs(con.phi(q, t)), initial=0.0) < tol * 10:
@@ -106,9 +113,15 @@ def solve_velocity(model, q: np.ndarray, given: list[Prescribed] = (),
     if not given and not con.rheonomic:
         return np.zeros(model.n)
     B, z = _velocity_rows(q, given)
+    rhs = np.concatenate([-con.phi_t(q, t), z])
+    As = sp.vstack([sparserank.jacobian(con, q, t), sp.csr_matrix(B)], format="csc")
+    if As.shape[0] == model.n and sparserank.full_row_rank(As):  # square and regular: the
+        qd = spla.splu(As).solve(rhs)  # unique qd by a sparse LU (linear in the size)
+        res = np.max(np.abs(As @ qd - rhs), initial=0.0)
+        if res <= 1e-9 * max(1.0, np.max(np.abs(qd))):
+            return qd
     Jq = con.jacobian(q, t)
     A = np.vstack([Jq, B])
-    rhs = np.concatenate([-con.phi_t(q, t), z])
     qd = np.linalg.lstsq(A, rhs, rcond=None)[0]
     dof = model.n - int(np.linalg.matrix_rank(Jq, 1e-9))
     res = np.max(np.abs(A @ qd - rhs), initial=0.0)

@@ -152,8 +152,25 @@ class JointForce:
 
     def force(self, lam: np.ndarray, q: np.ndarray) -> np.ndarray:
         """Force on the second body (T, d), N, from lambda (T, m_all) and q (T, n)."""
-        qh = np.append(q, np.ones((len(q), 1)), axis=1)
-        return np.einsum("tk,kan,tn->ta", lam[:, self.rows], self.maps, qh)
+        c = support(self.maps)
+        return np.einsum("tk,kan,tn->ta", lam[:, self.rows], self.maps[..., c],
+                         at_columns(q, c, 1.0))
+
+
+def support(*maps: np.ndarray) -> np.ndarray:
+    """The columns (of the n + 1 of ``[q, 1]``) where any map (..., n + 1) is non-zero:
+    a body's or a joint's few, so that products along samples cost O(1) per element, not
+    O(n)."""
+    return np.flatnonzero(np.any([np.any(x.reshape(-1, x.shape[-1]) != 0, 0) for x in maps],
+                                 0))
+
+
+def at_columns(q: np.ndarray, cols: np.ndarray, last: float) -> np.ndarray:
+    """``[q, last][:, cols]`` (T, len(cols)) of samples q (T, n) without forming [q, last]."""
+    out = np.full((len(q), len(cols)), float(last))
+    inner = cols < q.shape[1]
+    out[:, inner] = q[:, cols[inner]]
+    return out
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..case.mechanism import GROUND, Case
+from ..model import sparserank
 from ..model.casemodel import CaseModel, _frame, build, initial_state
+from ..model.drivers import ConstraintSystem
+from ..model.model import at_columns, support
 from . import reactions
 from .result import Motion, evaluate_channels
 
@@ -80,11 +83,10 @@ def initial_body_states(case: Case) -> InitialState:
 
 
 # ---- body frames --------------------------------------------------------------------------
-def _columns(body, q: np.ndarray, last: float) -> np.ndarray:
+def _columns(body, q: np.ndarray, last: float, cols: np.ndarray) -> np.ndarray:
     """Difference columns (T, d, K) of a body at q (T, n) (``last`` 1 for positions, 0 for
-    rates)."""
-    qh = np.concatenate([q, np.full((len(q), 1), last)], 1)
-    return np.einsum("kan,tn->tak", body.G, qh)
+    rates); ``cols`` the columns of [q, 1] its maps use (:func:`support`)."""
+    return np.einsum("kan,tn->tak", body.G[..., cols], at_columns(q, cols, last))
 
 
 @dataclass(frozen=True)
@@ -123,15 +125,18 @@ def frames(cm: CaseModel, q: np.ndarray, qd: np.ndarray,
     qdd = np.zeros_like(q) if qdd is None else qdd
     out = Frames({}, {}, {}, {}, {}, {})
     for name, b in m.bodies.items():
-        p0 = np.einsum("an,tn->ta", b.G0[:, :-1], q) + b.G0[:, -1]
-        p0d, p0dd = qd @ b.G0[:, :-1].T, qdd @ b.G0[:, :-1].T
+        c = support(b.G0, b.G)  # the body's own columns: O(1) per body, not O(n)
+        G0 = b.G0[:, c]
+        p0 = at_columns(q, c, 1.0) @ G0.T
+        p0d, p0dd = at_columns(qd, c, 0.0) @ G0.T, at_columns(qdd, c, 0.0) @ G0.T
         p_body = b.R0.T @ (b.p0 - b.o0)
         T = len(q)
         if b.rank == 0:  # a particle: translation only
             R = np.broadcast_to(b.R0, (T, dim, dim)).copy()
             Rd = Rdd = np.zeros_like(R)
         else:
-            D, Dd, Ddd = _columns(b, q, 1.0), _columns(b, qd, 0.0), _columns(b, qdd, 0.0)
+            D, Dd, Ddd = (_columns(b, x, last, c) for x, last in
+                           ((q, 1.0), (qd, 0.0), (qdd, 0.0)))
             D0 = b.D
             if dim == 3 and np.linalg.matrix_rank(D0, 1e-9) == 2:
                 D0 = np.column_stack([D0, np.cross(D0[:, 0], D0[:, 1])])
@@ -209,8 +214,11 @@ def _ground_reaction(cm: CaseModel, joint, sol, forces, links) -> np.ndarray | N
 
 def reactions_by_method(cm: CaseModel, sol) -> dict[str, reactions.ReactionsAlong]:
     """Reactions along the solution (multipliers ``.lam`` (T, m_all), null spaces, ranks) of
-    every reaction method of the case."""
-    return {name: reactions.along_all(cm.model, sol.t, sol.q, sol.qd, sol.qdd, w)
+    every reaction method of the case; samples where the run's multipliers are the unique
+    ones (``sol.unique``: the sparse Schur path, every row independent) take them."""
+    known = None if getattr(sol, "unique", None) is None else (sol.lam, sol.unique)
+    return {name: reactions.along_all(cm.model, sol.t, sol.q, sol.qd, sol.qdd, w,
+                                      unique=known)
             for name, w in cm.methods.items()}
 
 
@@ -247,7 +255,10 @@ def diagnostics(cm: CaseModel, q: np.ndarray) -> dict:
     """Existence / uniqueness diagnostics at q: rank of Phi_q, DOF, redundant rows, and the
     self-equilibrating sets (columns of N over the rows, named)."""
     m = cm.model
-    N, rank = reactions.left_null_space(m.constraints.jacobian(q))
+    if sparserank.full_row_rank(sparserank.jacobian(ConstraintSystem(m), q)[:m.m]):
+        N, rank = np.zeros((m.m, 0)), m.m  # certified independent rows: no SVD (sparse)
+    else:
+        N, rank = reactions.left_null_space(m.constraints.jacobian(q))
     sets = []
     for k in range(N.shape[1]):
         v = N[:, k] / np.max(np.abs(N[:, k]))

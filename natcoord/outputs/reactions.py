@@ -36,6 +36,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from ..errors import ExistenceError
@@ -259,12 +260,17 @@ CHUNK = 1 << 21  # entries of W Phi_q factored at once (bounds the memory of the
 
 
 def along_all(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
-              w: np.ndarray | None = None, *, rtol: float = RANK_RTOL) -> ReactionsAlong:
+              w: np.ndarray | None = None, *, rtol: float = RANK_RTOL,
+              unique: tuple[np.ndarray, np.ndarray] | None = None) -> ReactionsAlong:
     """Weighted minimum-norm reactions along samples t (T,), q, qd, qdd (T, n) (driver rows
     after the m constraint rows), factored by :func:`solve` a chunk of samples at a time.
 
     ``w`` (m,) or (T, m): weights of the constraint rows (None: plain minimum norm); driver
-    rows weigh 1.
+    rows weigh 1. ``unique`` (lam (T, m_all), mask (T,) bool): multipliers already known
+    to be the unique ones at the masked samples (every row independent there, e.g. the
+    sparse Schur path's, :attr:`natcoord.dynamics.forward.Solution.unique`): those samples
+    take them as they are (the same for every weighting: rank m_all, no null space; only
+    their residual is evaluated, sparsely), the others are factored.
     """
     con = ConstraintSystem(model)
     T = len(t)
@@ -272,21 +278,52 @@ def along_all(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarr
     if w is not None:
         W = np.ones((T, con.m))
         W[:, :model.m] = np.broadcast_to(np.asarray(w, float), (T, model.m))
+    known = np.zeros(T, bool) if unique is None else np.asarray(unique[1], bool)
+    rest = np.flatnonzero(~known)
     step = max(1, CHUNK // max(1, con.m * max(con.m, con.n)))
     parts = []
     with threadpool_limits(1, user_api="blas"):  # threads on small matrices: 6x slower
-        for a in range(0, T, step):
-            b = slice(a, a + step)
+        for a in range(0, len(rest), step):
+            b = rest[a:a + step]
             parts.append(solve(con.jacobian(q[b], t[b]), resultant(model, t[b], q[b], qd[b],
                                                                    qdd[b]),
                                None if W is None else W[b], rtol=rtol))
-    if not parts:
-        return solve(np.zeros((0, con.m, con.n)), np.zeros((0, con.n)), rtol=rtol)
-    kmax = max(p.null.shape[2] for p in parts)
-    null = np.concatenate([np.pad(p.null, ((0, 0), (0, 0), (0, kmax - p.null.shape[2])))
-                           for p in parts])
-    return ReactionsAlong(null=null, **{f: np.concatenate([getattr(p, f) for p in parts])
-                                        for f in ("lam", "rank", "residual", "weights")})
+    kmax = max((p.null.shape[2] for p in parts), default=0)
+    out = ReactionsAlong(np.zeros((T, con.m)), np.zeros((T, con.m, kmax)),
+                         np.full(T, con.m), np.zeros(T),
+                         np.ones((T, con.m)) if W is None else W)
+    for a, p in zip(range(0, len(rest), step), parts, strict=True):
+        b = rest[a:a + step]
+        out.lam[b], out.rank[b], out.residual[b] = p.lam, p.rank, p.residual
+        out.null[b, :, :p.null.shape[2]] = p.null
+    if known.any():
+        k = np.flatnonzero(known)
+        out.lam[k] = np.asarray(unique[0], float)[k]
+        out.residual[k] = _residual(model, con, t[k], q[k], qd[k], qdd[k], out.lam[k])
+    return out
+
+
+def _residual(model, con: ConstraintSystem, t, q, qd, qdd, lam) -> np.ndarray:
+    """max |Phi_q^T lam - (F - M qdd)| (T,) along samples, from the constraint triplets and
+    a sparse M (cost linear in the non-zeros, no (m, n) matrix)."""
+    c = con.con
+    sel = c.i < c.n
+    i, j, k, v = c.i[sel], c.j[sel], c.k[sel], c.v[sel]
+    S = sp.csr_matrix((np.ones(len(i)), (i, np.arange(len(i)))), shape=(c.n, len(i)))
+    qh = np.concatenate([q, np.ones((len(q), 1))], 1)
+    g = np.zeros((len(q), c.n))  # Phi_q^T lam: entry (k, i) of Phi_q is sum v qh_j
+    step = max(1, CHUNK // max(1, len(i)))
+    for a in range(0, len(q), step):
+        b = slice(a, a + step)
+        g[b] = (S @ (v * qh[b][:, j] * lam[b][:, k]).T).T
+    if con.k:
+        g += np.einsum("tkn,tk->tn", con._coef(t)[0][..., :-1], lam[:, con.m0:])
+    if any(getattr(model, k, ()) for k in ("torques", "springs", "body_forces")):
+        F = np.array([model.forces(*x) for x in zip(t, q, qd, strict=True)])
+    else:
+        F = np.broadcast_to(model.Q0, np.shape(q))
+    f = F - (sp.csr_matrix(model.M) @ qdd.T).T
+    return np.max(np.abs(g - f), 1, initial=0.0)
 
 
 def along(model, t: np.ndarray, q: np.ndarray, qd: np.ndarray, qdd: np.ndarray,
