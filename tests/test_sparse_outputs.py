@@ -17,6 +17,14 @@ from natcoord.model.model import support
 from natcoord.outputs import channels, reactions
 
 
+@pytest.fixture(autouse=True)
+def sparse_from_small(monkeypatch, request):
+    """These N = 4..16 models stand in for large ones: the sparse shortcuts from 1
+    coordinate on (a model under SPARSE_FROM keeps the dense path, tested below)."""
+    if "small_model_keeps" not in request.node.name:
+        monkeypatch.setattr(sparserank, "SPARSE_FROM", 1)
+
+
 def _case(tmp_path, n: int, duration: float | None = None):
     p = tmp_path / f"a02_four_bar_n{n}.toml"
     p.write_text(generate.n_four_bar(n))
@@ -101,3 +109,21 @@ def test_what_the_sparse_paths_handle_grows_linearly(tmp_path):
         cols.append(max(len(support(b.G0, b.G)) for b in cm.model.bodies.values()))
         cols[-1] = max(cols[-1], max(len(support(j.maps)) for j in cm.model.joints.values()))
     assert per_row[0] == pytest.approx(per_row[1], rel=0.05) and cols[0] == cols[1]
+
+
+def test_a_small_model_keeps_the_dense_path_bit_for_bit(tmp_path):
+    """Under SPARSE_FROM coordinates nothing is certified and the reactions are the dense
+    ones exactly: the results the catalogue's references and baselines were made with."""
+    from natcoord.dynamics.forward import integrate
+    from natcoord.dynamics.solver import case_solver
+
+    case = _case(tmp_path, 8, duration=0.2)
+    cm = casemodel.build(case, "joints")
+    assert cm.model.n < sparserank.SPARSE_FROM
+    assert not sparserank.full_row_rank(sparserank.jacobian(ConstraintSystem(cm.model),
+                                                            cm.model.q0))
+    sol = integrate(cm.model, casemodel.initial_state(cm), case.times,
+                    case_solver(case.engine("natcoord").settings))
+    new = channels.reactions_by_method(cm, sol)["min_norm"]
+    old = reactions.along_all(cm.model, sol.t, sol.q, sol.qd, sol.qdd)
+    assert np.array_equal(new.lam, old.lam) and np.array_equal(new.residual, old.residual)

@@ -27,6 +27,13 @@ import scipy.sparse.linalg as spla
 from .drivers import ConstraintSystem
 
 CERT_RTOL = 1e-6  # certified: sigma_min > CERT_RTOL * sigma_max
+SPARSE_FROM = 256  # coordinates: a smaller model keeps the dense path (milliseconds there),
+# whose answers its results and references were made with, bit for bit
+
+
+def large(n: int) -> bool:
+    """Whether a model of n coordinates takes the sparse shortcuts (:data:`SPARSE_FROM`)."""
+    return n >= SPARSE_FROM
 
 
 def jacobian(cs: ConstraintSystem, q: np.ndarray, t: float = 0.0) -> sp.csr_matrix:
@@ -43,10 +50,12 @@ def jacobian(cs: ConstraintSystem, q: np.ndarray, t: float = 0.0) -> sp.csr_matr
 
 def full_row_rank(A, rtol: float = CERT_RTOL) -> bool:
     """True when the rows of A (m, n) are certified independent (see the module); False
-    means "not certified" (dependent, nearly so, or more rows than columns): ask the dense
-    rank-revealing path."""
+    means "not certified" (dependent, nearly so, more rows than columns, or fewer columns
+    than :data:`SPARSE_FROM`): ask the dense rank-revealing path."""
     A = sp.csr_matrix(A, dtype=float)
     m, n = A.shape
+    if not large(n):
+        return False  # a small model: the dense path answers
     if m == 0:
         return True
     if m > n:

@@ -214,9 +214,11 @@ def _ground_reaction(cm: CaseModel, joint, sol, forces, links) -> np.ndarray | N
 
 def reactions_by_method(cm: CaseModel, sol) -> dict[str, reactions.ReactionsAlong]:
     """Reactions along the solution (multipliers ``.lam`` (T, m_all), null spaces, ranks) of
-    every reaction method of the case; samples where the run's multipliers are the unique
-    ones (``sol.unique``: the sparse Schur path, every row independent) take them."""
-    known = None if getattr(sol, "unique", None) is None else (sol.lam, sol.unique)
+    every reaction method of the case; on a large model (:func:`sparserank.large`) samples
+    where the run's multipliers are the unique ones (``sol.unique``: the sparse Schur path,
+    every row independent) take them."""
+    known = (None if getattr(sol, "unique", None) is None or not sparserank.large(cm.model.n)
+             else (sol.lam, sol.unique))  # a small model's reactions stay the dense ones
     return {name: reactions.along_all(cm.model, sol.t, sol.q, sol.qd, sol.qdd, w,
                                       unique=known)
             for name, w in cm.methods.items()}
