@@ -246,6 +246,11 @@ class FormulationLoop:
     def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         return Prepared(self.compiled_path, self._frc)
 
+    def compiled_needs(self, q0: np.ndarray | None = None) -> tuple[str, ...]:
+        """The compiled code a run takes (its path, :data:`natcoord.compiled.cache.PATHS`),
+        decided without compiling anything."""
+        return (self.compiled_path,)
+
     def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
         """``go(Q, QD, QDD)``: the whole compiled run from (q0, qd0) at t0 into (T, n) in
         place, set up before the timed part (a benchmark repeats ``go``); by default

@@ -119,26 +119,46 @@ class Index1Loop(FormulationLoop):
         elimination leaves M_r singular). The model's own plan (a regular M) serves the
         outputs."""
         from ..compiled import codegen
-        from ..compiled.sparsity import dense_plan, schur_plan
-        auto = self.opt["linsolve"] != "qr"
-        sparse = self.regular and auto
-        self._plan = schur_plan(self.cs.con, self.M) if sparse else None  # the outputs'
-        con, frc, M = self._loop_model()
-        e = self.elimination
-        loop = self._plan if e is None else schur_plan(con, M) if e.regular else None
+        sparse, self._plan, loop, kplan = self._routes(q0)
         self._plan_args = None if loop is None else loop.kernel_args
-        self._kern = None
-        if auto and self.opt["generated"]:
-            q0 = None if q0 is None else np.asarray(q0, float)[
-                slice(None) if e is None else e.keep]
-            plan = loop if loop is not None else dense_plan(con, M, _alpha(con, M, q0))
-            self._kern = codegen.load(plan, frc, M)
-            if self._kern is not None:  # a dense plan drives the loop only: the outputs
-                self._plan_args = plan.kernel_args  # stay on the general path
+        _, frc, M = self._loop_model()
+        self._kern = None if kplan is None else codegen.load(kplan, frc, M)
+        if self._kern is not None:  # a dense plan drives the loop only: the outputs
+            self._plan_args = kplan.kernel_args  # stay on the general path
         if self.mode == "auto":  # the compiled paths need no rank decision
             self.mode = "schur" if sparse else "qr"
         return Prepared(self.compiled_path, self._frc, self._plan,
-                        None if self._plan is None else self._plan.kernel_args, self._kern, e)
+                        None if self._plan is None else self._plan.kernel_args, self._kern,
+                        self.elimination)
+
+    def _routes(self, q0: np.ndarray | None) -> tuple:
+        """What :meth:`prepare_compiled` sets up, nothing compiled: (whether the Schur
+        path serves M, the outputs' plan or None, the loop's plan or None, the plan the
+        generated kernels would be written from or None)."""
+        from ..compiled.sparsity import dense_plan, schur_plan
+        auto = self.opt["linsolve"] != "qr"
+        sparse = self.regular and auto
+        out = schur_plan(self.cs.con, self.M) if sparse else None
+        con, _, M = self._loop_model()
+        e = self.elimination
+        loop = out if e is None else schur_plan(con, M) if e.regular else None
+        kplan = None
+        if auto and self.opt["generated"]:
+            q0 = None if q0 is None else np.asarray(q0, float)[
+                slice(None) if e is None else e.keep]
+            kplan = loop if loop is not None else dense_plan(con, M, _alpha(con, M, q0))
+        return sparse, out, loop, kplan
+
+    def compiled_needs(self, q0: np.ndarray | None = None) -> tuple[str, ...]:
+        """The compiled code a run from ``q0`` takes, decided as :meth:`prepare_compiled`
+        does but compiling nothing: its path, and ``outputs`` when the samples'
+        multipliers come from the sparse kernels (a regular M)."""
+        from ..compiled import codegen
+        _, out, loop, kplan = self._routes(q0)
+        frc = self._loop_model()[1]
+        path = ("generated" if kplan is not None and codegen.supported(kplan, frc)
+                else "general" if loop is None else "sparse")
+        return (path, "outputs") if out is not None else (path,)
 
     def _loop_model(self) -> tuple:
         """(constraints, packed forces, M) the compiled loop integrates: the model's, or

@@ -55,14 +55,14 @@ class Cores:
 
 
 def local(jobs, engines, out: Path, timeout_s: float, workers: int,
-          first: dict | None = None, before: dict | None = None) -> Iterator[tuple]:
+          first: dict | None = None, warmup: tuple | None = None) -> Iterator[tuple]:
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
     no long run is left to the end while the other cores idle; among equals, the largest
-    case). ``before``: ``{engine: [command, ...]}``, processes that prepare an engine
-    (natcoord's compiled loops: see :mod:`natcoord.suite.warm`); they start first, and that
-    engine's runs wait for all of them while the other engines' runs go on (so that no two
-    runs compile the same loop)."""
+    case). ``warmup``: ``(chain, waits)`` of :func:`natcoord.suite.warm.plan`, processes
+    that prepare compiled code (``[(item, command), ...]``, run one after another by one
+    worker from the start) and, by cell index, the items a run waits for; the other runs go
+    on meanwhile (so that no two runs compile the same loop)."""
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
@@ -70,8 +70,8 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
         for i, (job, engine) in enumerate(todo):
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
-    board = _Board(_order(todo, first), {e: list(c) for e, c in (before or {}).items()
-                           if c and e in engines}, lambda i: todo[i][1])
+    chain, waits = warmup or ([], {})
+    board = _Board(_order(todo, first), chain, waits)
     cores = Cores(workers)
     done: queue.SimpleQueue = queue.SimpleQueue()
 
@@ -81,7 +81,9 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
             try:
                 with cores.one() as cpu:
                     if kind == "before":
-                        _prepare(x, cpu, timeout_s)
+                        for item, command in x:  # in order: each loads what the last made
+                            _prepare(command, cpu, timeout_s)
+                            board.ready(item)
                     else:
                         done.put((x, run_subprocess(todo[x][0], todo[x][1], out, timeout_s,
                                                     cpu=cpu)))
@@ -123,35 +125,42 @@ def _size(case) -> float:
 
 
 class _Board:
-    """The work of :func:`local`: preparing processes first, then the runs in ``order``;
-    the runs of an engine with preparing processes only once all of them have finished."""
+    """The work of :func:`local`: the preparing chain first (one task: one worker runs its
+    processes in order), then the runs in ``order``; a run with ``waits`` (its index ->
+    items of the chain) only once those items are ready."""
 
-    def __init__(self, order: list[int], before: dict[str, list], engine_of):
+    def __init__(self, order: list[int], chain: list[tuple], waits: dict[int, frozenset]):
         self.cond = threading.Condition()
-        self.pre = [c for cmds in before.values() for c in cmds]
-        self.waiting = set(before)  # engines whose runs wait
-        self.pre_left = len(self.pre)
-        self.order, self.engine_of, self.stopped = list(order), engine_of, False
+        self.chain = list(chain)
+        self.done: set = set()
+        self.waits = {i: set(w) & {item for item, _ in chain} for i, w in waits.items()}
+        self.order, self.stopped = list(order), False
 
     def take(self):
-        """The next task, ``("before", command)`` or ``("cell", index)``; None: no more."""
+        """The next task, ``("before", chain)`` or ``("cell", index)``; None: no more."""
         with self.cond:
             while not self.stopped:
-                if self.pre:
-                    return "before", self.pre.pop(0)
+                if self.chain:
+                    chain, self.chain = self.chain, []
+                    return "before", chain
                 for k, i in enumerate(self.order):
-                    if self.pre_left == 0 or self.engine_of(i) not in self.waiting:
+                    if self.waits.get(i, set()) <= self.done:
                         return "cell", self.order.pop(k)
                 if not self.order:
                     return None
                 self.cond.wait()
             return None
 
-    def finished(self, kind: str, _) -> None:
+    def ready(self, item) -> None:
+        """An item of the chain is ready (or failed: the runs then compile it themselves)."""
         with self.cond:
-            if kind == "before":
-                self.pre_left -= 1
-                self.cond.notify_all()
+            self.done.add(item)
+            self.cond.notify_all()
+
+    def finished(self, kind: str, x) -> None:
+        if kind == "before":  # every item, whatever became of it
+            for item, _ in x:
+                self.ready(item)
 
     def stop(self) -> None:
         with self.cond:

@@ -257,10 +257,10 @@ def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
     prepared = [as_job(c) for c in cases]
     todo = parallel.cells(prepared, engines)
     found: dict[int, dict] = {}
-    before = {warm.ENGINE: warm.commands(prepared)} if jobs > 1 else {}
+    warmup = warm.plan(prepared, engines) if jobs > 1 and not scheduler else None
     runs = (parallel.distributed(prepared, engines, out, timeout_s, scheduler, _failed)
             if scheduler else parallel.local(prepared, engines, out, timeout_s, jobs, first,
-                                             before))
+                                             warmup))
     for i, raw in runs:
         case, engine = todo[i][0].case, todo[i][1]
         found[i] = compare_record(case, raw, out, references)
