@@ -49,6 +49,7 @@ class Builder:
     _cb: ConstraintBuilder | None = None
     _M: np.ndarray | None = None
     _Q0: np.ndarray | None = None
+    _qh: np.ndarray | None = None  # [q0, 1] once the elements are all declared
 
     def __post_init__(self):
         if self.dim not in (2, 3):
@@ -213,12 +214,18 @@ class Builder:
             self.rows[name] = np.array(rows, int)
 
     def _qh0(self) -> np.ndarray:
-        q = np.zeros(self._n + 1)
-        q[-1] = 1.0
-        for e in self.elements.values():
-            if not e.fixed:
-                q[e.cols] = e.x0
-        return q
+        """[q0, 1] (n + 1,): the elements' reference coordinates (a copy); made once after
+        the last element (every body and constraint asks: O(n) each, O(n^2) in all)."""
+        if self._qh is None or self._cb is None:
+            q = np.zeros(self._n + 1)
+            q[-1] = 1.0
+            for e in self.elements.values():
+                if not e.fixed:
+                    q[e.cols] = e.x0
+            if self._cb is None:
+                return q
+            self._qh = q
+        return self._qh.copy()
 
     # ---- constraint kinds ---------------------------------------------------------------
     def _vec(self, x):
