@@ -24,6 +24,16 @@ ported here, so the loop never leaves numba); a change of rank there stops the r
 (ERR_SINGULAR: the Python loop would carry on with another f). Samples: q, qd from step
 2 at the step end or the dense output, qdd = S c + R qdd^i.
 
+The generated path (``gen``, :func:`generated`: index-1's kernels of the model, written
+out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`): Phi by
+the generated kernel in the Newton, R and qd as above, and qdd whole from index-1's Eq. (6)
+at (q, qd) -- for a consistent state the same accelerations as Eq. (23), to round-off
+(3.5e-14 relative over a run) -- and nothing redone at the y of the last evaluation. Its
+kinematics is compiled without numba's reference counting (``_nrt=False``: it allocates
+nothing): counting cost more than the arithmetic (a call at an unchanged y 550 -> 116
+ns). Without generated kernels (a model :func:`natcoord.compiled.codegen.load` declines,
+or ``generated = false``) the generic kernels above run.
+
 Kernels take plain arrays: the scleronomic constraint triplets ``k, i, j, v`` over qh =
 [q, 1] (:class:`~natcoord.model.constraints.QuadraticConstraints`), M (n, n) as its non-zeros
 (i, j, v), forces packed by :func:`natcoord.compiled.general.pack_forces`. Dense LU with
@@ -36,8 +46,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
+from numba import types
 
 from . import general as kernels_general
+from . import sparse as kernels_sparse
 from . import stepcontrol
 from .general import (
     C_FACT,
@@ -69,6 +81,7 @@ from .index1 import (
     tableau,
     warm_up_model,
 )
+from .sparse import _call2, _call4, _ptr
 
 NEWTON_ITER = 20
 
@@ -110,7 +123,12 @@ def partition(J, tol, A, rows, cols):
             lr = A[i, k] / A[k, k]
             for j in range(k, n):
                 A[i, j] -= lr * A[k, j]
-    cols[r:] = np.sort(cols[r:])
+    for a in range(r + 1, n):  # cols[r:] sorted (insertion: a few entries, no allocation)
+        x, b = cols[a], a
+        while b > r and cols[b - 1] > x:
+            cols[b] = cols[b - 1]
+            b -= 1
+        cols[b] = x
     return r
 
 
@@ -118,18 +136,20 @@ def partition(J, tol, A, rows, cols):
 @njit(cache=True)
 def workspace(n, m, r, f):
     """Work arrays: 0 ql (n,) the last q solved, 1 R (n, f) the last R, 2 (1,) int: 1 when
-    R serves the next predictor (not right after a partition), 3 q, 4 qd, 5 Sc (n,), 6 p
+    R serves the next predictor (not right after a partition), [1] 1 when ws holds the
+    kinematics at the last y (generated path: ``gen[4]``), 3 q, 4 qd, 5 Sc (n,), 6 p
     (m,), 7 J (m, n), 8 Jd (r, r), 9 piv (r,) int, 10 b (r,), 11 F, 12 w (n,), 13 MR (n, f),
     14 A3 (f, f), 15 piv3 (f,) int, 16 (2,): max|R^d| of the last R and R0 (< 0: not set
-    since the last partition); 17 A (m, n), 18 rows (m,), 19 cols (n,) int: a re-partition's."""
-    return (np.zeros(n), np.zeros((n, f)), np.zeros(1, np.int64), np.zeros(n), np.zeros(n),
+    since the last partition); 17 A (m, n), 18 rows (m,), 19 cols (n,) int: a re-partition's;
+    20 qdd^i (f,) of a sample."""
+    return (np.zeros(n), np.zeros((n, f)), np.zeros(2, np.int64), np.zeros(n), np.zeros(n),
             np.zeros(n), np.zeros(m), np.zeros((m, n)), np.zeros((r, r)),
             np.zeros(r, np.int64), np.zeros(r), np.zeros(n), np.zeros(n), np.zeros((n, f)),
             np.zeros((f, f)), np.zeros(f, np.int64), np.full(2, -1.0), np.zeros((m, n)),
-            np.zeros(m, np.int64), np.zeros(n, np.int64))
+            np.zeros(m, np.int64), np.zeros(n, np.int64), np.zeros(f))
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _factor_dep(J, rows, dep, Jd, piv, cnt):
     """Jd = Phi_q[rows][:, dep] (r, r) factored in place; False when singular."""
     r = dep.shape[0]
@@ -186,7 +206,8 @@ def _positions(con, part, tol, y, ws, cnt):
             break
     else:
         return ERR_NEWTON
-    ql[:] = q
+    for a in range(n):
+        ql[a] = q[a]
     return OK
 
 
@@ -244,7 +265,8 @@ def _acc(Msp, frc, ws, qddi, cnt):
     if f == 0:
         return OK
     forces(frc, q, qd, F)
-    w[:] = F
+    for a in range(n):
+        w[a] = F[a]
     MR[:, :] = 0.0
     for e in range(Mv.shape[0]):  # w = F - M S c, MR = M R
         a, b2, v = Mi[e], Mj[e], Mv[e]
@@ -267,23 +289,158 @@ def _acc(Msp, frc, ws, qddi, cnt):
     return OK
 
 
+# ---- the generated path (a regular M) ----------------------------------------------------
 @njit(cache=True)
-def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt):
-    """dy = [qd^i, qdd^i] (2f) at y; a status code."""
-    st = _kinematics(con, part, tol, y, ws, cnt)
+def _rows_gen(gen, rows):
+    """gen[3] (r,) = the generated kernels' rows of the partition's rows ``rows``."""
+    prow, prr = gen[2], gen[3]
+    for i in range(prr.shape[0]):
+        prr[i] = prow[rows[i]]
+
+
+@njit(cache=True, _nrt=False)
+def _kin_gen(con, part, gen, tol, y, ws, cnt):
+    """:func:`_kinematics` on the generated path, ``gen`` = (gk, gws, prow (m,), prr (r,),
+    yl (2f,), qdd (n,)): the model's generated kernels (addresses,
+    :mod:`natcoord.compiled.codegen`) and their work array, the kernels' row of every
+    constraint row and of the partition's, the y of the last evaluation and the
+    accelerations' array. The same Newton, q, qd and R, with Phi by the generated kernel
+    (S c is not formed: :func:`_acc_gen` gives qdd whole); at the y of the last evaluation
+    nothing is redone. Compiled without reference counting: it allocates nothing.
+    (A simplified Newton with the last evaluation's LU took 2.7x the iterations for no
+    gain in time and converged to the other assembly branch of four_bar and five_bar at
+    rtol 1e-8: errors of 7.6 and 4.0 rad against the references.)"""
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    gk, prr, yl = gen[0], gen[3], gen[4]
+    ql, R, flags, q, qd, p, J, Jd, piv, b = ws[0], ws[1], ws[2], ws[3], ws[4], ws[6], \
+        ws[7], ws[8], ws[9], ws[10]
+    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+    if flags[1]:
+        same = True
+        for c in range(2 * f):
+            if y[c] != yl[c]:
+                same = False
+                break
+        if same:
+            return OK
+    flags[1] = 0
+    lo, hi = ql[0], ql[0]
+    for a in range(n):
+        q[a] = ql[a]
+        lo = min(lo, ql[a])
+        hi = max(hi, ql[a])
+    size = max(hi - lo, 1e-300)
+    if flags[0]:  # q += R (q^i - q_last^i)
+        for a in range(n):
+            s = 0.0
+            for c in range(f):
+                s += R[a, c] * (y[c] - ql[indep[c]])
+            q[a] += s
+    for c in range(f):
+        q[indep[c]] = y[c]
+    for _ in range(NEWTON_ITER):  # Newton as _positions, Phi by the generated kernel
+        _call2(types.void, gk[0], _ptr(q), _ptr(p))
+        e = 0.0
+        for i in range(r):
+            e = max(e, abs(p[prr[i]]))
+        if e < tol:
+            break
+        _jac(kk, ii, jj, vv, q, J)
+        if not _factor_dep(J, rows, dep, Jd, piv, cnt):
+            return ERR_SINGULAR
+        for i in range(r):
+            b[i] = p[prr[i]]
+        _lu_solve(Jd, piv, b)
+        step = 0.0
+        for i in range(r):
+            q[dep[i]] -= b[i]
+            step = max(step, abs(b[i]))
+        cnt[C_NEWTON] += 1
+        if step < tol * 10.0 * max(1.0, size):  # round-off reached
+            break
+    else:
+        return ERR_NEWTON
+    for a in range(n):
+        ql[a] = q[a]
+    _jac(kk, ii, jj, vv, q, J)
+    if not _factor_dep(J, rows, dep, Jd, piv, cnt):
+        flags[0] = 0
+        return ERR_SINGULAR
+    g = 0.0
+    for c in range(f):  # R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I
+        for i in range(r):
+            b[i] = J[rows[i], indep[c]]
+        _lu_solve(Jd, piv, b)
+        for i in range(r):
+            R[dep[i], c] = -b[i]
+            g = max(g, abs(b[i]))
+        for c2 in range(f):
+            R[indep[c2], c] = 1.0 if c2 == c else 0.0
+    ws[16][0] = g
+    for a in range(n):
+        s = 0.0
+        for c in range(f):
+            s += R[a, c] * y[f + c]
+        qd[a] = s
+    for c in range(2 * f):
+        yl[c] = y[c]
+    flags[0], flags[1] = 1, 1
+    return OK
+
+
+@njit(cache=True, inline="always")
+def _acc_gen(gen, ws, cnt):
+    """qdd (n,) into gen[5] at the q, qd of ws by the generated ``acc`` kernel: index-1's
+    Eq. (6) (Schur complement of the regular M), the same constrained accelerations as
+    Eq. (23) at a consistent (q, qd)."""
+    cnt[C_RHS] += 1
+    cnt[C_FACT] += 1
+    _call4(types.void, gen[0][5], _ptr(ws[3]), _ptr(ws[4]), _ptr(gen[5]), _ptr(gen[1]))
+
+
+@njit(cache=True, inline="always")
+def _kin(con, part, tol, y, ws, cnt, gen):
+    """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`."""
+    if gen is None:
+        return _kinematics(con, part, tol, y, ws, cnt)
+    return _kin_gen(con, part, gen, tol, y, ws, cnt)
+
+
+@njit(cache=True, inline="always")
+def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt, gen):
+    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path, :func:`_acc_gen`); a
+    status code."""
+    st = _kin(con, part, tol, y, ws, cnt, gen)
     if st != OK:
         return st
     f = part[2].shape[0]
     for c in range(f):
         dy[c] = y[f + c]
-    return _acc(Msp, frc, ws, dy[f:], cnt)
+    if gen is None:
+        return _acc(Msp, frc, ws, dy[f:], cnt)
+    _acc_gen(gen, ws, cnt)
+    qdd, indep = gen[5], part[2]
+    for c in range(f):
+        dy[f + c] = qdd[indep[c]]
+    return OK
 
 
 @njit(cache=True)
-def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt):
+def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
     """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
-    qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``)."""
+    qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``); on
+    the generated path (``gen``) qdd of the generated kernel at that q, qd."""
     Q, QD, QDD = out[0], out[1], out[2]
+    if gen is not None:
+        st = _kin_gen(con, part, gen, tol, y, ws, cnt)
+        if st != OK:
+            return st
+        _acc_gen(gen, ws, cnt)
+        q, qd, qdd = ws[3], ws[4], gen[5]
+        for a in range(q.shape[0]):
+            Q[k, a], QD[k, a], QDD[k, a] = q[a], qd[a], qdd[a]
+        return OK
     st = _kinematics(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
@@ -293,7 +450,7 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt):
     if st != OK:
         return st
     f = part[2].shape[0]
-    qddi = np.zeros(f)
+    qddi = ws[20]
     st = _acc(Msp, frc, ws, qddi, cnt)
     if st != OK:
         return st
@@ -307,12 +464,12 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt):
 
 
 @njit(cache=True)
-def _post_step(con, part, ctl, y, ws, cnt):
+def _post_step(con, part, ctl, y, ws, cnt, gen):
     """After an accepted step (``MaggiLoop.post_step``): re-partition at the step end when
     max|R^d| exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status
     code (ERR_SINGULAR when the rank of Phi_q changed)."""
     tol, rank_tol, growth = ctl[3], ctl[4], ctl[5]
-    st = _kinematics(con, part, tol, y, ws, cnt)
+    st = _kin(con, part, tol, y, ws, cnt, gen)
     if st != OK:
         return st
     gs = ws[16]
@@ -330,20 +487,24 @@ def _post_step(con, part, ctl, y, ws, cnt):
         return ERR_SINGULAR
     cnt[C_FACT] += 1
     cnt[C_REPART] += 1
-    rows[:] = rows_all[:r]
-    dep[:] = cols[:r]
-    indep[:] = cols[r:]
+    for i in range(r):
+        rows[i], dep[i] = rows_all[i], cols[i]
+    for c in range(f):
+        indep[c] = cols[r + c]
     for c in range(f):
         y[c] = q[indep[c]]
         y[f + c] = qd[indep[c]]
     gs[1] = -1.0
     ws[2][0] = 0  # no predictor right after a partition
+    ws[2][1] = 0  # nor kinematics to reuse
+    if gen is not None:
+        _rows_gen(gen, rows)
     return OK
 
 
 # ---- the loop ------------------------------------------------------------------------------
 @njit(cache=True)
-def _stages(mdl, y, h, A, lo, hi, K, ys, ws, cnt):
+def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
     frc, part, tol) as in :func:`run_maggi`; a status code."""
     con, Msp, frc, part, tol = mdl
@@ -355,7 +516,7 @@ def _stages(mdl, y, h, A, lo, hi, K, ys, ws, cnt):
                 if A[s, p] != 0.0:
                     acc += A[s, p] * K[p, a]
             ys[a] = y[a] + h * acc
-        st = _rhs(con, Msp, frc, part, tol, ys, K[s], ws, cnt)
+        st = _rhs(con, Msp, frc, part, tol, ys, K[s], ws, cnt, gen)
         if st != OK:
             return st
     return OK
@@ -373,7 +534,7 @@ def _weights(W, K, s, out, h):
 
 
 @njit(cache=True)
-def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
+def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     """Integrate y = [q^i, qd^i] over ``times`` (T,) from y0 (2f) at times[0], with q0 (n,)
     the consistent positions there and ``part`` = (rows (r,), dep (r,), indep (f,)) their
     partition (renewed in place). ``con`` = (k, i, j, v, m); ``Msp`` = M's non-zeros (i, j,
@@ -397,13 +558,13 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
     t, tend = times[0], times[T - 1]
     tfail[0] = t
     y = y0.copy()
-    st = _sample(con, Msp, frc, part, tol, y, 0, out, ws, cnt)
+    st = _sample(con, Msp, frc, part, tol, y, 0, out, ws, cnt, gen)
     if st != OK:
         return st
     if f == 0:  # no degrees of freedom: kinematics at every sample
         for k in range(1, T):
             tfail[0] = times[k]
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
@@ -421,23 +582,23 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
             hh = (t1 - t0) / nsub
             for i in range(nsub):
                 tfail[0] = t0 + i * hh
-                st = _stages(mdl, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
                 if st != OK:
                     return st
                 _weights(B, K, s_st, yn, hh)
                 for a in range(N):
                     y[a] += yn[a]
-                st = _post_step(con, part, ctl, y, ws, cnt)
+                st = _post_step(con, part, ctl, y, ws, cnt, gen)
                 if st != OK:
                     return st
                 cnt[C_STEPS] += 1
             tfail[0] = t1
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
     # adaptive: Hairer's initial step
-    st = _rhs(con, Msp, frc, part, tol, y, ys, ws, cnt)
+    st = _rhs(con, Msp, frc, part, tol, y, ys, ws, cnt, gen)
     if st != OK:
         return st
     d0, d1 = 0.0, 0.0
@@ -451,7 +612,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
     while k < T:
         hh = min(h, tend - t)
         tfail[0] = t
-        st = _stages(mdl, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+        st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
         if st == ERR_NEWTON:  # the step is too long for the dependent positions
             if stepcontrol.underflow(hh * 1e-4, t):
                 return ERR_UNDERFLOW
@@ -485,7 +646,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
             if dop853 and not inner:
-                st = _stages(mdl, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt)
                 if st != OK:
                     return st
                 stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
@@ -495,19 +656,19 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out):
                 stepcontrol.dense_at(Fd, y, x, yu)
             else:
                 stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
-            st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt)
+            st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
         t = t1
         y[:] = yn
         tfail[0] = t
-        st = _post_step(con, part, ctl, y, ws, cnt)
+        st = _post_step(con, part, ctl, y, ws, cnt, gen)
         if st != OK:
             return st
         cnt[C_STEPS] += 1
         if k < T and times[k] <= t1 + tol_t:
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt)
+            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
@@ -544,13 +705,28 @@ class Steps(NamedTuple):
     repartition_growth: float = 1.5
 
 
-def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None):
+def generated(con, M, frc, alpha: float = 1.0) -> tuple | None:
+    """(kernel addresses, their plan's ``kernel_args``, prow (m,): the kernels' row of each
+    constraint row) of index-1's generated kernels for the Maggi loop's generated path
+    (:func:`_kin_gen`): the Schur plan of a regular M, a singular M's regularised dense
+    plan with ``alpha`` (:func:`natcoord.compiled.sparsity.dense_plan`); None where
+    :func:`natcoord.compiled.codegen.load` declines the model (model only)."""
+    from . import codegen, sparsity
+    regular = sparsity.is_spd(M)
+    plan = sparsity.schur_plan(con, M) if regular else sparsity.dense_plan(con, M, alpha)
+    gk = codegen.load(plan, frc, None if regular else M)
+    if gk is None:
+        return None
+    return gk, plan.kernel_args, np.argsort(plan.perm).astype(np.int64)
+
+
+def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None, gen=None):
     """Integrate with the compiled loop by ``method`` from y = [q^i, qd^i] (2f) at times[0]
     with q (n,) the consistent positions there and ``part`` = (rows, dep (r,), indep (f,))
     their partition (``MaggiLoop.init``); returns (Q, QD, QDD) (T, n) at ``times`` (T,) s.
     ``packed``: :func:`pack`; ``frc``: :func:`pack_forces`; ``steps``: a fixed step (s) for
     rk4 or dopri5, else adaptive dop853 or dopri5; ``cnt``: counters added to. Raises
-    RuntimeError."""
+    RuntimeError. ``gen``: :func:`generated` (None: the generic kernels)."""
     rtol, atol, h, newton_tol, rank_tol, repartition_growth = steps
     con, Msp = packed
     n, T = len(q), len(times)
@@ -559,9 +735,13 @@ def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None):
     part = tuple(np.array(x, np.int64) for x in part)
     ctl = (float(rtol), float(atol), 0.0 if h is None else float(h), float(newton_tol),
            float(rank_tol), float(repartition_growth))
+    if gen is not None:  # the kernels, their work array, rows, and scratch
+        gk, args, prow = gen
+        gen = (gk, kernels_sparse.workspace(args), prow, prow[part[0]].copy(),
+               np.zeros(len(y)), np.zeros(n))
     status = run_maggi(con, Msp, frc, part, ctl, _tab(method),
                        np.ascontiguousarray(times, float), np.array(y, float),
-                       np.array(q, float), (Q, QD, QDD, c, tfail))
+                       np.array(q, float), (Q, QD, QDD, c, tfail), gen)
     add_counters(c, cnt)
     check(status, f"maggi {method} at t = {tfail[0]:.6g} s")
     return Q, QD, QDD
@@ -573,9 +753,11 @@ def warm_up() -> None:
     con, frc = warm_up_model()
     packed = pack(con, np.eye(2))
     q, part = np.array([0.8, -0.6]), ([0], [0], [1])
-    for method, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005), ("dopri5", 0.005)):
-        run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, part, method,
-            Steps(rtol=1e-6, atol=1e-8, h=h))
+    for gen in (None, generated(con, np.eye(2), frc)):  # both paths
+        for method, h in (("dop853", None), ("dopri5", None), ("rk4", 0.005),
+                          ("dopri5", 0.005)):
+            run(packed, frc, np.linspace(0.0, 0.02, 3), np.array([-0.6, 0.0]), q, part,
+                method, Steps(rtol=1e-6, atol=1e-8, h=h), gen=gen)
 
 
-drop_stale_cache(globals(), __name__, (kernels_general, stepcontrol))
+drop_stale_cache(globals(), __name__, (kernels_general, kernels_sparse, stepcontrol))

@@ -11,20 +11,25 @@ from typing import ClassVar
 import numpy as np
 
 from ..errors import StepFailure
-from .common import FormulationLoop, Prepared, full_pivot_partition
-from .options import Formulation, _positive
+from .common import FormulationLoop, Prepared, _alpha, full_pivot_partition
+from .options import Formulation, _flag, _positive
 
 
 @dataclass(frozen=True)
 class Maggi(Formulation):
-    """Maggi's null-space equations; re-partition when max|R^d| grows by this factor."""
+    """Maggi's null-space equations; re-partition when max|R^d| grows by this factor.
+    ``generated``: the compiled loop takes Phi and the accelerations from index-1's kernels
+    written out for the model (:func:`natcoord.compiled.maggi.generated`) when it allows,
+    else (or False) the generic kernels with Eq. (23)."""
 
     name: ClassVar[str] = "maggi"
     repartition_growth: float = 1.5
+    generated: bool = True
 
     def __post_init__(self):
         super().__post_init__()
         _positive("Maggi", "repartition_growth", self.repartition_growth)
+        _flag("Maggi", "generated", self.generated)
 
 
 class MaggiLoop(FormulationLoop):
@@ -55,9 +60,15 @@ class MaggiLoop(FormulationLoop):
 
     def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         """Model-only set-up: the constraint triplets and M's non-zeros packed for the
-        compiled loop (:func:`natcoord.compiled.maggi.pack`)."""
+        compiled loop (:func:`natcoord.compiled.maggi.pack`), and index-1's generated
+        kernels, which give Phi and the accelerations there
+        (:func:`natcoord.compiled.maggi.generated`, a singular M's alpha from M and Phi_q
+        at ``q0``; None: the generic kernels)."""
         from ..compiled import maggi as kernels_maggi
         self._packed = kernels_maggi.pack(self.cs.con, self.M)
+        q0 = None if q0 is None else np.asarray(q0, float)
+        self._gen = kernels_maggi.generated(self.cs.con, self.M, self._frc, _alpha(
+            self.cs.con, self.M, q0)) if self.opt["generated"] else None
         return Prepared(self.compiled_path, self._frc)
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
@@ -70,7 +81,8 @@ class MaggiLoop(FormulationLoop):
         steps = kernels_maggi.Steps(rtol, atol, h, self.opt["newton_tol"], self.opt["rank_tol"],
                                     self.opt["repartition_growth"])
         return kernels_maggi.run(self._packed, self._frc, times, y, self.q,
-                                 (self.rows, self.dep, self.indep), method, steps, self.cnt)
+                                 (self.rows, self.dep, self.indep), method, steps, self.cnt,
+                                 self._gen)
 
     def _partition(self, t, q):
         J = self.cs.jacobian(q, t)

@@ -72,7 +72,7 @@ SOLVER_SETTINGS = (
     Setting("linsolve", "choice", Index1.linsolve, "index1: the linear solve (auto, Schur "
             "complement or QR)", choices=("auto", "schur", "qr")),
     Setting("generated", "boolean", Index1.generated, "index1: kernels written out for the "
-            "model on its Schur path"),
+            "model on its Schur path; maggi: Phi and accelerations by them"),
     Setting("repartition_growth", "number", Maggi.repartition_growth, "maggi: re-partition "
             "when max|R^d| grows by this factor", **_POSITIVE),
     Setting("penalty", "number", Index3.penalty, "index3: penalty alpha h^2/4 relative to "
