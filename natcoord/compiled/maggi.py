@@ -160,11 +160,14 @@ def _factor_dep(J, rows, dep, Jd, piv, cnt):
     return _lu(Jd, piv)
 
 
-@njit(cache=True)
-def _positions(con, part, tol, y, ws, cnt):
+@njit(cache=True, _nrt=False)
+def _positions(con, part, tol, y, ws, cnt, gk, prr):
     """q (ws[3]) at the independent positions y[:f] by Newton on Phi[rows] = 0 from the last
     solution moved along the last R (``MaggiLoop._positions``); kept in ws[0] when it
-    converges. A status code."""
+    converges. Phi by the generated kernel at gk[0] with ``prr`` its rows of the
+    partition's rows (:func:`_rows_gen`), or, gk empty (``NO_GK``), by the triplets with
+    ``prr`` the partition's rows. A status code. Allocates nothing: compiled without
+    reference counting."""
     kk, ii, jj, vv, m = con
     rows, dep, indep = part
     ql, R, flags, q, p, J, Jd, piv, b = ws[0], ws[1], ws[2], ws[3], ws[6], ws[7], ws[8], \
@@ -185,17 +188,20 @@ def _positions(con, part, tol, y, ws, cnt):
     for c in range(f):
         q[indep[c]] = y[c]
     for _ in range(NEWTON_ITER):
-        _phi(kk, ii, jj, vv, m, q, p)
+        if gk.shape[0] == 0:
+            _phi(kk, ii, jj, vv, m, q, p)
+        else:
+            _call2(types.void, gk[0], _ptr(q), _ptr(p))
         e = 0.0
         for i in range(r):
-            e = max(e, abs(p[rows[i]]))
+            e = max(e, abs(p[prr[i]]))
         if e < tol:
             break
         _jac(kk, ii, jj, vv, q, J)
         if not _factor_dep(J, rows, dep, Jd, piv, cnt):
             return ERR_SINGULAR
         for i in range(r):
-            b[i] = p[rows[i]]
+            b[i] = p[prr[i]]
         _lu_solve(Jd, piv, b)
         step = 0.0
         for i in range(r):
@@ -211,23 +217,20 @@ def _positions(con, part, tol, y, ws, cnt):
     return OK
 
 
-@njit(cache=True)
-def _kinematics(con, part, tol, y, ws, cnt):
-    """q, qd, R, S c (ws[3], ws[4], ws[1], ws[5]) and max|R^d| (ws[16][0]) at the
-    integrated y = [q^i, qd^i] (``MaggiLoop._kinematics``); a status code."""
-    st = _positions(con, part, tol, y, ws, cnt)
-    if st != OK:
-        return st
+@njit(cache=True, _nrt=False)
+def _rates(con, part, y, ws, cnt):
+    """At q (ws[3]): Phi_q (ws[7]) and the LU of its dependent block (ws[8], ws[9]), R
+    (ws[1]: R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I), max|R^d| (ws[16][0]) and qd = R qd^i
+    (ws[4]) from y[f:]; OK or ERR_SINGULAR."""
     kk, ii, jj, vv, m = con
     rows, dep, indep = part
-    R, flags, q, qd, Sc, p, J, Jd, piv, b = ws[1], ws[2], ws[3], ws[4], ws[5], ws[6], \
-        ws[7], ws[8], ws[9], ws[10]
+    R, q, qd, J, Jd, piv, b = ws[1], ws[3], ws[4], ws[7], ws[8], ws[9], ws[10]
     n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
     _jac(kk, ii, jj, vv, q, J)
     if not _factor_dep(J, rows, dep, Jd, piv, cnt):
         return ERR_SINGULAR
     g = 0.0
-    for c in range(f):  # R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I
+    for c in range(f):
         for i in range(r):
             b[i] = J[rows[i], indep[c]]
         _lu_solve(Jd, piv, b)
@@ -237,12 +240,29 @@ def _kinematics(con, part, tol, y, ws, cnt):
         for c2 in range(f):
             R[indep[c2], c] = 1.0 if c2 == c else 0.0
     ws[16][0] = g
-    flags[0] = 1
     for a in range(n):
         s = 0.0
         for c in range(f):
             s += R[a, c] * y[f + c]
         qd[a] = s
+    return OK
+
+
+@njit(cache=True)
+def _kinematics(con, part, tol, y, ws, cnt):
+    """q, qd, R, S c (ws[3], ws[4], ws[1], ws[5]) and max|R^d| (ws[16][0]) at the
+    integrated y = [q^i, qd^i] (``MaggiLoop._kinematics``); a status code."""
+    st = _positions(con, part, tol, y, ws, cnt, kernels_sparse.NO_GK, part[0])
+    if st != OK:
+        return st
+    st = _rates(con, part, y, ws, cnt)
+    if st != OK:
+        return st
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    flags, qd, Sc, p, Jd, piv, b = ws[2], ws[4], ws[5], ws[6], ws[8], ws[9], ws[10]
+    r = dep.shape[0]
+    flags[0] = 1
     _gamma(kk, ii, jj, vv, qd, p)  # c (m,)
     for i in range(r):
         b[i] = p[rows[i]]
@@ -310,12 +330,8 @@ def _kin_gen(con, part, gen, tol, y, ws, cnt):
     (A simplified Newton with the last evaluation's LU took 2.7x the iterations for no
     gain in time and converged to the other assembly branch of four_bar and five_bar at
     rtol 1e-8: errors of 7.6 and 4.0 rad against the references.)"""
-    kk, ii, jj, vv, m = con
-    rows, dep, indep = part
-    gk, prr, yl = gen[0], gen[3], gen[4]
-    ql, R, flags, q, qd, p, J, Jd, piv, b = ws[0], ws[1], ws[2], ws[3], ws[4], ws[6], \
-        ws[7], ws[8], ws[9], ws[10]
-    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+    flags, yl = ws[2], gen[4]
+    f = part[2].shape[0]
     if flags[1]:
         same = True
         for c in range(2 * f):
@@ -325,64 +341,13 @@ def _kin_gen(con, part, gen, tol, y, ws, cnt):
         if same:
             return OK
     flags[1] = 0
-    lo, hi = ql[0], ql[0]
-    for a in range(n):
-        q[a] = ql[a]
-        lo = min(lo, ql[a])
-        hi = max(hi, ql[a])
-    size = max(hi - lo, 1e-300)
-    if flags[0]:  # q += R (q^i - q_last^i)
-        for a in range(n):
-            s = 0.0
-            for c in range(f):
-                s += R[a, c] * (y[c] - ql[indep[c]])
-            q[a] += s
-    for c in range(f):
-        q[indep[c]] = y[c]
-    for _ in range(NEWTON_ITER):  # Newton as _positions, Phi by the generated kernel
-        _call2(types.void, gk[0], _ptr(q), _ptr(p))
-        e = 0.0
-        for i in range(r):
-            e = max(e, abs(p[prr[i]]))
-        if e < tol:
-            break
-        _jac(kk, ii, jj, vv, q, J)
-        if not _factor_dep(J, rows, dep, Jd, piv, cnt):
-            return ERR_SINGULAR
-        for i in range(r):
-            b[i] = p[prr[i]]
-        _lu_solve(Jd, piv, b)
-        step = 0.0
-        for i in range(r):
-            q[dep[i]] -= b[i]
-            step = max(step, abs(b[i]))
-        cnt[C_NEWTON] += 1
-        if step < tol * 10.0 * max(1.0, size):  # round-off reached
-            break
-    else:
-        return ERR_NEWTON
-    for a in range(n):
-        ql[a] = q[a]
-    _jac(kk, ii, jj, vv, q, J)
-    if not _factor_dep(J, rows, dep, Jd, piv, cnt):
+    st = _positions(con, part, tol, y, ws, cnt, gen[0], gen[3])
+    if st != OK:
+        return st
+    st = _rates(con, part, y, ws, cnt)
+    if st != OK:
         flags[0] = 0
-        return ERR_SINGULAR
-    g = 0.0
-    for c in range(f):  # R^d = -(Phi_q^d)^-1 Phi_q^i, R^i = I
-        for i in range(r):
-            b[i] = J[rows[i], indep[c]]
-        _lu_solve(Jd, piv, b)
-        for i in range(r):
-            R[dep[i], c] = -b[i]
-            g = max(g, abs(b[i]))
-        for c2 in range(f):
-            R[indep[c2], c] = 1.0 if c2 == c else 0.0
-    ws[16][0] = g
-    for a in range(n):
-        s = 0.0
-        for c in range(f):
-            s += R[a, c] * y[f + c]
-        qd[a] = s
+        return st
     for c in range(2 * f):
         yl[c] = y[c]
     flags[0], flags[1] = 1, 1
