@@ -21,7 +21,7 @@ import numpy as np
 
 from .constraints import ROUNDOFF, ConstraintBuilder
 from .drivers import DriverRow
-from .model import GROUND, J2, Body, Element, JointForce, Model, Spring
+from .model import GROUND, J2, Body, Element, JointForce, Model, Spring, support
 
 
 @dataclass
@@ -191,7 +191,7 @@ class Builder:
             Mab = 0.5 * (Mab + Mab.T)
             Mab[np.abs(Mab) < ROUNDOFF * np.max(np.abs(Mab))] = 0.0
             maps = [b.G0[:, :-1]] + [g[:, :-1] for g in G]
-            cols = np.flatnonzero(np.any([np.any(x, axis=0) for x in maps], axis=0))
+            cols = support(*maps)
             sub = [x[:, cols] for x in maps]  # the body's own columns: O(1) per body
             Mb = sum(Mab[a, c] * sub[a].T @ sub[c] for a in range(K + 1)
                      for c in range(K + 1))

@@ -360,7 +360,7 @@ def mobility(cm: CaseModel, q: np.ndarray) -> tuple[int, int, int, int]:
     from a sparse certificate when every row is independent (linear in the model's size),
     else by dense SVDs."""
     con = ConstraintSystem(cm.model)
-    if sparserank.full_row_rank(sparserank.jacobian(con, q)):  # every row independent (and
+    if sparserank.certified(con, q) is not None:  # every row independent (and
         return con.n, con.m0, con.m, con.k                     # so those of Phi_q alone)
     J = con.jacobian(q)
     rank = reactions.left_null_space(J[:con.m0])[1] if con.m0 else 0

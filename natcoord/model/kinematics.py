@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..errors import AssemblyError
@@ -84,8 +83,8 @@ def assemble(model, q0: np.ndarray, fix: list[Prescribed] = (), *, tol: float = 
         r = np.concatenate([con.phi(q, t), B @ np.append(q, 1.0)])
         if np.max(np.abs(r), initial=0.0) < tol and it > 1:
             return q, it - 1
-        As = sp.vstack([sparserank.jacobian(con, q, t), sp.csr_matrix(B[:, :-1])])
-        if sparserank.full_row_rank(As):  # the same minimum-norm step, linear in the size
+        As = sparserank.certified(con, q, t, extra=B[:, :-1])
+        if As is not None:  # the same minimum-norm step, linear in the size
             dq = sparserank.min_norm_solve(As, -r)
         else:
             A = np.vstack([con.jacobian(q, t), B[:, :-1]])
@@ -114,9 +113,9 @@ def solve_velocity(model, q: np.ndarray, given: list[Prescribed] = (),
         return np.zeros(model.n)
     B, z = _velocity_rows(q, given)
     rhs = np.concatenate([-con.phi_t(q, t), z])
-    As = sp.vstack([sparserank.jacobian(con, q, t), sp.csr_matrix(B)], format="csc")
-    if As.shape[0] == model.n and sparserank.full_row_rank(As):  # square and regular: the
-        qd = spla.splu(As).solve(rhs)  # unique qd by a sparse LU (linear in the size)
+    As = sparserank.certified(con, q, t, extra=B)
+    if As is not None and As.shape[0] == model.n:  # square and regular: the unique qd
+        qd = spla.splu(As.tocsc()).solve(rhs)  # by a sparse LU (linear in the size)
         res = np.max(np.abs(As @ qd - rhs), initial=0.0)
         if res <= 1e-9 * max(1.0, np.max(np.abs(qd))):
             return qd

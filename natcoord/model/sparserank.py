@@ -77,6 +77,19 @@ def full_row_rank(A, rtol: float = CERT_RTOL) -> bool:
     return bool(low > (rtol * rtol) * top)
 
 
+def certified(cs: ConstraintSystem, q: np.ndarray, t: float = 0.0, *,
+              rows: int | None = None, extra: np.ndarray | None = None):
+    """The sparse Phi_q at q, t (its first ``rows`` rows; ``extra`` (k, n) stacked below)
+    when its rows are certified independent (:func:`full_row_rank`), else None: at once,
+    with nothing sparse built, for a model under :data:`SPARSE_FROM` coordinates."""
+    if not large(cs.con.n):
+        return None
+    A = jacobian(cs, q, t)[slice(rows)]
+    if extra is not None:
+        A = sp.vstack([A, sp.csr_matrix(extra)], format="csr")
+    return A if full_row_rank(A) else None
+
+
 def min_norm_solve(A, b: np.ndarray) -> np.ndarray:
     """The minimum-norm x of A x = b for A (m, n) of independent rows (certify first), by a
     sparse LU of the augmented system [[I, A^T], [A, 0]] [x; y] = [0; b] (conditioned like

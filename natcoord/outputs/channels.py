@@ -257,7 +257,7 @@ def diagnostics(cm: CaseModel, q: np.ndarray) -> dict:
     """Existence / uniqueness diagnostics at q: rank of Phi_q, DOF, redundant rows, and the
     self-equilibrating sets (columns of N over the rows, named)."""
     m = cm.model
-    if sparserank.full_row_rank(sparserank.jacobian(ConstraintSystem(m), q)[:m.m]):
+    if sparserank.certified(ConstraintSystem(m), q, rows=m.m) is not None:
         N, rank = np.zeros((m.m, 0)), m.m  # certified independent rows: no SVD (sparse)
     else:
         N, rank = reactions.left_null_space(m.constraints.jacobian(q))

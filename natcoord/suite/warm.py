@@ -68,12 +68,14 @@ def plan(jobs: Sequence, engines: Sequence[str]) -> tuple[list[tuple[str, list[s
     or every warmed one when it compiles an item of its own."""
     if ENGINE not in engines:
         return [], {}
-    need = [needs(job) for job in jobs]
-    count = Counter(item for items in need for item in items)
+    from .parallel import cells
+
+    need = {id(job): needs(job) for job in jobs}
+    count = Counter(item for items in need.values() for item in items)
     chain = [p for p in ORDER if count[p] >= 2]
     waits = {}
-    for k, items in enumerate(need):
+    for i, (job, engine) in enumerate(cells(jobs, engines)):
+        items = need[id(job)] if engine == ENGINE else frozenset()
         if items and chain:
-            waits[k * len(engines) + list(engines).index(ENGINE)] = (
-                frozenset(chain) if items - set(chain) else items)
+            waits[i] = frozenset(chain) if items - set(chain) else items
     return [(p, command(p)) for p in chain], waits
