@@ -129,21 +129,21 @@ ADAPTIVE = ("dop853", "dopri5")  # and with error-controlled steps
 # (the loop calls the sparse path's kernels directly: a wrapper choosing between the two
 # cost 50 ns a call, a quarter of a projection on a small model)
 @njit(cache=True)
-def _accel_general(gen, frc, y, qdd, wg, cnt):
-    """qdd (n,) at the state y = [q, qd] on the general path, ``gen`` = (k, i, j, v, M,
-    rank_tol); a status code."""
+def _accel_general(gen, y, qdd, wg, cnt):
+    """qdd (n,) at the state y = [q, qd] on the general path, ``gen`` = ((k, i, j, v, M,
+    rank_tol), frc); a status code."""
     n = qdd.shape[0]
-    return acc_general(gen, frc, y[:n], y[n:], qdd, wg, cnt)
+    return acc_general(gen[0], gen[1], y[:n], y[n:], qdd, wg, cnt)
 
 
 @njit(cache=True)
-def _settle_general(gen, frc, q, qd, qdd, ptol, wg, cnt):
+def _settle_general(gen, q, qd, qdd, ptol, wg, cnt):
     """Project (q, qd) in place and evaluate qdd there on the general path; a status code."""
-    kk, ii, jj, vv, _, rank_tol = gen
+    kk, ii, jj, vv, _, rank_tol = gen[0]
     st = project_general(kk, ii, jj, vv, rank_tol, q, qd, ptol, wg, cnt)
     if st != OK:
         return st
-    return acc_general(gen, frc, q, qd, qdd, wg, cnt)
+    return acc_general(gen[0], gen[1], q, qd, qdd, wg, cnt)
 
 
 @njit(cache=True)
@@ -217,7 +217,7 @@ def _stages(sp, gen, wg, cnt, y, h, lo, hi, rk):
     for st in range(lo, hi):
         _combine(y, h, A, st, st, K, ys)
         st_code = (kernels_sparse.acc_state(P, gk, frc, ys, qdd, ws, cnt)
-                   if wg is None else _accel_general(gen, frc, ys, qdd, wg, cnt))
+                   if wg is None else _accel_general(gen, ys, qdd, wg, cnt))
         if st_code != OK:
             return st_code
         for a in range(n):
@@ -285,7 +285,7 @@ def _settle(sp, gen, wg, q, qd, qdd, ptol, cnt, factored):
     given) the general one; a status code."""
     if wg is None:
         return kernels_sparse.settle(sp, q, qd, qdd, ptol, cnt, factored)
-    return _settle_general(gen, sp[2], q, qd, qdd, ptol, wg, cnt)
+    return _settle_general(gen, q, qd, qdd, ptol, wg, cnt)
 
 
 @njit(cache=True)
@@ -298,11 +298,13 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     and its vector ``w`` (:mod:`natcoord.compiled.sparse`), by the generic kernels on the
     plan ``P`` = (I, F, O) or, P None, by the model's generated kernels ``gk`` (addresses,
     :mod:`natcoord.compiled.codegen`; ``NO_GK`` with a plan); else the general path on
-    ``gen`` (:class:`~natcoord.compiled.general.General`) with ``wg`` its work arrays
-    (:func:`kernels_general.workspace`), None off that path; ``frc``: :func:`pack_forces`,
-    None with generated kernels (they carry the forces). What a path does not use goes as
-    None: a tuple's arrays cost time at every call, and numba compiles the None branches
-    away (which is why ``wg`` is an argument of its own). ``tab`` =
+    ``gen`` = (:class:`~natcoord.compiled.general.General`, frc) with ``wg`` its work arrays
+    (:func:`kernels_general.workspace`), None off that path, and ``sp`` typed as the
+    generated path's (P and frc None: numba types the sparse branch, never taken there,
+    with the callees the generated path compiled); ``frc``: :func:`pack_forces`, None with
+    generated kernels (they carry the forces). What a path does not use goes as None: a
+    tuple's arrays cost time at every call, and numba compiles the None branches away
+    (which is why ``wg`` is an argument of its own). ``tab`` =
     (A, B, E5, E3, expo, dop853, n_ext, D, fsal): the method's tableau, A (s + n_ext,
     s + n_ext) the step's s stages and the extension's n_ext (:func:`packed_tableau`);
     ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step control (h0 <= 0: Hairer's
@@ -604,7 +606,7 @@ def prepare(name: str, con, frc, times, steps: Steps, route: Route | None = None
     elim = len(dep[5]) > 0
     X = tuple(np.zeros((Tn, n)) for _ in range(3)) if elim else None  # the kept ones
     c, tfail = np.zeros(N_COUNTERS), np.zeros(1)
-    gen = None if plan is not None else kernels_general.general(con, M, rank_tol)
+    gen = None if plan is not None else (kernels_general.general(con, M, rank_tol), frc)
     wg = workspace(n, int(con.m)) if plan is None else None  # None: the sparse path
     args = sparsity.empty_plan(n).kernel_args if plan is None else plan
     ws = kernels_sparse.workspace(args)
@@ -612,8 +614,11 @@ def prepare(name: str, con, frc, times, steps: Steps, route: Route | None = None
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
            0.0 if h is None else float(h))
     generated = kern is not None and plan is not None  # they serve the sparse path
-    sp = (None if generated else args, kern if generated else kernels_sparse.NO_GK,
-          None if generated else frc, ws, w)
+    # the general path hands the sparse branch (typed, never run) the generated path's
+    # types, so that numba compiles (or loads) one set of those callees for both
+    sparse = plan is not None and not generated
+    sp = (args if sparse else None, kern if generated else kernels_sparse.NO_GK,
+          frc if sparse else None, ws, w)
 
     def go(q0, qd0, out, cnt=None):
         status = run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0,
