@@ -26,15 +26,20 @@ def project_copy(tmp_path: Path, *cases: str) -> Path:
 
 
 def worker_pids(where: Path) -> list[int]:
-    """The natcoord engine workers running now whose command line names ``where``."""
+    """The natcoord engine processes running now for ``where``: a fresh interpreter whose
+    command line names the worker and ``where``, or the fork server and its forks
+    (:mod:`natcoord.suite.zygote`) whose environment names ``where``."""
     out = []
     for pid in os.listdir("/proc"):
         if pid.isdigit():
             try:
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes()
+                env = (Path(f"/proc/{pid}/environ").read_bytes()
+                       if b"multiprocessing.forkserver" in cmd else b"")
             except OSError:
                 continue
-            if b"natcoord.suite.worker" in cmd and str(where).encode() in cmd:
+            if (b"natcoord.suite.worker" in cmd and str(where).encode() in cmd) or (
+                    str(where).encode() in env):
                 out.append(int(pid))
     return out
 

@@ -9,6 +9,7 @@ process dies with this one (it is asked to on Linux), so no worker outlives the 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import datetime as dt
 import hashlib
@@ -18,6 +19,7 @@ import platform
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -27,7 +29,7 @@ from .. import __version__
 from ..case.mechanism import Case
 from ..errors import NatcoordError
 from ..outputs.channels import initial_body_states
-from . import evidence
+from . import evidence, zygote
 from .io import read_json, write_json
 from .worker import Job, cannot_run
 
@@ -110,11 +112,10 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     with open(job_file, "wb") as f:
         pickle.dump(dataclasses.replace(job, engine=engine, settings=dict(settings or {}),
                                         repeat=repeat), f)
-    cmd, env = worker_command(job_file, out)
     timeout_s = time_limit(case, timeout_s) * max(1, repeat)
     t0 = time.perf_counter()
     try:
-        returncode, err = run_command(cmd, timeout_s, cpu, env)
+        returncode, err = run_worker(job_file, out, timeout_s, cpu)
     except subprocess.TimeoutExpired:
         return _failed(case, engine, f"timed out after {timeout_s:g} s (killed)")
     except _Stopping:
@@ -132,6 +133,38 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
     record = read_json(record_file)
     record["process_time_s"] = time.perf_counter() - t0
     return record
+
+
+def run_worker(job_file: Path, out: Path, timeout_s: float,
+               cpu: int | None = None) -> tuple[int, str]:
+    """Run the engine process of ``job_file`` (:func:`worker_command`), forked from the
+    fork server (:mod:`natcoord.suite.zygote`) where it serves, else a fresh interpreter;
+    as :func:`run_command`: (exit status, standard error), subprocess.TimeoutExpired after
+    ``timeout_s``, killed with the command."""
+    cmd, env = worker_command(job_file, out)
+    if not zygote.usable(env):
+        return run_command(cmd, timeout_s, cpu, env)
+    if _STOPPING.is_set():
+        raise _Stopping
+    fd, err_path = tempfile.mkstemp(prefix="natcoord-worker-", suffix=".err")
+    os.close(fd)
+    try:
+        proc = zygote.Forked(cmd[-2:], err_path, cpu)
+        _LIVE.add(proc)
+        if _STOPPING.is_set():  # stopped while it started
+            _kill(proc)
+        try:
+            proc.wait(timeout_s)
+        except BaseException:  # the time limit, Ctrl-C, SIGTERM, an error: no orphan
+            _kill(proc)
+            raise
+        finally:
+            _LIVE.discard(proc)
+        with open(err_path, errors="replace") as f:
+            err = f.read()
+    finally:
+        os.unlink(err_path)
+    return proc.returncode, err
 
 
 class _Stopping(Exception):
@@ -198,8 +231,9 @@ def _kill(proc: subprocess.Popen) -> None:
     """SIGKILL the worker's process group; it may already be gone."""
     try:
         os.killpg(proc.pid, signal.SIGKILL)
-    except (ProcessLookupError, PermissionError):
-        pass
+    except (ProcessLookupError, PermissionError):  # gone, or a fork not yet in its group
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(proc.pid, signal.SIGKILL)
     try:
         proc.wait(timeout=10)
     except subprocess.TimeoutExpired:  # pragma: no cover - the kernel reaps it

@@ -1,0 +1,110 @@
+"""Engine processes forked from a server that has imported the worker once.
+
+An engine process (:mod:`natcoord.suite.worker`) spends about a second of processor time
+importing numpy, scipy, pandas, numba and natcoord before it runs anything: a minute of a
+first look's two, and more in a nightly's serial bench. Instead, the first engine process
+of a command starts a fork server (:mod:`multiprocessing`'s ``forkserver``) that imports
+those modules once, in the engine processes' environment (BLAS on one thread); each engine
+process is then a fork of it. Each still runs in a process of its own, in a process group
+of its own, so that a crash, a time limit or an interruption ends that run alone, as with
+a fresh interpreter, and under the same name (``ps`` shows ``... -m natcoord.suite.worker
+JOB OUT``).
+
+A request whose environment differs from the server's (a variable set after it started)
+falls back to a fresh interpreter (:func:`usable` is False): the server's imports read the
+environment once.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import subprocess
+import sys
+import threading
+from multiprocessing import forkserver
+
+import setproctitle
+
+PRELOAD = ["natcoord.suite.worker", "natcoord.engines.natcoord_engine"]
+_LOCK = threading.Lock()
+_STATE: dict = {}  # "ctx": the forkserver context, "env": the environment it started with
+
+
+def usable(env: dict) -> bool:
+    """Whether engine processes of environment ``env`` can be forked from the server (it
+    is started here on the first call): POSIX with ``forkserver``, not in a daemonic
+    process, the same environment as the server's, ``NATCOORD_NO_FORKSERVER`` unset."""
+    if (env.get("NATCOORD_NO_FORKSERVER") or "forkserver" not in mp.get_all_start_methods()
+            or mp.current_process().daemon):  # e.g. a Dask worker: no children of its own
+        return False
+    with _LOCK:
+        if "ctx" not in _STATE:
+            _start(env)
+    return _STATE.get("env") == env
+
+
+def _start(env: dict) -> None:
+    """Start the fork server with ``env`` as its environment and :data:`PRELOAD` imported
+    (once per command)."""
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(PRELOAD)
+    saved = dict(os.environ)
+    os.environ.clear()
+    os.environ.update(env)  # the server inherits this process's environment
+    try:
+        forkserver.ensure_running()
+    except OSError:
+        ctx = None
+    finally:
+        os.environ.clear()
+        os.environ.update(saved)
+    _STATE["ctx"], _STATE["env"] = ctx, (dict(env) if ctx is not None else None)
+
+
+class Forked:
+    """An engine process forked from the server, with the part of ``subprocess.Popen``'s
+    interface the runner uses (``pid``, ``wait``, ``returncode``)."""
+
+    def __init__(self, argv: list[str], err_path: str, cpu: int | None):
+        server = getattr(forkserver._forkserver, "_forkserver_pid", None)
+        self.process = _STATE["ctx"].Process(target=_child,
+                                             args=(argv, err_path, cpu, server))
+        self.process.start()
+        self.pid = self.process.pid
+
+    @property
+    def returncode(self) -> int | None:
+        return self.process.exitcode
+
+    def wait(self, timeout: float | None = None) -> int:
+        self.process.join(timeout)
+        if self.process.exitcode is None:
+            raise subprocess.TimeoutExpired("natcoord.suite.worker", timeout or 0.0)
+        return self.process.exitcode
+
+
+def _child(argv: list[str], err_path: str, cpu: int | None,
+           server: int | None) -> None:  # pragma: no cover - in the fork
+    """The engine process: its own process group, SIGKILLed with the server (``server``:
+    its pid; a fork whose server died before it asked for that ends here), pinned to
+    ``cpu`` when given, standard error to ``err_path``, then the worker's ``main``."""
+    from .runner import _die_with_parent
+
+    os.setsid()
+    alive = getattr(forkserver._forkserver, "_forkserver_alive_fd", None)
+    if alive is not None:  # the server ends when the command does, only if no fork holds
+        os.close(alive)    # its end of that pipe open: then every fork is SIGKILLed
+    _die_with_parent(cpu)
+    if server is not None and os.getppid() != server:
+        os._exit(1)
+    fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    os.dup2(fd, 2)
+    os.close(fd)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 1)
+    os.close(null)
+    setproctitle.setproctitle(" ".join([sys.executable, "-m", "natcoord.suite.worker", *argv]))
+    from . import worker
+
+    sys.exit(worker.main(argv))
