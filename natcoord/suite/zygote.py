@@ -62,6 +62,14 @@ def _start(env: dict) -> None:
     _STATE["ctx"], _STATE["env"] = ctx, (dict(env) if ctx is not None else None)
 
 
+def stop() -> None:
+    """Stop the fork server (the next :func:`usable` starts one with its environment)."""
+    with _LOCK:
+        if _STATE.pop("ctx", None) is not None:
+            getattr(forkserver._forkserver, "_stop", lambda: None)()
+        _STATE.pop("env", None)
+
+
 class Forked:
     """An engine process forked from the server, with the part of ``subprocess.Popen``'s
     interface the runner uses (``pid``, ``wait``, ``returncode``)."""

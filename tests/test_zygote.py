@@ -1,0 +1,70 @@
+"""Engine processes forked from the fork server (natcoord.suite.zygote) against fresh
+interpreters: the same result files, a crash and a time limit reported the same way."""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+
+import pandas as pd
+import pytest
+
+from natcoord.case.casefile import load_case
+from natcoord.suite import runner, zygote
+from tests.conftest import CASES
+
+pytestmark = pytest.mark.skipif(sys.platform != "linux", reason="forkserver on Linux")
+
+
+@pytest.fixture(autouse=True)
+def _server_of_this_environment(monkeypatch):
+    """A server started with this test's environment (another test may have started one
+    with its own)."""
+    monkeypatch.delenv("NATCOORD_NO_FORKSERVER", raising=False)
+    zygote.stop()
+    yield
+    zygote.stop()
+
+
+def _run(tmp_path, name, monkeypatch, fresh: bool, case="pendulum", timeout=120.0):
+    if fresh:
+        monkeypatch.setenv("NATCOORD_NO_FORKSERVER", "1")
+    else:
+        monkeypatch.delenv("NATCOORD_NO_FORKSERVER", raising=False)
+    out = tmp_path / name
+    rec = runner.run_subprocess(load_case(CASES / f"{case}.toml"), "natcoord", out, timeout)
+    return rec, out / "results" / case / "natcoord.csv"
+
+
+def _err_files() -> set[str]:
+    return {p for p in os.listdir(tempfile.gettempdir()) if p.startswith("natcoord-worker-")}
+
+
+def test_a_forked_run_writes_what_a_fresh_interpreter_writes(tmp_path, monkeypatch):
+    assert zygote.usable(runner.worker_env())  # this test process may fork from the server
+    before = _err_files()
+    forked, f_csv = _run(tmp_path, "forked", monkeypatch, fresh=False)
+    assert _err_files() <= before  # its standard error's file is gone
+    fresh, s_csv = _run(tmp_path, "fresh", monkeypatch, fresh=True)
+    assert forked["status"] == fresh["status"] == "ok"
+    pd.testing.assert_frame_equal(pd.read_csv(f_csv), pd.read_csv(s_csv), check_exact=True)
+
+
+def test_the_server_is_not_used_where_it_cannot_serve(monkeypatch):
+    env = runner.worker_env()
+    assert not zygote.usable({**env, "NATCOORD_NO_FORKSERVER": "1"})
+    if zygote.usable(env):  # started: another environment than the server's falls back
+        assert not zygote.usable({**env, "NATCOORD_SOMETHING_NEW": "1"})
+
+
+def test_a_crash_and_a_time_limit_in_a_fork_are_reported(tmp_path, monkeypatch):
+    monkeypatch.delenv("NATCOORD_NO_FORKSERVER", raising=False)
+    assert zygote.usable(runner.worker_env())
+    job = tmp_path / "job.pkl"
+    job.write_bytes(b"not a pickle")  # the worker fails to read it: exit status 1
+    code, err = runner.run_worker(job, tmp_path, 60.0)
+    assert code == 1 and "UnpicklingError" in err
+    rec, _ = _run(tmp_path, "slow", monkeypatch, fresh=False, case="a01_pendulum",
+                  timeout=0.5)
+    assert rec["status"] == "failed" and "timed out after 0.5 s" in rec["reason"]
