@@ -81,7 +81,7 @@ from .index1 import (
     tableau,
     warm_up_model,
 )
-from .sparse import _call2, _call4, _ptr
+from .sparse import _call2, _call3, _call4, _ptr
 
 NEWTON_ITER = 20
 
@@ -318,15 +318,137 @@ def _rows_gen(gen, rows):
         prr[i] = prow[rows[i]]
 
 
+@njit(cache=True, _nrt=False, inline="always")
+def _null_gen(gen, part, ws, R):
+    """R (n, f) at the q of the last ``refactor``, and max|R^d| returned (< 0: X^i
+    singular, the independent coordinates are not): X = V - Y W^-1 J V (n, f), f vectors
+    of ker Phi_q by the generated ``jx`` and ``newton`` kernels from V the last R (ws[1],
+    nearly in ker Phi_q: a small correction; E_i would fail for a massless point's
+    coordinate, which the metric M + alpha J_S^T J_S projects to 0), then R = X Z, Z =
+    (X^i)^-1 (R^i = I exactly). Scratch: ws[12], ws[14], ws[15], ws[20], gen[8] X and
+    gen[10] Z (f, f)."""
+    gk, gws, w, X, Z = gen[0], gen[1], gen[6], gen[8], gen[10]
+    rows, dep, indep = part
+    V, A3, piv3, col, v = ws[1], ws[14], ws[15], ws[12], ws[20]
+    n, r, f = R.shape[0], dep.shape[0], indep.shape[0]
+    for c in range(f):
+        for a in range(n):
+            col[a] = V[a, c]
+        _call3(types.float64, gk[4], _ptr(gws), _ptr(col), _ptr(w))  # w = J e_c
+        _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(col))  # col -= Y W^-1 w
+        for a in range(n):
+            X[a, c] = col[a]
+    if f == 1:  # the usual case: no factorization
+        if X[indep[0], 0] == 0.0:
+            return -1.0
+        Z[0, 0] = 1.0 / X[indep[0], 0]
+    elif f > 1:
+        for c in range(f):
+            for c2 in range(f):
+                A3[c, c2] = X[indep[c], c2]
+        if not _lu(A3, piv3):
+            return -1.0
+        for c in range(f):  # column c of Z: X^i z = e_c
+            for c2 in range(f):
+                v[c2] = 1.0 if c2 == c else 0.0
+            _lu_solve(A3, piv3, v)
+            for c2 in range(f):
+                Z[c2, c] = v[c2]
+    g = 0.0
+    for i in range(r):
+        a = dep[i]
+        for c in range(f):
+            s = 0.0
+            for c2 in range(f):
+                s += X[a, c2] * Z[c2, c]
+            R[a, c] = s
+            g = max(g, abs(s))
+    for c in range(f):
+        for c2 in range(f):
+            R[indep[c2], c] = 1.0 if c2 == c else 0.0
+    return g
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _positions_gen(part, gen, tol, y, ws, cnt):
+    """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the last solution moved
+    along the last R, as :func:`_positions`, each step by the generated kernels: J, Y and
+    the factor of W = J M^-1 J^T at q (``refactor``), the M-weighted least-norm step d =
+    -Y W^-1 Phi and the step with q^i held, d - Rn d^i (Rn: R at q, :func:`_null_gen`;
+    Phi_q (d - Rn d^i) = -Phi, the Newton step of the dependent block). On return (OK)
+    the kernels' work array holds the factorization at q, ws[1] R at q and ws[16][0]
+    max|R^d|. A status code."""
+    gk, gws, prr, w, d, Rn = gen[0], gen[1], gen[3], gen[6], gen[7], gen[9]
+    rows, dep, indep = part
+    ql, R, flags, q, p = ws[0], ws[1], ws[2], ws[3], ws[6]
+    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+    m = p.shape[0]
+    lo, hi = ql[0], ql[0]
+    for a in range(n):
+        q[a] = ql[a]
+        lo = min(lo, ql[a])
+        hi = max(hi, ql[a])
+    size = max(hi - lo, 1e-300)
+    if flags[0]:  # q += R (q^i - q_last^i)
+        for a in range(n):
+            s = 0.0
+            for c in range(f):
+                s += R[a, c] * (y[c] - ql[indep[c]])
+            q[a] += s
+    for c in range(f):
+        q[indep[c]] = y[c]
+    for _ in range(NEWTON_ITER):
+        _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
+        cnt[C_FACT] += 1
+        _call2(types.void, gk[0], _ptr(q), _ptr(p))
+        e = 0.0
+        for i in range(r):
+            e = max(e, abs(p[prr[i]]))
+        if e < tol:
+            break
+        if _null_gen(gen, part, ws, Rn) < 0.0:
+            return ERR_SINGULAR
+        for i in range(m):
+            w[i] = p[i]
+        for a in range(n):
+            d[a] = 0.0
+        _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(d))  # d = -Y W^-1 Phi
+        step = 0.0
+        for i in range(r):
+            a = dep[i]
+            s = d[a]
+            for c in range(f):
+                s -= Rn[a, c] * d[indep[c]]
+            q[a] += s
+            step = max(step, abs(s))
+        cnt[C_NEWTON] += 1
+        if step < tol * 10.0 * max(1.0, size):  # round-off reached: factor at q
+            _call2(types.int64, gk[1], _ptr(q), _ptr(gws))
+            cnt[C_FACT] += 1
+            break
+    else:
+        return ERR_NEWTON
+    g = _null_gen(gen, part, ws, Rn)
+    if g < 0.0:
+        return ERR_SINGULAR
+    for a in range(n):
+        ql[a] = q[a]
+        for c in range(f):
+            R[a, c] = Rn[a, c]
+    ws[16][0] = g
+    return OK
+
+
 @njit(cache=True, _nrt=False)
-def _kin_gen(con, part, gen, tol, y, ws, cnt):
+def _kin_gen(part, gen, tol, y, ws, cnt):
     """:func:`_kinematics` on the generated path, ``gen`` = (gk, gws, prow (m,), prr (r,),
-    yl (2f,), qdd (n,)): the model's generated kernels (addresses,
-    :mod:`natcoord.compiled.codegen`) and their work array, the kernels' row of every
-    constraint row and of the partition's, the y of the last evaluation and the
-    accelerations' array. The same Newton, q, qd and R, with Phi by the generated kernel
-    (S c is not formed: :func:`_acc_gen` gives qdd whole); at the y of the last evaluation
-    nothing is redone. Compiled without reference counting: it allocates nothing.
+    yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z (f, f)): the model's generated kernels
+    (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the kernels' row of
+    every constraint row and of the partition's, the y of the last evaluation, the
+    accelerations' array and scratch. q by :func:`_positions_gen`, R there, qd = R qd^i (S
+    c is not formed: :func:`_acc_gen` gives qdd whole, with the factorization at q left in
+    gws); at the y of the last evaluation nothing is redone. Compiled without reference
+    counting: it allocates nothing.
     (A simplified Newton with the last evaluation's LU took 2.7x the iterations for no
     gain in time and converged to the other assembly branch of four_bar and five_bar at
     rtol 1e-8: errors of 7.6 and 4.0 rad against the references.)"""
@@ -341,13 +463,15 @@ def _kin_gen(con, part, gen, tol, y, ws, cnt):
         if same:
             return OK
     flags[1] = 0
-    st = _positions(con, part, tol, y, ws, cnt, gen[0], gen[3])
+    st = _positions_gen(part, gen, tol, y, ws, cnt)
     if st != OK:
         return st
-    st = _rates(con, part, y, ws, cnt)
-    if st != OK:
-        flags[0] = 0
-        return st
+    R, qd = ws[1], ws[4]
+    for a in range(qd.shape[0]):
+        s = 0.0
+        for c in range(f):
+            s += R[a, c] * y[f + c]
+        qd[a] = s
     for c in range(2 * f):
         yl[c] = y[c]
     flags[0], flags[1] = 1, 1
@@ -356,12 +480,11 @@ def _kin_gen(con, part, gen, tol, y, ws, cnt):
 
 @njit(cache=True, inline="always")
 def _acc_gen(gen, ws, cnt):
-    """qdd (n,) into gen[5] at the q, qd of ws by the generated ``acc`` kernel: index-1's
-    Eq. (6) (Schur complement of the regular M), the same constrained accelerations as
-    Eq. (23) at a consistent (q, qd)."""
+    """qdd (n,) into gen[5] at the q, qd of ws by the generated ``rhs`` kernel with the
+    factorization :func:`_kin_gen` left at q: index-1's Eq. (6) (Schur complement of the
+    regular M), the same constrained accelerations as Eq. (23) at a consistent (q, qd)."""
     cnt[C_RHS] += 1
-    cnt[C_FACT] += 1
-    _call4(types.void, gen[0][5], _ptr(ws[3]), _ptr(ws[4]), _ptr(gen[5]), _ptr(gen[1]))
+    _call4(types.void, gen[0][2], _ptr(ws[3]), _ptr(ws[4]), _ptr(gen[5]), _ptr(gen[1]))
 
 
 @njit(cache=True, inline="always")
@@ -369,7 +492,7 @@ def _kin(con, part, tol, y, ws, cnt, gen):
     """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`."""
     if gen is None:
         return _kinematics(con, part, tol, y, ws, cnt)
-    return _kin_gen(con, part, gen, tol, y, ws, cnt)
+    return _kin_gen(part, gen, tol, y, ws, cnt)
 
 
 @njit(cache=True, inline="always")
@@ -398,7 +521,7 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
     the generated path (``gen``) qdd of the generated kernel at that q, qd."""
     Q, QD, QDD = out[0], out[1], out[2]
     if gen is not None:
-        st = _kin_gen(con, part, gen, tol, y, ws, cnt)
+        st = _kin_gen(part, gen, tol, y, ws, cnt)
         if st != OK:
             return st
         _acc_gen(gen, ws, cnt)
@@ -468,7 +591,7 @@ def _post_step(con, part, ctl, y, ws, cnt, gen):
 
 
 # ---- the loop ------------------------------------------------------------------------------
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
     frc, part, tol) as in :func:`run_maggi`; a status code."""
@@ -519,6 +642,11 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     N = 2 * f
     ws = workspace(n, m, r, f)
     ws[0][:] = q0
+    if gen is not None:  # the first R of the generated path (:func:`_null_gen`)
+        ws[3][:] = q0
+        st = _rates(con, part, y0, ws, cnt)
+        if st != OK:
+            return st
     T = times.shape[0]
     t, tend = times[0], times[T - 1]
     tfail[0] = t
@@ -702,8 +830,10 @@ def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None, gen
            float(rank_tol), float(repartition_growth))
     if gen is not None:  # the kernels, their work array, rows, and scratch
         gk, args, prow = gen
+        f = len(part[2])
         gen = (gk, kernels_sparse.workspace(args), prow, prow[part[0]].copy(),
-               np.zeros(len(y)), np.zeros(n))
+               np.zeros(len(y)), np.zeros(n), np.zeros(con[4]), np.zeros(n),
+               np.zeros((n, f)), np.zeros((n, f)), np.zeros((f, f)))
     status = run_maggi(con, Msp, frc, part, ctl, _tab(method),
                        np.ascontiguousarray(times, float), np.array(y, float),
                        np.array(q, float), (Q, QD, QDD, c, tfail), gen)
