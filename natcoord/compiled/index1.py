@@ -352,7 +352,9 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     T_out = times.shape[0]
     t = times[0]
     tend = times[T_out - 1]
-    st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, False)
+    fresh = fixed and not fixed  # False, typed bool: a literal False would make numba
+    # compile _settle (and all it calls) a second time, for Literal[bool]
+    st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, fresh)
     if st_code != OK:
         return st_code
     for a in range(n):
@@ -476,7 +478,7 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
                 # true Newton from the sample: the M-orthogonal projection (a
                 # factorization from elsewhere lands it elsewhere on the manifold, which
                 # near a singular position shows in the reactions)
-                st_code = _settle(sp, gen, wg, zq, zqd, qdd, ptol, cnt, False)
+                st_code = _settle(sp, gen, wg, zq, zqd, qdd, ptol, cnt, fresh)
                 if st_code != OK:
                     return st_code
                 _put(X, k_out, zq, 0, n)
