@@ -345,3 +345,43 @@ def test_the_heartbeat_shows_the_time_left_once_a_piece_has_finished():
     now[0] = 10.0
     assert tick("c0/e", {"process_time_s": 10.0}) == pytest.approx(30.0)
     assert tick.peek() == pytest.approx(30.0)
+
+
+def test_a_machine_with_no_suite_yet_expects_the_shipped_reference_durations(tmp_path):
+    """The shipped references/durations.json covers every catalogue cell's accuracy run;
+    the suite's expectation takes it only when this machine has no suite of its own, and
+    a missing or malformed file is no prior (an estimate never stops a suite)."""
+    from natcoord.case.casefile import load_cases
+    from natcoord.cli import _expected
+    from natcoord.suite.runner import prepare
+
+    shipped = eta.prior(ROOT / "references")
+    cases = list(load_cases(ROOT / "cases").values())
+    assert {("run", c.name, "natcoord") for c in cases} <= set(shipped)
+    assert all(t >= 0 for t in shipped.values())
+    jobs = [prepare(c) for c in cases if c.name in ("four_bar", "four_bar_3d")]
+    with_prior = _expected(jobs, ["natcoord"], [], [], None, None, 1, 60.0,
+                           ROOT / "references")
+    assert with_prior[("run", "four_bar_3d", "natcoord")] == shipped[
+        ("run", "four_bar_3d", "natcoord")]  # its compile: far more than an unknown 5 s
+    assert shipped[("run", "four_bar_3d", "natcoord")] > 4 * shipped[
+        ("run", "four_bar", "natcoord")]
+    history = {"records": [{"case": "four_bar", "engine": "natcoord", "process_time_s": 1.5}]}
+    mine = _expected(jobs, ["natcoord"], [], [], None, history, 1, 60.0, ROOT / "references")
+    assert mine[("run", "four_bar_3d", "natcoord")] == 1.5  # this machine's own, not shipped
+    for bad in ("{", '{"durations": [{"kind": "run"}]}', "[]"):
+        (tmp_path / eta.PRIOR).write_text(bad)
+        assert eta.prior(tmp_path) == {}
+    assert eta.prior(tmp_path / "nowhere") == {}
+
+
+def test_the_prior_is_written_from_a_suite_folder(tmp_path):
+    suite = tmp_path / "suite"
+    suite.mkdir()
+    (suite / "summary.json").write_text(json.dumps({
+        "generated": "2026-11-27T00:00:00+00:00", "machine": {"cores": 2},
+        "records": [{"case": "c", "engine": "e", "process_time_s": 2.5},
+                    {"case": "d", "engine": "e", "process_time_s": 1.0, "reused": {}}]}))
+    path = eta.write_prior(suite, tmp_path)
+    assert eta.prior(tmp_path) == {("run", "c", "e"): 2.5}  # a carried record is no time
+    assert json.loads(path.read_text())["measured"]["machine"] == {"cores": 2}

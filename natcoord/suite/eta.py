@@ -13,15 +13,24 @@ estimate within 0.8-1.2x of the truth from a tenth of the suite to nine tenths, 
 measured times alone fell to 0.69x. Bench and sweep pieces within the night's budget share
 what is left of it (:meth:`Eta.budget`): once the bench has spent it, other engines' sweeps
 are no longer expected.
+
+A machine with no suite of its own yet expects the durations of a reference suite
+shipped with the cases (:func:`prior`: ``references/durations.json``, measured on a fresh
+clone of a 2-core machine, first night: numba compiling included), scaled by tonight's pace
+like any other expectation; ``python -m natcoord.suite.eta RESULTS_DIR`` writes that file
+from a suite's folder.
 """
 
 from __future__ import annotations
 
 import math
 import statistics
+import sys
 import time
 from collections.abc import Iterable
+from pathlib import Path
 
+from .io import read_json, write_json
 from .stored import carried
 
 UNKNOWN_S = 5.0  # a piece of a kind never measured on this machine
@@ -43,6 +52,42 @@ def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
         if isinstance(t, (int, float)) and not carried(p):
             key = (SWEEP, p.get("case"), p.get("engine"))
             out[key] = out.get(key, 0.0) + float(t)
+    return out
+
+
+PRIOR = "durations.json"  # in the references folder: a reference suite's durations
+
+
+def prior(references: Path) -> dict[tuple, float]:
+    """``{(kind, case, engine): seconds}`` of the reference suite shipped in
+    ``references`` (:data:`PRIOR`); {} when there is none or it is unreadable (an estimate
+    is no reason to stop a suite)."""
+    try:
+        data = read_json(Path(references) / PRIOR)
+        return {(d["kind"], d["case"], d["engine"]): float(d["process_time_s"])
+                for d in data["durations"]
+                if isinstance(d.get("process_time_s"), (int, float))
+                and d["process_time_s"] >= 0}
+    except Exception:  # noqa: BLE001 - missing, malformed, unreadable: no prior
+        return {}
+
+
+def write_prior(results: Path, references: Path) -> Path:
+    """Write :data:`PRIOR` in ``references`` from the suite folder ``results``
+    (summary.json, bench.json), with where and when it was measured; returns its path."""
+    results = Path(results)
+    summary = read_json(results / "summary.json")
+    bench = read_json(results / "bench.json") if (results / "bench.json").is_file() else None
+    known = durations(summary, bench)
+    out = Path(references) / PRIOR
+    write_json(out, {
+        "about": "process seconds of each piece of one suite, the time-left estimate's and "
+                 "the scheduler's expectation on a machine with no suite of its own yet",
+        "measured": {"suite": results.name, "generated": summary.get("generated"),
+                     "natcoord": summary.get("natcoord_version"),
+                     "machine": summary.get("machine")},
+        "durations": [{"kind": k, "case": c, "engine": e, "process_time_s": round(t, 3)}
+                      for (k, c, e), t in sorted(known.items())]})
     return out
 
 
@@ -131,3 +176,9 @@ class Eta:
             return rest
         w = min(1.0, done / total / 0.1)  # trust tonight's pace once a tenth is done
         return rest * ((1 - w) + w * self.pace(done))
+
+
+if __name__ == "__main__":  # python -m natcoord.suite.eta RESULTS_DIR [REFERENCES]
+    ref = Path(sys.argv[2]) if len(sys.argv) > 2 else Path(__file__).resolve().parents[2] / \
+        "references"
+    print(write_prior(Path(sys.argv[1]), ref))
