@@ -37,6 +37,7 @@ Row conventions (so that multipliers read as forces):
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -237,13 +238,22 @@ class Model:
             Q += _torque_force(b, tau if law is None else b.turned(law, qh), qh)
         for body, C, law in self.body_forces:
             Q += C[:, :-1].T @ self.bodies[body].turned(law, qh)
-        for s in self.springs:
-            d, dd = (s.B - s.A) @ qh, (s.B - s.A) @ vh
-            ln = np.linalg.norm(d)
-            e = d / ln
-            tension = s.k * (ln - s.l0) + s.c * (e @ dd)
-            Q += (s.B - s.A)[:, :-1].T @ (-tension * e)
+        if self.springs:  # all at once: a loop over them was most of a stiff run's time
+            D, k, c, l0 = self.spring_arrays
+            d, dd = D @ qh, D @ vh  # (S, d)
+            ln = np.sqrt(np.einsum("sa,sa->s", d, d))
+            e = d / ln[:, None]
+            tension = k * (ln - l0) + c * np.einsum("sa,sa->s", e, dd)
+            Q -= np.einsum("san,sa->n", D[:, :, :-1], tension[:, None] * e)
         return Q
+
+    @cached_property
+    def spring_arrays(self) -> tuple[np.ndarray, ...]:
+        """The spring-dampers as arrays: D = B - A (S, d, n+1), k (N/m), c (N s/m), l0 (m)
+        (S,)."""
+        return (np.array([s.B - s.A for s in self.springs], dtype=float),
+                *(np.array([getattr(s, f) for s in self.springs], dtype=float)
+                  for f in ("k", "c", "l0")))
 
     def spring_tension(self, q: np.ndarray, qd: np.ndarray) -> dict[str, np.ndarray]:
         """Tension (T,) of every spring-damper, N, from q, qd (T, n)."""
