@@ -650,16 +650,15 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         n, where = _where(jobs, scheduler)
         bench_engines = names
         catalogue = [] if quick or not repeats else [j for j in selected if j.case.benchmark]
+        known, source = eta_.known(prev_summary, prev_bench, references)
         clock = eta_.Eta(_expected(selected, names, bench_engines if repeats and not quick
                                    else [],
-                                   catalogue, prev_bench, prev_summary, n, bench_budget,
-                                   references))
+                                   catalogue, prev_bench, known, n, bench_budget))
+        whence = {"earlier": "earlier suites' durations",
+                  "reference": "a reference suite's durations: none on this machine yet"}
         out.print(f"[bold]natcoord suite{' --quick' if quick else ''}[/]: {len(selected)} "
                   f"cases x {len(names)} engines, {where} -> {escape(str(target))}"
-                  + (f"; about {clock.left():.0f} s (earlier suites' durations)"
-                     if prev_summary else
-                     f"; about {clock.left():.0f} s (a reference suite's durations: none "
-                     "on this machine yet)" if eta_.prior(references) else ""))
+                  + (f"; about {clock.left():.0f} s ({whence[source]})" if source else ""))
         if quick:
             out.print("[bold yellow]quick[/]: a first look, not a nightly: engines "
                       f"{', '.join(names)}, every cell timed by its accuracy run (no bench), "
@@ -764,19 +763,16 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     raise typer.Exit(code)
 
 
-def _expected(selected, names, bench_engines, catalogue, prev_bench, prev_summary,
-              jobs: int, budget_s: float, references: Path | None = None) -> dict:
-    """Each piece of a suite's work and its expected seconds (:mod:`natcoord.suite.eta`):
-    the accuracy runs shared over ``jobs`` cores; a bench cell or sweep of an engine the
+def _expected(selected, names, bench_engines, catalogue, prev_bench, known: dict,
+              jobs: int, budget_s: float) -> dict:
+    """Each piece of a suite's work and its expected seconds (:mod:`natcoord.suite.eta`)
+    from ``known`` durations (earlier suites', or the shipped reference suite's): the
+    accuracy runs shared over ``jobs`` cores; a bench cell or sweep of an engine the
     policy would reuse (same case file, last measured within its age) 0 s; the other
-    engines' bench cells and sweeps within the night's budget ``budget_s``. With no
-    earlier suite on this machine, the reference suite's durations in ``references``."""
+    engines' bench cells and sweeps within the night's budget ``budget_s``."""
     from .suite import eta, policy
     from .suite.worker import cannot_run
 
-    known = eta.durations(prev_summary, prev_bench)
-    if not known and references is not None:
-        known = eta.prior(references)
     cells = [(j.case, e) for j in selected for e in names]
     out = {k: t / jobs for k, t in eta.expect(
         [("run", c.name, e) for c, e in cells], known).items()}

@@ -360,14 +360,17 @@ def test_a_machine_with_no_suite_yet_expects_the_shipped_reference_durations(tmp
     assert {("run", c.name, "natcoord") for c in cases} <= set(shipped)
     assert all(t >= 0 for t in shipped.values())
     jobs = [prepare(c) for c in cases if c.name in ("four_bar", "four_bar_3d")]
-    with_prior = _expected(jobs, ["natcoord"], [], [], None, None, 1, 60.0,
-                           ROOT / "references")
+    durations, source = eta.known(None, None, ROOT / "references")
+    assert source == "reference"
+    with_prior = _expected(jobs, ["natcoord"], [], [], None, durations, 1, 60.0)
     assert with_prior[("run", "four_bar_3d", "natcoord")] == shipped[
         ("run", "four_bar_3d", "natcoord")]  # its compile: far more than an unknown 5 s
     assert shipped[("run", "four_bar_3d", "natcoord")] > 4 * shipped[
         ("run", "four_bar", "natcoord")]
     history = {"records": [{"case": "four_bar", "engine": "natcoord", "process_time_s": 1.5}]}
-    mine = _expected(jobs, ["natcoord"], [], [], None, history, 1, 60.0, ROOT / "references")
+    durations, source = eta.known(history, None, ROOT / "references")
+    assert source == "earlier"
+    mine = _expected(jobs, ["natcoord"], [], [], None, durations, 1, 60.0)
     assert mine[("run", "four_bar_3d", "natcoord")] == 1.5  # this machine's own, not shipped
     for bad in ("{", '{"durations": [{"kind": "run"}]}', "[]"):
         (tmp_path / eta.PRIOR).write_text(bad)

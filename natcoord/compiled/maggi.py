@@ -25,10 +25,12 @@ ported here, so the loop never leaves numba); a change of rank there stops the r
 2 at the step end or the dense output, qdd = S c + R qdd^i.
 
 The generated path (``gen``, :func:`generated`: index-1's kernels of the model, written
-out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`): Phi by
-the generated kernel in the Newton, R and qd as above, and qdd whole from index-1's Eq. (6)
-at (q, qd) -- for a consistent state the same accelerations as Eq. (23), to round-off
-(3.5e-14 relative over a run) -- and nothing redone at the y of the last evaluation. Its
+out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`): each
+Newton step the M-weighted least-norm step of index-1's sparse factorization with q^i held
+(:func:`_positions_gen`), R from the last R projected on ker Phi_q (:func:`_null_gen`), no
+dense Jacobian or LU, and qdd whole from index-1's Eq. (6) at (q, qd) -- for a consistent
+state the same accelerations as Eq. (23), to round-off (3.5e-14 relative over a run) -- and
+nothing redone at the y of the last evaluation. Its
 kinematics is compiled without numba's reference counting (``_nrt=False``: it allocates
 nothing): counting cost more than the arithmetic (a call at an unchanged y 550 -> 116
 ns). Without generated kernels (a model :func:`natcoord.compiled.codegen.load` declines,
@@ -160,25 +162,19 @@ def _factor_dep(J, rows, dep, Jd, piv, cnt):
     return _lu(Jd, piv)
 
 
-@njit(cache=True, _nrt=False)
-def _positions(con, part, tol, y, ws, cnt, gk, prr):
-    """q (ws[3]) at the independent positions y[:f] by Newton on Phi[rows] = 0 from the last
-    solution moved along the last R (``MaggiLoop._positions``); kept in ws[0] when it
-    converges. Phi by the generated kernel at gk[0] with ``prr`` its rows of the
-    partition's rows (:func:`_rows_gen`), or, gk empty (``NO_GK``), by the triplets with
-    ``prr`` the partition's rows. A status code. Allocates nothing: compiled without
-    reference counting."""
-    kk, ii, jj, vv, m = con
-    rows, dep, indep = part
-    ql, R, flags, q, p, J, Jd, piv, b = ws[0], ws[1], ws[2], ws[3], ws[6], ws[7], ws[8], \
-        ws[9], ws[10]
-    n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
+@njit(cache=True, _nrt=False, inline="always")
+def _predict(part, y, ws):
+    """The Newton's start, q (ws[3]): the last solution ws[0] moved along the last R by
+    the change of q^i (while R serves, ws[2][0]), with q^i = y[:f]; returns the span of
+    the last solution, m (round-off scale of the Newton's stop)."""
+    indep = part[2]
+    ql, R, flags, q = ws[0], ws[1], ws[2], ws[3]
+    n, f = q.shape[0], indep.shape[0]
     lo, hi = ql[0], ql[0]
     for a in range(n):
         q[a] = ql[a]
         lo = min(lo, ql[a])
         hi = max(hi, ql[a])
-    size = max(hi - lo, 1e-300)
     if flags[0]:  # q += R (q^i - q_last^i)
         for a in range(n):
             s = 0.0
@@ -187,21 +183,32 @@ def _positions(con, part, tol, y, ws, cnt, gk, prr):
             q[a] += s
     for c in range(f):
         q[indep[c]] = y[c]
+    return max(hi - lo, 1e-300)
+
+
+@njit(cache=True, _nrt=False)
+def _positions(con, part, tol, y, ws, cnt):
+    """q (ws[3]) at the independent positions y[:f] by Newton on Phi[rows] = 0 from
+    :func:`_predict` (``MaggiLoop._positions``), by the triplets and a dense LU of the
+    dependent block; kept in ws[0] when it converges. A status code. Allocates nothing:
+    compiled without reference counting."""
+    kk, ii, jj, vv, m = con
+    rows, dep, indep = part
+    ql, q, p, J, Jd, piv, b = ws[0], ws[3], ws[6], ws[7], ws[8], ws[9], ws[10]
+    n, r = q.shape[0], dep.shape[0]
+    size = _predict(part, y, ws)
     for _ in range(NEWTON_ITER):
-        if gk.shape[0] == 0:
-            _phi(kk, ii, jj, vv, m, q, p)
-        else:
-            _call2(types.void, gk[0], _ptr(q), _ptr(p))
+        _phi(kk, ii, jj, vv, m, q, p)
         e = 0.0
         for i in range(r):
-            e = max(e, abs(p[prr[i]]))
+            e = max(e, abs(p[rows[i]]))
         if e < tol:
             break
         _jac(kk, ii, jj, vv, q, J)
         if not _factor_dep(J, rows, dep, Jd, piv, cnt):
             return ERR_SINGULAR
         for i in range(r):
-            b[i] = p[prr[i]]
+            b[i] = p[rows[i]]
         _lu_solve(Jd, piv, b)
         step = 0.0
         for i in range(r):
@@ -252,7 +259,7 @@ def _rates(con, part, y, ws, cnt):
 def _kinematics(con, part, tol, y, ws, cnt):
     """q, qd, R, S c (ws[3], ws[4], ws[1], ws[5]) and max|R^d| (ws[16][0]) at the
     integrated y = [q^i, qd^i] (``MaggiLoop._kinematics``); a status code."""
-    st = _positions(con, part, tol, y, ws, cnt, kernels_sparse.NO_GK, part[0])
+    st = _positions(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
     st = _rates(con, part, y, ws, cnt)
@@ -380,23 +387,10 @@ def _positions_gen(part, gen, tol, y, ws, cnt):
     max|R^d|. A status code."""
     gk, gws, prr, w, d, Rn = gen[0], gen[1], gen[3], gen[6], gen[7], gen[9]
     rows, dep, indep = part
-    ql, R, flags, q, p = ws[0], ws[1], ws[2], ws[3], ws[6]
+    ql, R, q, p = ws[0], ws[1], ws[3], ws[6]
     n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
     m = p.shape[0]
-    lo, hi = ql[0], ql[0]
-    for a in range(n):
-        q[a] = ql[a]
-        lo = min(lo, ql[a])
-        hi = max(hi, ql[a])
-    size = max(hi - lo, 1e-300)
-    if flags[0]:  # q += R (q^i - q_last^i)
-        for a in range(n):
-            s = 0.0
-            for c in range(f):
-                s += R[a, c] * (y[c] - ql[indep[c]])
-            q[a] += s
-    for c in range(f):
-        q[indep[c]] = y[c]
+    size = _predict(part, y, ws)
     for _ in range(NEWTON_ITER):
         _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
         cnt[C_FACT] += 1

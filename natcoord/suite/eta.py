@@ -72,6 +72,16 @@ def prior(references: Path) -> dict[tuple, float]:
         return {}
 
 
+def known(summary: dict | None, bench: dict | None, references: Path) -> tuple[dict, str]:
+    """The durations a suite expects its pieces to take and where they come from: this
+    machine's last suite (:func:`durations`, "earlier"), else the reference suite shipped
+    in ``references`` (:func:`prior`, "reference"), else none ("")."""
+    if mine := durations(summary, bench):
+        return mine, "earlier"
+    shipped = prior(references)
+    return shipped, "reference" if shipped else ""
+
+
 def write_prior(results: Path, references: Path) -> Path:
     """Write :data:`PRIOR` in ``references`` from the suite folder ``results``
     (summary.json, bench.json), with where and when it was measured; returns its path."""

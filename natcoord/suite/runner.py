@@ -150,16 +150,7 @@ def run_worker(job_file: Path, out: Path, timeout_s: float,
     os.close(fd)
     try:
         proc = zygote.Forked(cmd[-2:], err_path, cpu)
-        _LIVE.add(proc)
-        if _STOPPING.is_set():  # stopped while it started
-            _kill(proc)
-        try:
-            proc.wait(timeout_s)
-        except BaseException:  # the time limit, Ctrl-C, SIGTERM, an error: no orphan
-            _kill(proc)
-            raise
-        finally:
-            _LIVE.discard(proc)
+        _supervised(proc, lambda: proc.wait(timeout_s))
         with open(err_path, errors="replace") as f:
             err = f.read()
     finally:
@@ -169,6 +160,22 @@ def run_worker(job_file: Path, out: Path, timeout_s: float,
 
 class _Stopping(Exception):
     """The command is stopping (:func:`kill_all`): no new process starts."""
+
+
+def _supervised(proc, wait: Callable):
+    """``wait()`` for the engine process ``proc`` (a Popen or a fork), listed among the
+    command's live processes meanwhile (:func:`kill_all`) and SIGKILLed on anything that
+    ends the wait early: the time limit, Ctrl-C, SIGTERM (see natcoord.cli), an error."""
+    _LIVE.add(proc)
+    if _STOPPING.is_set():  # stopped while it started
+        _kill(proc)
+    try:
+        return wait()
+    except BaseException:  # no orphan worker
+        _kill(proc)
+        raise
+    finally:
+        _LIVE.discard(proc)
 
 
 def run_command(cmd: list[str], timeout_s: float, cpu: int | None = None,
@@ -183,20 +190,16 @@ def run_command(cmd: list[str], timeout_s: float, cpu: int | None = None,
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env=env, start_new_session=True,
                             preexec_fn=lambda: _die_with_parent(cpu))
-    _LIVE.add(proc)
-    if _STOPPING.is_set():  # stopped while it started
-        _kill(proc)
-    try:
-        _, err = proc.communicate(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        _kill(proc)
-        proc.communicate()
-        raise
-    except BaseException:  # Ctrl-C, SIGTERM (see natcoord.cli), an error: no orphan worker
-        _kill(proc)
-        raise
-    finally:
-        _LIVE.discard(proc)
+
+    def wait():
+        try:
+            return proc.communicate(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            _kill(proc)
+            proc.communicate()  # its pipes drained and closed
+            raise
+
+    _, err = _supervised(proc, wait)
     return proc.returncode, err or ""
 
 
