@@ -173,3 +173,13 @@ def test_derivation_uses_no_natcoord_model():
     tree = ast.parse((CASES.parent / "natcoord" / "derivations" / "independent.py").read_text())
     local = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and n.level}
     assert local <= {"errors", "case.mechanism", "estimates"}
+
+
+def test_without_sympy_the_derivation_names_the_extra_to_install(monkeypatch):
+    """sympy is an extra (`natcoord[derive]`): the nightly does not derive references. A
+    derivation without it says what to install instead of an ImportError traceback."""
+    from natcoord.errors import NatcoordError
+
+    monkeypatch.setitem(__import__("sys").modules, "sympy", None)  # `import sympy` fails
+    with pytest.raises(NatcoordError, match=r"needs sympy .*pip install 'natcoord\[derive\]'"):
+        JointModel(load_case(CASES / "pendulum.toml"))

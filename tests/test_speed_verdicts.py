@@ -120,6 +120,31 @@ def test_whole_run_batches_stay_within_the_budget(monkeypatch):
     assert full.runs == [1] and full.wall_s == [0.004]  # a long run: the warm-up only
 
 
+def test_in_run_batches_stay_within_the_budget_and_a_long_warm_up_is_the_sample(monkeypatch):
+    """natcoord's own timing (natcoord.timing): samples stop before they would overrun the
+    budget; a warm-up that alone took the budget is the one sample, not the first of two."""
+    clock = _Clock()
+    clock.process_time = clock.perf_counter
+    monkeypatch.setattr(timing, "time", clock)
+
+    def step():
+        clock.t += run_s
+        return "run"
+
+    try:
+        run_s = 0.5
+        timing.configure(samples=7, min_batch_s=0.1, budget_s=2.0)
+        out, wall, got = timing.timed(step)
+        assert (out, wall) == ("run", 0.5) and got.runs == [1, 1, 1, 1]  # a 5th: 2.5 s
+        assert clock.t == pytest.approx(0.5 * (1 + 4))  # the warm-up, then 4 samples
+        clock.t, run_s = 0.0, 2.5
+        out, wall, got = timing.timed(step)
+        assert wall == 2.5 and got.runs == [1] and got.wall_s == got.cpu_s == [2.5]
+        assert clock.t == 2.5  # one run: the warm-up is the sample
+    finally:
+        timing.configure()
+
+
 def test_slowdown_hook_is_read_per_engine_and_checked():
     assert batches.slowdown("natcoord", "natcoord=3, mujoco=2") == 3
     assert batches.slowdown("pinocchio", "natcoord=3") == 1

@@ -42,7 +42,7 @@ import pandas as pd
 from scipy.integrate import solve_ivp
 
 from ..case.mechanism import GROUND, Case
-from ..errors import Unsupported
+from ..errors import NatcoordError, Unsupported
 from ..estimates import estimated_error
 
 METHOD = "Kane's method in joint coordinates (sympy), coordinate partitioning, {solver}"
@@ -114,8 +114,12 @@ class JointModel:
         reason = supported(case)
         if reason:
             raise Unsupported(f"independent derivation: {reason}")
-        import sympy as sp
-        import sympy.physics.mechanics as me
+        try:
+            import sympy as sp
+            import sympy.physics.mechanics as me
+        except ImportError as e:  # an extra: the nightly does not derive references
+            raise NatcoordError("the independent derivation of a planar reference needs "
+                                f"sympy ({e}): pip install 'natcoord[derive]'") from e
 
         self.case = case
         tree = _spanning_tree(case)

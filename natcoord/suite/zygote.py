@@ -26,7 +26,13 @@ from multiprocessing import forkserver
 
 import setproctitle
 
-PRELOAD = ["natcoord.suite.worker", "natcoord.engines.natcoord_engine"]
+from ..engines.registry import BUILTIN
+
+# what an engine process imports (the adapters, not their engines), natcoord's engine and
+# what its runs import on first use (numba and the compiled kernels' modules, the outputs,
+# scipy's splines for the work channels): about a second less in each natcoord process
+PRELOAD = ["natcoord.suite.worker", *BUILTIN.values(), "natcoord.dynamics.forward",
+           "natcoord.model.casemodel", "natcoord.outputs.channels", "scipy.interpolate"]
 _LOCK = threading.Lock()
 _STATE: dict = {}  # "ctx": the forkserver context, "env": the environment it started with
 
