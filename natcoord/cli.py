@@ -666,9 +666,10 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                       "not moved")
         phases = {"start": clock.clock()}
         first = {(c, e): t for (k, c, e), t in clock.expected.items() if k == "run"}
+        tick = _ticker(clock, "run", n)
         summary = run_suite(selected, names, staging, references=references,
                             timeout_s=timeout, jobs=n, scheduler=scheduler, first=first,
-                            progress=_progress_printer(total, where, _ticker(clock, "run", n)))
+                            progress=_progress_printer(total, where, tick), started=tick.started)
         if quick:
             summary["mode"] = "quick"
             write_json(staging / "summary.json", summary)
@@ -792,7 +793,7 @@ def _ticker(clock, kind: str, shared: int = 1):
     """``left(key, rec)`` for a progress printer: marks the piece ``key`` ('case/engine')
     of ``kind`` done, with its record's process time over the ``shared`` cores it ran
     beside others on (none for a bench record carried from elsewhere), and returns the
-    suite's time left."""
+    suite's time left; ``left.started(key)`` marks a piece started."""
     from .suite.stored import carried
 
     def left(key: str, rec: dict | None = None) -> float:
@@ -801,7 +802,8 @@ def _ticker(clock, kind: str, shared: int = 1):
         clock.done((kind, case, engine),  # reused or timed by its run spent nothing tonight
                    t / shared if isinstance(t, (int, float)) else None)
         return clock.left()
-    left.peek = lambda: clock.left() if clock.finished else None  # for the heartbeat
+    left.peek = lambda: clock.left() if clock.finished or clock.begun else None  # heartbeat
+    left.started = lambda key: clock.started((kind, *key.split("/", 1)), shared)
     return left
 
 

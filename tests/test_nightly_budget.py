@@ -333,18 +333,43 @@ def test_a_reused_cell_is_not_judged_as_a_new_measurement(tmp_path):
     assert [s.case for s in speed.compare_bench({"records": [fresh, reused]}, slow)] == ["a"]
 
 
-def test_the_heartbeat_shows_the_time_left_once_a_piece_has_finished():
-    """The 'still going' line of a long silent stretch carries the suite's time left, but
-    only once a piece has finished (before that nothing says how tonight goes)."""
+def test_the_heartbeat_shows_the_time_left_once_a_piece_has_started():
+    """The 'still going' line of a long silent stretch carries the suite's time left once
+    a piece has started: before anything finished, the expectation less what the running
+    pieces have done (tonight's pace is not known yet)."""
     from natcoord.cli import _ticker
 
     now = [0.0]
     clock = eta.Eta({("run", f"c{i}", "e"): 10.0 for i in range(4)}, clock=lambda: now[0])
     tick = _ticker(clock, "run")
     assert tick.peek() is None
+    tick.started("c0/e")
+    now[0] = 4.0
+    assert tick.peek() == pytest.approx(36.0)
     now[0] = 10.0
     assert tick("c0/e", {"process_time_s": 10.0}) == pytest.approx(30.0)
     assert tick.peek() == pytest.approx(30.0)
+
+
+def test_a_running_piece_counts_as_done_for_the_time_it_has_run():
+    """Two cores: a long run (100 s of process time, 50 s expected over 2 cores) and a
+    short one start together; at 10 s the short one finishes on time. Counting the long
+    run's 10 s (5 expected seconds) as done, the wall clock is on pace (10 s for 10) and
+    so is the estimate; counting only what finished, the wall clock said 2x (10 s for 5)
+    and the first estimates of a real first night came out 1.5x the truth."""
+    now = [0.0]
+    exp = ({("run", "long", "e"): 50.0, ("run", "short", "e"): 5.0}
+           | {("run", f"c{i}", "e"): 5.0 for i in range(90)})
+    clock = eta.Eta(exp, clock=lambda: now[0])
+    for name in ("long", "short"):
+        clock.started(("run", name, "e"), 2)
+    now[0] = 4.0
+    assert clock.left() == pytest.approx(505.0 - 4.0)  # nothing finished: no pace yet
+    now[0] = 10.0
+    clock.done(("run", "short", "e"), 5.0)
+    assert clock.left() == pytest.approx(505.0 - 10.0)
+    now[0] = 200.0  # a piece counts at most its expectation, however long it runs
+    assert clock._running(exp) == 50.0
 
 
 def test_a_machine_with_no_suite_yet_expects_the_shipped_reference_durations(tmp_path):

@@ -5,9 +5,12 @@ take what the same piece took last time (its engine process's time, s; the accur
 shared over ``jobs`` cores), a piece never seen as long as the median of the same engine's
 pieces of that kind (else of every piece of that kind, else :data:`UNKNOWN_S`). The time
 left is the expected time of what is left, scaled by tonight's pace, fully so once a tenth
-of the work is done. The pace is the geometric mean of two ratios to the expectation: the
-finished pieces' measured process times (blind to waiting: start-up, a core shared with
-other work) and the wall clock since the start (misled while pieces run side by side).
+of the work is done. A piece that is running counts as done for the time it has run (up to
+its expectation; its core's share of it in the parallel phase). The pace is the geometric
+mean of two ratios to the expectation: the finished pieces' measured process times (blind
+to waiting: start-up, a core shared with other work) and the wall clock since the start
+against the work done, running pieces' part included (without it, a long run in progress
+made the first estimates 1.5x the truth).
 Replayed on two recorded nights of the full suite on a 2-core machine, the mean kept the
 estimate within 0.8-1.2x of the truth from a tenth of the suite to nine tenths, where the
 measured times alone fell to 0.69x. Bench and sweep pieces within the night's budget share
@@ -135,6 +138,7 @@ class Eta:
         self.expected, self.clock = dict(expected), clock
         self.start, self.finished = clock(), set()
         self.took: dict[tuple, float] = {}  # finished pieces' measured seconds
+        self.begun: dict[tuple, tuple[float, int]] = {}  # running: (start, cores shared)
         self.budgeted: set[tuple] = set()  # (case, engine) of the night's budget
         self.budget_s = math.inf
 
@@ -148,6 +152,18 @@ class Eta:
         of it (their own expectations scaled down to fit)."""
         self.budgeted, self.budget_s = set(cells), float(seconds)
 
+    def started(self, piece: tuple, shared: int = 1) -> None:
+        """``piece`` started now, on one of the ``shared`` cores its expectation is divided
+        over (an accuracy run: the suite's jobs; a bench piece: 1)."""
+        self.begun[piece] = (self.clock(), max(1, int(shared)))
+
+    def _running(self, expected: dict[tuple, float]) -> float:
+        """Expected seconds done by the pieces still running: each its time so far over the
+        cores it shares, at most its expectation."""
+        now = self.clock()
+        return sum(min((now - t0) / k, expected.get(p, 0.0))
+                   for p, (t0, k) in dict(self.begun).items() if p not in self.finished)
+
     def done(self, piece: tuple, took: float | None = None) -> None:
         """``piece`` finished; ``took``: its measured seconds (a run's engine-process time
         over the cores it shared), on the same footing as its expectation."""
@@ -156,10 +172,12 @@ class Eta:
             self.took[piece] = self.took.get(piece, 0.0) + float(took)
 
     def pace(self, done: float) -> float:
-        """Tonight's seconds per expected second (``done``: expected seconds finished): the
-        geometric mean of the measured pieces' times against their expectations and the
-        wall clock since the start against ``done`` (the wall clock's alone where nothing
-        was measured)."""
+        """Tonight's seconds per expected second (``done``: expected seconds done, running
+        pieces' part included): the geometric mean of the measured pieces' times against
+        their expectations and the wall clock since the start against ``done`` (the wall
+        clock's alone where nothing finished was measured; 1 before anything finished)."""
+        if not self.finished:  # nothing measured, and the wall clock also holds work no
+            return 1.0         # piece stands for (the compiled loops' warm-up)
         wall = (self.clock() - self.start) / done
         timed = [p for p in self.took if self.expected.get(p, 0.0) > 0]
         want = sum(self.expected[p] for p in timed)
@@ -181,7 +199,8 @@ class Eta:
         expected = self._expected_now()
         total = sum(expected.values())
         done = sum(t for p, t in expected.items() if p in self.finished)
-        rest = total - done
+        done += self._running(expected)
+        rest = max(0.0, total - done)
         if total <= 0 or done <= 0:
             return rest
         w = min(1.0, done / total / 0.1)  # trust tonight's pace once a tenth is done

@@ -55,19 +55,23 @@ class Cores:
 
 
 def local(jobs, engines, out: Path, timeout_s: float, workers: int,
-          first: dict | None = None, warmup: tuple | None = None) -> Iterator[tuple]:
+          first: dict | None = None, warmup: tuple | None = None,
+          started: Callable[[int], None] | None = None) -> Iterator[tuple]:
     """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
     no long run is left to the end while the other cores idle; among equals, the largest
     case). ``warmup``: ``(chain, waits)`` of :func:`natcoord.suite.warm.plan`, processes
     that prepare compiled code (``[(item, command), ...]``, run one after another by one
     worker from the start) and, by cell index, the items a run waits for; the other runs go
-    on meanwhile (so that no two runs compile the same loop)."""
+    on meanwhile (so that no two runs compile the same loop). ``started(index)`` is called
+    as a run gets its core (from a worker thread)."""
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
     if workers <= 1:
         for i, (job, engine) in enumerate(todo):
+            if started:
+                started(i)
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
     chain, waits = warmup or ([], {})
@@ -85,6 +89,8 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
                             _prepare(command, cpu, timeout_s)
                             board.ready(item)
                     else:
+                        if started:
+                            started(x)
                         done.put((x, run_subprocess(todo[x][0], todo[x][1], out, timeout_s,
                                                     cpu=cpu)))
             except BaseException as e:  # noqa: BLE001 - handed to the caller's thread

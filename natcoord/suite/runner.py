@@ -279,13 +279,14 @@ def compare_record(case: Case, record: dict, out: Path, references: Path) -> dic
 def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
               references: Path = Path("references"), timeout_s: float = DEFAULT_TIMEOUT_S,
               progress: Callable[[str, dict], None] | None = None, jobs: int = 1,
-              scheduler: str | None = None, first: dict | None = None) -> dict:
+              scheduler: str | None = None, first: dict | None = None,
+              started: Callable[[str], None] | None = None) -> dict:
     """Run every case in every engine and write ``out/summary.json``; returns the summary.
     ``cases`` may be loaded cases or prepared Jobs (assembled once by the caller); ``jobs``
     engine processes run at once here, or every run goes to the Dask cluster at
     ``scheduler`` (see :mod:`natcoord.suite.parallel`; ``first``: expected seconds per
-    (case, engine), the longest started first here). Records keep the order of the cells
-    whatever order they finish in."""
+    (case, engine), the longest started first here; ``started("case/engine")`` as a run
+    starts here). Records keep the order of the cells whatever order they finish in."""
     from . import parallel, warm
 
     out = Path(out)
@@ -296,8 +297,9 @@ def run_suite(cases: Sequence[Case | Job], engines: Sequence[str], out: Path, *,
     found: dict[int, dict] = {}
     warmup = warm.plan(prepared, engines) if jobs > 1 and not scheduler else None
     runs = (parallel.distributed(prepared, engines, out, timeout_s, scheduler, _failed)
-            if scheduler else parallel.local(prepared, engines, out, timeout_s, jobs, first,
-                                             warmup))
+            if scheduler else parallel.local(
+                prepared, engines, out, timeout_s, jobs, first, warmup,
+                started and (lambda i: started(f"{todo[i][0].case.name}/{todo[i][1]}"))))
     for i, raw in runs:
         case, engine = todo[i][0].case, todo[i][1]
         found[i] = compare_record(case, raw, out, references)
