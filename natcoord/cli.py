@@ -796,14 +796,17 @@ def _ticker(clock, kind: str, shared: int = 1):
     suite's time left; ``left.started(key)`` marks a piece started."""
     from .suite.stored import carried
 
-    def left(key: str, rec: dict | None = None) -> float:
+    def piece(key: str) -> tuple:
         case, _, engine = key.partition("/")
+        return kind, case, engine
+
+    def left(key: str, rec: dict | None = None) -> float:
         t = None if rec is None or carried(rec) else rec.get("process_time_s")  # a cell
-        clock.done((kind, case, engine),  # reused or timed by its run spent nothing tonight
+        clock.done(piece(key),  # reused or timed by its run spent nothing tonight
                    t / shared if isinstance(t, (int, float)) else None)
         return clock.left()
     left.peek = lambda: clock.left() if clock.finished or clock.begun else None  # heartbeat
-    left.started = lambda key: clock.started((kind, *key.split("/", 1)), shared)
+    left.started = lambda key: clock.started(piece(key), shared)
     return left
 
 

@@ -30,7 +30,7 @@ from ..engines.registry import BUILTIN
 
 # what an engine process imports (the adapters, not their engines), natcoord's engine and
 # what its runs import on first use (numba and the compiled kernels' modules, the outputs,
-# scipy's splines for the work channels): about a second less in each natcoord process
+# scipy's splines for the work channels): 0.3-0.4 s less in each natcoord process
 PRELOAD = ["natcoord.suite.worker", *BUILTIN.values(), "natcoord.dynamics.forward",
            "natcoord.model.casemodel", "natcoord.outputs.channels", "scipy.interpolate"]
 _LOCK = threading.Lock()
