@@ -279,7 +279,7 @@ def _put(Q, k, x, off, n):
         Q[k, a] = x[off + a]
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _settle(sp, gen, wg, q, qd, qdd, ptol, cnt, factored):
     """Project (q, qd) (n,) in place and evaluate qdd there, on the sparse path or (``wg``
     given) the general one; a status code."""
