@@ -377,51 +377,84 @@ def _null_gen(gen, part, ws, R):
 
 
 @njit(cache=True, _nrt=False, inline="always")
-def _positions_gen(part, gen, tol, y, ws, cnt):
-    """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the last solution moved
-    along the last R, as :func:`_positions`, each step by the generated kernels: J, Y and
-    the factor of W = J M^-1 J^T at q (``refactor``), the M-weighted least-norm step d =
-    -Y W^-1 Phi and the step with q^i held, d - Rn d^i (Rn: R at q, :func:`_null_gen`;
-    Phi_q (d - Rn d^i) = -Phi, the Newton step of the dependent block). On return (OK)
-    the kernels' work array holds the factorization at q, ws[1] R at q and ws[16][0]
-    max|R^d|. A status code."""
-    gk, gws, prr, w, d, Rn = gen[0], gen[1], gen[3], gen[6], gen[7], gen[9]
+def _step_gen(gen, part, q, p, Rc):
+    """One Newton step on Phi[rows] = 0 over q^d, q (n,) in place, with the factorization
+    in the kernels' work array and Rc (n, f) the R at its q: the M-weighted least-norm
+    step d = -Y W^-1 Phi (p (m,): Phi at q), then q^d += d^d - Rc^d d^i (q^i held;
+    Phi_q (d - Rc d^i) = -Phi, the Newton step of the dependent block). Returns max |dq^d|
+    (m)."""
+    gk, gws, w, d = gen[0], gen[1], gen[6], gen[7]
     rows, dep, indep = part
-    ql, R, q, p = ws[0], ws[1], ws[3], ws[6]
     n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
-    m = p.shape[0]
-    size = _predict(part, y, ws)
-    for _ in range(NEWTON_ITER):
+    for i in range(p.shape[0]):
+        w[i] = p[i]
+    for a in range(n):
+        d[a] = 0.0
+    _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(d))  # d = -Y W^-1 Phi
+    step = 0.0
+    for i in range(r):
+        a = dep[i]
+        s = d[a]
+        for c in range(f):
+            s -= Rc[a, c] * d[indep[c]]
+        q[a] += s
+        step = max(step, abs(s))
+    return step
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _residual_gen(gen, q, p):
+    """max |Phi[rows](q)| (m) by the generated ``phi`` kernel, Phi (m,) into p."""
+    prr = gen[3]
+    _call2(types.void, gen[0][0], _ptr(q), _ptr(p))
+    e = 0.0
+    for i in range(prr.shape[0]):
+        e = max(e, abs(p[prr[i]]))
+    return e
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _positions_gen(part, gen, tol, y, qp, ws, cnt):
+    """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the prediction qp (n,)
+    with q^i = y[:f] (the stages' own Runge-Kutta sums of the full qd,
+    :func:`_stages`: far closer to Phi = 0 than the last solution moved along the last
+    R), each step a Newton step by the generated kernels with q^i held (:func:`_step_gen`:
+    J, Y and the factor of W = J M^-1 J^T at q, ``refactor``, and Rn, R at q,
+    :func:`_null_gen`), stopped at |Phi| < ``tol`` -- a prediction within it is still
+    corrected once unless |Phi| < 1e-3 tol, so that q is Newton's to round-off as the
+    generic path's -- or when the step reaches round-off. On return (OK) the kernels' work
+    array holds the factorization at q, ws[1] R at q and ws[16][0] max|R^d|. A status
+    code."""
+    gk, gws, Rn = gen[0], gen[1], gen[9]
+    ql, R, q, p = ws[0], ws[1], ws[3], ws[6]
+    indep = part[2]
+    n, f = q.shape[0], indep.shape[0]
+    for a in range(n):
+        q[a] = qp[a]
+    for c in range(f):
+        q[indep[c]] = y[c]
+    lo, hi = q[0], q[0]
+    for a in range(n):
+        lo = min(lo, q[a])
+        hi = max(hi, q[a])
+    size = max(hi - lo, 1e-300)  # the span of q: round-off scale of the Newton's stop
+    e = _residual_gen(gen, q, p)
+    it = 0
+    while e >= tol or (it == 0 and e > 1e-3 * tol):
+        if it >= NEWTON_ITER:
+            return ERR_NEWTON
         _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
         cnt[C_FACT] += 1
-        _call2(types.void, gk[0], _ptr(q), _ptr(p))
-        e = 0.0
-        for i in range(r):
-            e = max(e, abs(p[prr[i]]))
-        if e < tol:
-            break
         if _null_gen(gen, part, ws, Rn) < 0.0:
             return ERR_SINGULAR
-        for i in range(m):
-            w[i] = p[i]
-        for a in range(n):
-            d[a] = 0.0
-        _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(d))  # d = -Y W^-1 Phi
-        step = 0.0
-        for i in range(r):
-            a = dep[i]
-            s = d[a]
-            for c in range(f):
-                s -= Rn[a, c] * d[indep[c]]
-            q[a] += s
-            step = max(step, abs(s))
+        step = _step_gen(gen, part, q, p, Rn)
         cnt[C_NEWTON] += 1
-        if step < tol * 10.0 * max(1.0, size):  # round-off reached: factor at q
-            _call2(types.int64, gk[1], _ptr(q), _ptr(gws))
-            cnt[C_FACT] += 1
+        it += 1
+        if step < tol * 10.0 * max(1.0, size):  # round-off reached
             break
-    else:
-        return ERR_NEWTON
+        e = _residual_gen(gen, q, p)
+    _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # the factorization at q
+    cnt[C_FACT] += 1
     g = _null_gen(gen, part, ws, Rn)
     if g < 0.0:
         return ERR_SINGULAR
@@ -434,18 +467,20 @@ def _positions_gen(part, gen, tol, y, ws, cnt):
 
 
 @njit(cache=True, _nrt=False)
-def _kin_gen(part, gen, tol, y, ws, cnt):
-    """:func:`_kinematics` on the generated path, ``gen`` = (gk, gws, prow (m,), prr (r,),
-    yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z (f, f)): the model's generated kernels
-    (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the kernels' row of
-    every constraint row and of the partition's, the y of the last evaluation, the
-    accelerations' array and scratch. q by :func:`_positions_gen`, R there, qd = R qd^i (S
-    c is not formed: :func:`_acc_gen` gives qdd whole, with the factorization at q left in
-    gws); at the y of the last evaluation nothing is redone. Compiled without reference
-    counting: it allocates nothing.
-    (A simplified Newton with the last evaluation's LU took 2.7x the iterations for no
-    gain in time and converged to the other assembly branch of four_bar and five_bar at
-    rtol 1e-8: errors of 7.6 and 4.0 rad against the references.)"""
+def _kin_gen(part, gen, tol, y, qp, ws, cnt):
+    """:func:`_kinematics` on the generated path from the prediction qp (n,), ``gen`` =
+    (gk, gws, prow (m,), prr (r,), yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z
+    (f, f)): the model's generated kernels (addresses, :mod:`natcoord.compiled.codegen`) and
+    their work array, the kernels' row of every constraint row and of the partition's, the
+    y of the last evaluation, the accelerations' array and scratch. q by
+    :func:`_positions_gen`, R there, qd = R qd^i (S c is not formed: :func:`_acc_gen`
+    gives qdd whole, with the factorization at q left in gws); at the y of the last
+    evaluation nothing is redone. Compiled without reference counting: it allocates
+    nothing.
+    (A simplified Newton with the last evaluation's LU from the last solution moved along
+    the last R took 2.7x the iterations for no gain in time and converged to the other
+    assembly branch of four_bar and five_bar at rtol 1e-8: errors of 7.6 and 4.0 rad
+    against the references.)"""
     flags, yl = ws[2], gen[4]
     f = part[2].shape[0]
     if flags[1]:
@@ -457,7 +492,7 @@ def _kin_gen(part, gen, tol, y, ws, cnt):
         if same:
             return OK
     flags[1] = 0
-    st = _positions_gen(part, gen, tol, y, ws, cnt)
+    st = _positions_gen(part, gen, tol, y, qp, ws, cnt)
     if st != OK:
         return st
     R, qd = ws[1], ws[4]
@@ -482,18 +517,19 @@ def _acc_gen(gen, ws, cnt):
 
 
 @njit(cache=True, inline="always")
-def _kin(con, part, tol, y, ws, cnt, gen):
-    """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`."""
+def _kin(con, part, tol, y, qp, ws, cnt, gen):
+    """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`
+    from the prediction qp (n,)."""
     if gen is None:
         return _kinematics(con, part, tol, y, ws, cnt)
-    return _kin_gen(part, gen, tol, y, ws, cnt)
+    return _kin_gen(part, gen, tol, y, qp, ws, cnt)
 
 
 @njit(cache=True, inline="always")
-def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt, gen):
-    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path, :func:`_acc_gen`); a
-    status code."""
-    st = _kin(con, part, tol, y, ws, cnt, gen)
+def _rhs(con, Msp, frc, part, tol, y, qp, dy, ws, cnt, gen):
+    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path from the prediction qp
+    (n,), :func:`_acc_gen`); a status code."""
+    st = _kin(con, part, tol, y, qp, ws, cnt, gen)
     if st != OK:
         return st
     f = part[2].shape[0]
@@ -509,13 +545,14 @@ def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt, gen):
 
 
 @njit(cache=True)
-def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
+def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
     """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
     qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``); on
-    the generated path (``gen``) qdd of the generated kernel at that q, qd."""
+    the generated path (``gen``) from the prediction qp (n,), qdd of the generated kernel
+    at that q, qd."""
     Q, QD, QDD = out[0], out[1], out[2]
     if gen is not None:
-        st = _kin_gen(part, gen, tol, y, ws, cnt)
+        st = _kin_gen(part, gen, tol, y, qp, ws, cnt)
         if st != OK:
             return st
         _acc_gen(gen, ws, cnt)
@@ -546,12 +583,13 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
 
 
 @njit(cache=True)
-def _post_step(con, part, ctl, y, ws, cnt, gen):
-    """After an accepted step (``MaggiLoop.post_step``): re-partition at the step end when
-    max|R^d| exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status
-    code (ERR_SINGULAR when the rank of Phi_q changed)."""
+def _post_step(con, part, ctl, y, qp, ws, cnt, gen):
+    """After an accepted step (``MaggiLoop.post_step``): the kinematics at the step end y
+    (the generated path from the prediction qp (n,)), re-partition there when max|R^d|
+    exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status code
+    (ERR_SINGULAR when the rank of Phi_q changed)."""
     tol, rank_tol, growth = ctl[3], ctl[4], ctl[5]
-    st = _kin(con, part, tol, y, ws, cnt, gen)
+    st = _kin(con, part, tol, y, qp, ws, cnt, gen)
     if st != OK:
         return st
     gs = ws[16]
@@ -586,11 +624,18 @@ def _post_step(con, part, ctl, y, ws, cnt, gen):
 
 # ---- the loop ------------------------------------------------------------------------------
 @njit(cache=True, _nrt=False)
-def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt):
+def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt, qk):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
-    frc, part, tol) as in :func:`run_maggi`; a status code."""
+    frc, part, tol) as in :func:`run_maggi`; a status code. The generated path (``gen``)
+    also keeps the stages of the full q, ``qk`` = (qn (n,) the q at y, Kq (stages, n) the
+    full qd of every stage (written), qp (n,) scratch), and predicts the Newton's start at
+    stage s by the same sum: qp = qn + h sum_p A[s, p] Kq[p], whose q^i is y_s[:f]; its
+    distance from Phi = 0 is the stage's error as a Runge-Kutta stage of the full
+    q' = qd (DOP853's stages from the sixth on have stage order 5: ~1e-8 m where the last
+    solution moved along the last R missed by ~1e-3 m)."""
     con, Msp, frc, part, tol = mdl
-    N = y.shape[0]
+    qn, Kq, qp = qk
+    N, n = y.shape[0], qn.shape[0]
     for s in range(lo, hi):
         for a in range(N):
             acc = 0.0
@@ -598,10 +643,34 @@ def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt):
                 if A[s, p] != 0.0:
                     acc += A[s, p] * K[p, a]
             ys[a] = y[a] + h * acc
-        st = _rhs(con, Msp, frc, part, tol, ys, K[s], ws, cnt, gen)
+        if gen is not None:
+            for a in range(n):
+                acc = 0.0
+                for p in range(s):
+                    if A[s, p] != 0.0:
+                        acc += A[s, p] * Kq[p, a]
+                qp[a] = qn[a] + h * acc
+        st = _rhs(con, Msp, frc, part, tol, ys, qp, K[s], ws, cnt, gen)
         if st != OK:
             return st
+        if gen is not None:
+            qd = ws[4]
+            for a in range(n):
+                Kq[s, a] = qd[a]
     return OK
+
+
+@njit(cache=True, inline="always")
+def _step_end(gen, B, Kq, s, qn, h, qn1):
+    """The generated path's prediction of q at the step's end: qn1 (n,) = qn + h sum_p
+    B[p] Kq[p] over the first s stages (its q^i is the step's y[:f])."""
+    if gen is not None:
+        for a in range(qn.shape[0]):
+            acc = 0.0
+            for p in range(s):
+                if B[p] != 0.0:
+                    acc += B[p] * Kq[p, a]
+            qn1[a] = qn[a] + h * acc
 
 
 @njit(cache=True)
@@ -645,17 +714,22 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     t, tend = times[0], times[T - 1]
     tfail[0] = t
     y = y0.copy()
-    st = _sample(con, Msp, frc, part, tol, y, 0, out, ws, cnt, gen)
+    s_st, n_ext = B.shape[0], Aext.shape[0]
+    # the full q of the generated path's predictions (:func:`_stages`): q at y, the stages'
+    # full qd, a prediction, q at the step's end, its continuous extension
+    qn, Kq, qp, qn1 = q0.copy(), np.zeros((s_st + n_ext, n)), q0.copy(), np.zeros(n)
+    Fq = np.zeros((3 + D.shape[0], n))
+    qk = (qn, Kq, qp)
+    st = _sample(con, Msp, frc, part, tol, y, qn, 0, out, ws, cnt, gen)
     if st != OK:
         return st
     if f == 0:  # no degrees of freedom: kinematics at every sample
         for k in range(1, T):
             tfail[0] = times[k]
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
-    s_st, n_ext = B.shape[0], Aext.shape[0]
     Aall = np.zeros((s_st + n_ext, s_st + n_ext))  # the step's and the extension's stages
     Aall[:s_st, :s_st] = A
     Aall[s_st:, :] = Aext[:, :s_st + n_ext]
@@ -669,23 +743,25 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             hh = (t1 - t0) / nsub
             for i in range(nsub):
                 tfail[0] = t0 + i * hh
-                st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt, qk)
                 if st != OK:
                     return st
                 _weights(B, K, s_st, yn, hh)
                 for a in range(N):
                     y[a] += yn[a]
-                st = _post_step(con, part, ctl, y, ws, cnt, gen)
+                _step_end(gen, B, Kq, s_st, qn, hh, qn1)
+                st = _post_step(con, part, ctl, y, qn1, ws, cnt, gen)
                 if st != OK:
                     return st
+                qn[:] = ws[3]
                 cnt[C_STEPS] += 1
             tfail[0] = t1
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
     # adaptive: Hairer's initial step
-    st = _rhs(con, Msp, frc, part, tol, y, ys, ws, cnt, gen)
+    st = _rhs(con, Msp, frc, part, tol, y, qn, ys, ws, cnt, gen)
     if st != OK:
         return st
     d0, d1 = 0.0, 0.0
@@ -699,7 +775,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     while k < T:
         hh = min(h, tend - t)
         tfail[0] = t
-        st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+        st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt, qk)
         if st == ERR_NEWTON:  # the step is too long for the dependent positions
             if stepcontrol.underflow(hh * 1e-4, t):
                 return ERR_UNDERFLOW
@@ -729,33 +805,41 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             continue
         t1 = tend if hh == tend - t else t + hh
         tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
+        _step_end(gen, B, Kq, s_st, qn, hh, qn1)
         inner = False
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
             if dop853 and not inner:
-                st = _stages(mdl, gen, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt, qk)
                 if st != OK:
                     return st
                 stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
+                if gen is not None:  # and of the full q: the samples' predictions
+                    stepcontrol.dense_dop853(qn, qn1, hh, Kq, s_st, D, Fq)
             inner = True
             x = (times[k] - t) / hh
             if dop853:
                 stepcontrol.dense_at(Fd, y, x, yu)
+                if gen is not None:
+                    stepcontrol.dense_at(Fq, qn, x, qp)
             else:
                 stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
-            st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt, gen)
+                if gen is not None:
+                    stepcontrol.dense_dopri5(Kq, P, qn, hh, x, qp)
+            st = _sample(con, Msp, frc, part, tol, yu, qp, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
         t = t1
         y[:] = yn
         tfail[0] = t
-        st = _post_step(con, part, ctl, y, ws, cnt, gen)
+        st = _post_step(con, part, ctl, y, qn1, ws, cnt, gen)
         if st != OK:
             return st
+        qn[:] = ws[3]
         cnt[C_STEPS] += 1
         if k < T and times[k] <= t1 + tol_t:
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
