@@ -544,7 +544,7 @@ def _rhs(con, Msp, frc, part, tol, y, qp, dy, ws, cnt, gen):
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
     """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
     qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``); on
@@ -563,8 +563,9 @@ def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
     st = _kinematics(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
-    Q[k] = ws[3]
-    QD[k] = ws[4]
+    q, qd = ws[3], ws[4]
+    for a in range(q.shape[0]):
+        Q[k, a], QD[k, a] = q[a], qd[a]
     st = _kinematics(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
@@ -582,7 +583,7 @@ def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=False)
 def _post_step(con, part, ctl, y, qp, ws, cnt, gen):
     """After an accepted step (``MaggiLoop.post_step``): the kinematics at the step end y
     (the generated path from the prediction qp (n,)), re-partition there when max|R^d|
