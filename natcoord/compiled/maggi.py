@@ -466,7 +466,7 @@ def _positions_gen(part, gen, tol, y, qp, ws, cnt):
     return OK
 
 
-@njit(cache=True, _nrt=False)
+@njit(cache=True, _nrt=False, inline="always")
 def _kin_gen(part, gen, tol, y, qp, ws, cnt):
     """:func:`_kinematics` on the generated path from the prediction qp (n,), ``gen`` =
     (gk, gws, prow (m,), prr (r,), yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z
