@@ -414,40 +414,66 @@ def _residual_gen(gen, q, p):
 
 
 @njit(cache=True, _nrt=False, inline="always")
-def _positions_gen(part, gen, tol, y, qp, ws, cnt):
+def _velocity_basis(part, y, qdp, Rc):
+    """f = 1: Rc (n, 1) = qdp / qd^i, R predicted from the predicted full qd (n,) (on Phi
+    = 0, qd = R qd^i), when qdp is a prediction at this y (its qd^i that of y, to 1e-9)
+    and qd^i is not small (> 1e-3 max|qdp|); False (Rc untouched) otherwise."""
+    indep = part[2]
+    f = indep.shape[0]
+    if f != 1:
+        return False
+    v, big = y[1], 0.0
+    for a in range(qdp.shape[0]):
+        big = max(big, abs(qdp[a]))
+    if not (abs(v) > 1e-3 * big and abs(qdp[indep[0]] - v) <= 1e-9 * abs(v)):
+        return False
+    for a in range(qdp.shape[0]):
+        Rc[a, 0] = qdp[a] / v
+    Rc[indep[0], 0] = 1.0
+    return True
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
     """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the prediction qp (n,)
     with q^i = y[:f] (the stages' own Runge-Kutta sums of the full qd,
     :func:`_stages`: far closer to Phi = 0 than the last solution moved along the last
     R), each step a Newton step by the generated kernels with q^i held (:func:`_step_gen`:
-    J, Y and the factor of W = J M^-1 J^T at q, ``refactor``, and Rn, R at q,
-    :func:`_null_gen`), stopped at |Phi| < ``tol`` -- a prediction within it is still
-    corrected once unless |Phi| < 1e-3 tol, so that q is Newton's to round-off as the
-    generic path's -- or when the step reaches round-off. On return (OK) the kernels' work
-    array holds the factorization at q, ws[1] R at q and ws[16][0] max|R^d|. A status
-    code."""
-    gk, gws, Rn = gen[0], gen[1], gen[9]
-    ql, R, q, p = ws[0], ws[1], ws[3], ws[6]
+    J, Y and the factor of W = J M^-1 J^T at q, ``refactor``, and R at q,
+    :func:`_null_gen`; the first step of f = 1 takes R from the predicted full qd, qdp
+    (n,), where it serves, :func:`_velocity_basis`: one ``_null_gen`` less), stopped at
+    |Phi| < ``tol`` -- a prediction within it is still corrected once unless |Phi| < 1e-3
+    tol, so that q is Newton's to round-off as the generic path's -- or when the step
+    reaches round-off. On return (OK) the kernels' work array holds the factorization at
+    q, ws[1] R at q and ws[16][0] max|R^d|. A status code."""
+    gk, gws, Rp = gen[0], gen[1], gen[9]
+    R, q, p = ws[1], ws[3], ws[6]
     indep = part[2]
     n, f = q.shape[0], indep.shape[0]
     for a in range(n):
         q[a] = qp[a]
     for c in range(f):
         q[indep[c]] = y[c]
-    lo, hi = q[0], q[0]
-    for a in range(n):
-        lo = min(lo, q[a])
-        hi = max(hi, q[a])
-    size = max(hi - lo, 1e-300)  # the span of q: round-off scale of the Newton's stop
     e = _residual_gen(gen, q, p)
     it = 0
+    size = 0.0
     while e >= tol or (it == 0 and e > 1e-3 * tol):
         if it >= NEWTON_ITER:
             return ERR_NEWTON
+        if it == 0:  # the span of q: round-off scale of the Newton's stop
+            lo, hi = q[0], q[0]
+            for a in range(n):
+                lo = min(lo, q[a])
+                hi = max(hi, q[a])
+            size = max(hi - lo, 1e-300)
         _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
         cnt[C_FACT] += 1
-        if _null_gen(gen, part, ws, Rn) < 0.0:
-            return ERR_SINGULAR
-        step = _step_gen(gen, part, q, p, Rn)
+        if it == 0 and _velocity_basis(part, y, qdp, Rp):
+            step = _step_gen(gen, part, q, p, Rp)
+        else:
+            if _null_gen(gen, part, ws, R) < 0.0:
+                return ERR_SINGULAR
+            step = _step_gen(gen, part, q, p, R)
         cnt[C_NEWTON] += 1
         it += 1
         if step < tol * 10.0 * max(1.0, size):  # round-off reached
@@ -455,20 +481,17 @@ def _positions_gen(part, gen, tol, y, qp, ws, cnt):
         e = _residual_gen(gen, q, p)
     _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # the factorization at q
     cnt[C_FACT] += 1
-    g = _null_gen(gen, part, ws, Rn)
+    g = _null_gen(gen, part, ws, R)
     if g < 0.0:
         return ERR_SINGULAR
-    for a in range(n):
-        ql[a] = q[a]
-        for c in range(f):
-            R[a, c] = Rn[a, c]
     ws[16][0] = g
     return OK
 
 
 @njit(cache=True, _nrt=False, inline="always")
-def _kin_gen(part, gen, tol, y, qp, ws, cnt):
-    """:func:`_kinematics` on the generated path from the prediction qp (n,), ``gen`` =
+def _kin_gen(part, gen, tol, y, pr, ws, cnt):
+    """:func:`_kinematics` on the generated path from the prediction pr = (q, qd) (n,),
+    ``gen`` =
     (gk, gws, prow (m,), prr (r,), yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z
     (f, f)): the model's generated kernels (addresses, :mod:`natcoord.compiled.codegen`) and
     their work array, the kernels' row of every constraint row and of the partition's, the
@@ -492,7 +515,7 @@ def _kin_gen(part, gen, tol, y, qp, ws, cnt):
         if same:
             return OK
     flags[1] = 0
-    st = _positions_gen(part, gen, tol, y, qp, ws, cnt)
+    st = _positions_gen(part, gen, tol, y, pr[0], pr[1], ws, cnt)
     if st != OK:
         return st
     R, qd = ws[1], ws[4]
@@ -517,19 +540,19 @@ def _acc_gen(gen, ws, cnt):
 
 
 @njit(cache=True, inline="always")
-def _kin(con, part, tol, y, qp, ws, cnt, gen):
+def _kin(con, part, tol, y, pr, ws, cnt, gen):
     """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`
-    from the prediction qp (n,)."""
+    from the prediction pr = (q, qd) (n,)."""
     if gen is None:
         return _kinematics(con, part, tol, y, ws, cnt)
-    return _kin_gen(part, gen, tol, y, qp, ws, cnt)
+    return _kin_gen(part, gen, tol, y, pr, ws, cnt)
 
 
 @njit(cache=True, inline="always")
-def _rhs(con, Msp, frc, part, tol, y, qp, dy, ws, cnt, gen):
-    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path from the prediction qp
-    (n,), :func:`_acc_gen`); a status code."""
-    st = _kin(con, part, tol, y, qp, ws, cnt, gen)
+def _rhs(con, Msp, frc, part, tol, y, pr, dy, ws, cnt, gen):
+    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path from the prediction pr =
+    (q, qd) (n,), :func:`_acc_gen`); a status code."""
+    st = _kin(con, part, tol, y, pr, ws, cnt, gen)
     if st != OK:
         return st
     f = part[2].shape[0]
@@ -545,14 +568,14 @@ def _rhs(con, Msp, frc, part, tol, y, qp, dy, ws, cnt, gen):
 
 
 @njit(cache=True, _nrt=False)
-def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
+def _sample(con, Msp, frc, part, tol, y, pr, k, out, ws, cnt, gen):
     """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
     qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``); on
-    the generated path (``gen``) from the prediction qp (n,), qdd of the generated kernel
-    at that q, qd."""
+    the generated path (``gen``) from the prediction pr = (q, qd) (n,), qdd of the
+    generated kernel at that q, qd."""
     Q, QD, QDD = out[0], out[1], out[2]
     if gen is not None:
-        st = _kin_gen(part, gen, tol, y, qp, ws, cnt)
+        st = _kin_gen(part, gen, tol, y, pr, ws, cnt)
         if st != OK:
             return st
         _acc_gen(gen, ws, cnt)
@@ -584,13 +607,13 @@ def _sample(con, Msp, frc, part, tol, y, qp, k, out, ws, cnt, gen):
 
 
 @njit(cache=True, _nrt=False)
-def _post_step(con, part, ctl, y, qp, ws, cnt, gen):
+def _post_step(con, part, ctl, y, pr, ws, cnt, gen):
     """After an accepted step (``MaggiLoop.post_step``): the kinematics at the step end y
-    (the generated path from the prediction qp (n,)), re-partition there when max|R^d|
+    (the generated path from the prediction pr = (q, qd) (n,)), re-partition there when max|R^d|
     exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status code
     (ERR_SINGULAR when the rank of Phi_q changed)."""
     tol, rank_tol, growth = ctl[3], ctl[4], ctl[5]
-    st = _kin(con, part, tol, y, qp, ws, cnt, gen)
+    st = _kin(con, part, tol, y, pr, ws, cnt, gen)
     if st != OK:
         return st
     gs = ws[16]
@@ -624,54 +647,65 @@ def _post_step(con, part, ctl, y, qp, ws, cnt, gen):
 
 
 # ---- the loop ------------------------------------------------------------------------------
+@njit(cache=True, _nrt=False, inline="always")
+def _rk_sum(x0, h, A, s, K, out):
+    """out (N,) = x0 + h sum_{p < s} A[s, p] K[p] (zero weights skipped; per component the
+    terms in the order of p)."""
+    N = x0.shape[0]
+    for a in range(N):
+        out[a] = 0.0
+    for p in range(s):
+        w = A[s, p]
+        if w != 0.0:
+            for a in range(N):
+                out[a] += w * K[p, a]
+    for a in range(N):
+        out[a] = x0[a] + h * out[a]
+
+
 @njit(cache=True, _nrt=False)
 def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt, qk):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
     frc, part, tol) as in :func:`run_maggi`; a status code. The generated path (``gen``)
-    also keeps the stages of the full q, ``qk`` = (qn (n,) the q at y, Kq (stages, n) the
-    full qd of every stage (written), qp (n,) scratch), and predicts the Newton's start at
-    stage s by the same sum: qp = qn + h sum_p A[s, p] Kq[p], whose q^i is y_s[:f]; its
-    distance from Phi = 0 is the stage's error as a Runge-Kutta stage of the full
-    q' = qd (DOP853's stages from the sixth on have stage order 5: ~1e-8 m where the last
-    solution moved along the last R missed by ~1e-3 m)."""
+    also keeps the stages of the full q, ``qk`` = (qn, qdn (n,) the full q, qd at y, Kq,
+    Kqd (stages, n) the full qd, qdd of every stage (written), pr = (qp, qdp) (n,)
+    scratch), and predicts stage s by the same sums: qp = qn + h sum_p A[s, p] Kq[p], whose
+    q^i is y_s[:f], and so qdp; their distance from Phi = 0 is the stage's error as a
+    Runge-Kutta stage of the full q' = qd, qd' = qdd (DOP853's stages from the sixth on
+    have stage order 5: ~1e-8 m where the last solution moved along the last R missed by
+    ~1e-3 m)."""
     con, Msp, frc, part, tol = mdl
-    qn, Kq, qp = qk
-    N, n = y.shape[0], qn.shape[0]
+    qn, qdn, Kq, Kqd, pr = qk
     for s in range(lo, hi):
-        for a in range(N):
-            acc = 0.0
-            for p in range(s):
-                if A[s, p] != 0.0:
-                    acc += A[s, p] * K[p, a]
-            ys[a] = y[a] + h * acc
+        _rk_sum(y, h, A, s, K, ys)
         if gen is not None:
-            for a in range(n):
-                acc = 0.0
-                for p in range(s):
-                    if A[s, p] != 0.0:
-                        acc += A[s, p] * Kq[p, a]
-                qp[a] = qn[a] + h * acc
-        st = _rhs(con, Msp, frc, part, tol, ys, qp, K[s], ws, cnt, gen)
+            _rk_sum(qn, h, A, s, Kq, pr[0])
+            _rk_sum(qdn, h, A, s, Kqd, pr[1])
+        st = _rhs(con, Msp, frc, part, tol, ys, pr, K[s], ws, cnt, gen)
         if st != OK:
             return st
         if gen is not None:
-            qd = ws[4]
-            for a in range(n):
-                Kq[s, a] = qd[a]
+            qd, qdd = ws[4], gen[5]
+            for a in range(qd.shape[0]):
+                Kq[s, a], Kqd[s, a] = qd[a], qdd[a]
     return OK
 
 
 @njit(cache=True, inline="always")
-def _step_end(gen, B, Kq, s, qn, h, qn1):
-    """The generated path's prediction of q at the step's end: qn1 (n,) = qn + h sum_p
-    B[p] Kq[p] over the first s stages (its q^i is the step's y[:f])."""
+def _step_end(gen, B, qk, s, h, pr1):
+    """The generated path's prediction of the full q, qd at the step's end, pr1 = (q, qd)
+    (n,): qn + h sum_p B[p] Kq[p] over the first s stages (its q^i is the step's y[:f]),
+    and so qd (``qk``: :func:`_stages`)."""
     if gen is not None:
+        qn, qdn, Kq, Kqd = qk[0], qk[1], qk[2], qk[3]
         for a in range(qn.shape[0]):
-            acc = 0.0
+            acc, acd = 0.0, 0.0
             for p in range(s):
                 if B[p] != 0.0:
                     acc += B[p] * Kq[p, a]
-            qn1[a] = qn[a] + h * acc
+                    acd += B[p] * Kqd[p, a]
+            pr1[0][a] = qn[a] + h * acc
+            pr1[1][a] = qdn[a] + h * acd
 
 
 @njit(cache=True)
@@ -716,18 +750,21 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     tfail[0] = t
     y = y0.copy()
     s_st, n_ext = B.shape[0], Aext.shape[0]
-    # the full q of the generated path's predictions (:func:`_stages`): q at y, the stages'
-    # full qd, a prediction, q at the step's end, its continuous extension
-    qn, Kq, qp, qn1 = q0.copy(), np.zeros((s_st + n_ext, n)), q0.copy(), np.zeros(n)
-    Fq = np.zeros((3 + D.shape[0], n))
-    qk = (qn, Kq, qp)
-    st = _sample(con, Msp, frc, part, tol, y, qn, 0, out, ws, cnt, gen)
+    # the full q, qd of the generated path's predictions (:func:`_stages`): at y, the
+    # stages' full qd and qdd, a prediction, at the step's end, their continuous extension
+    S = s_st + n_ext
+    qn, qdn, Kq, Kqd = q0.copy(), np.zeros(n), np.zeros((S, n)), np.zeros((S, n))
+    pr, pr1 = (q0.copy(), np.zeros(n)), (np.zeros(n), np.zeros(n))
+    Fq, Fqd = np.zeros((3 + D.shape[0], n)), np.zeros((3 + D.shape[0], n))
+    qk = (qn, qdn, Kq, Kqd, pr)
+    now = (qn, qdn)  # the prediction at y: the solution there
+    st = _sample(con, Msp, frc, part, tol, y, now, 0, out, ws, cnt, gen)
     if st != OK:
         return st
     if f == 0:  # no degrees of freedom: kinematics at every sample
         for k in range(1, T):
             tfail[0] = times[k]
-            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
@@ -736,6 +773,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     Aall[s_st:, :] = Aext[:, :s_st + n_ext]
     K = np.zeros((s_st + n_ext, N))
     Fd = np.zeros((3 + D.shape[0], N))  # dop853's continuous extension
+    qdn[:] = ws[4]
     ys, yn, yu, e5v, e3v = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     if h_fixed > 0.0:  # equal steps of at most h_fixed landing on every sample
         for k in range(1, T):
@@ -750,19 +788,20 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
                 _weights(B, K, s_st, yn, hh)
                 for a in range(N):
                     y[a] += yn[a]
-                _step_end(gen, B, Kq, s_st, qn, hh, qn1)
-                st = _post_step(con, part, ctl, y, qn1, ws, cnt, gen)
+                _step_end(gen, B, qk, s_st, hh, pr1)
+                st = _post_step(con, part, ctl, y, pr1, ws, cnt, gen)
                 if st != OK:
                     return st
                 qn[:] = ws[3]
+                qdn[:] = ws[4]
                 cnt[C_STEPS] += 1
             tfail[0] = t1
-            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
     # adaptive: Hairer's initial step
-    st = _rhs(con, Msp, frc, part, tol, y, qn, ys, ws, cnt, gen)
+    st = _rhs(con, Msp, frc, part, tol, y, now, ys, ws, cnt, gen)
     if st != OK:
         return st
     d0, d1 = 0.0, 0.0
@@ -806,7 +845,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             continue
         t1 = tend if hh == tend - t else t + hh
         tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
-        _step_end(gen, B, Kq, s_st, qn, hh, qn1)
+        _step_end(gen, B, qk, s_st, hh, pr1)
         inner = False
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
@@ -815,32 +854,36 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
                 if st != OK:
                     return st
                 stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
-                if gen is not None:  # and of the full q: the samples' predictions
-                    stepcontrol.dense_dop853(qn, qn1, hh, Kq, s_st, D, Fq)
+                if gen is not None:  # and of the full q, qd: the samples' predictions
+                    stepcontrol.dense_dop853(qn, pr1[0], hh, Kq, s_st, D, Fq)
+                    stepcontrol.dense_dop853(qdn, pr1[1], hh, Kqd, s_st, D, Fqd)
             inner = True
             x = (times[k] - t) / hh
             if dop853:
                 stepcontrol.dense_at(Fd, y, x, yu)
                 if gen is not None:
-                    stepcontrol.dense_at(Fq, qn, x, qp)
+                    stepcontrol.dense_at(Fq, qn, x, pr[0])
+                    stepcontrol.dense_at(Fqd, qdn, x, pr[1])
             else:
                 stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
                 if gen is not None:
-                    stepcontrol.dense_dopri5(Kq, P, qn, hh, x, qp)
-            st = _sample(con, Msp, frc, part, tol, yu, qp, k, out, ws, cnt, gen)
+                    stepcontrol.dense_dopri5(Kq, P, qn, hh, x, pr[0])
+                    stepcontrol.dense_dopri5(Kqd, P, qdn, hh, x, pr[1])
+            st = _sample(con, Msp, frc, part, tol, yu, pr, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
         t = t1
         y[:] = yn
         tfail[0] = t
-        st = _post_step(con, part, ctl, y, qn1, ws, cnt, gen)
+        st = _post_step(con, part, ctl, y, pr1, ws, cnt, gen)
         if st != OK:
             return st
         qn[:] = ws[3]
+        qdn[:] = ws[4]
         cnt[C_STEPS] += 1
         if k < T and times[k] <= t1 + tol_t:
-            st = _sample(con, Msp, frc, part, tol, y, qn, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
