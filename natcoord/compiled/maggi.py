@@ -25,16 +25,40 @@ ported here, so the loop never leaves numba); a change of rank there stops the r
 2 at the step end or the dense output, qdd = S c + R qdd^i.
 
 The generated path (``gen``, :func:`generated`: index-1's kernels of the model, written
-out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`): each
-Newton step the M-weighted least-norm step of index-1's sparse factorization with q^i held
-(:func:`_positions_gen`), R from the last R projected on ker Phi_q (:func:`_null_gen`), no
-dense Jacobian or LU, and qdd whole from index-1's Eq. (6) at (q, qd) -- for a consistent
-state the same accelerations as Eq. (23), to round-off (3.5e-14 relative over a run) -- and
-nothing redone at the y of the last evaluation. Its
-kinematics is compiled without numba's reference counting (``_nrt=False``: it allocates
-nothing): counting cost more than the arithmetic (a call at an unchanged y 550 -> 116
-ns). Without generated kernels (a model :func:`natcoord.compiled.codegen.load` declines,
-or ``generated = false``) the generic kernels above run.
+out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`), with no
+dense Jacobian or LU:
+
+1. q from a prediction by the step's own Runge-Kutta sums of the full coordinates
+   (:func:`_stages`): the loop keeps the full q, qd at the step's start and the full qd,
+   qdd of every stage, and predicts stage s by qn + h sum_p A[s, p] Kq[p] (its q^i is
+   the stage's exactly), the step's end by the weights B and a sample by the continuous
+   extension of the full q (:func:`_step_end`, ``stepcontrol.dense_*``). DOP853's
+   stages from the sixth on have stage order 5, so the prediction misses Phi = 0 by the
+   stage's error (~1e-8 m) where the last solution moved along the last R missed by
+   ~1e-3 m: 1.1 Newton steps per evaluation instead of 2.1, and 2.1 factorizations
+   instead of 3.1. Each Newton step (:func:`_positions_gen`) is the M-weighted
+   least-norm step of index-1's sparse factorization at q (``refactor``) with q^i held,
+   Phi_q (d - R d^i) = -Phi (:func:`_step_gen`); its R is R at q (:func:`_null_gen`) or,
+   for the first step of one degree of freedom, the predicted full qd over qd^i
+   (:func:`_velocity_basis`: one projection less). Newton stops at |Phi| < ``newton_tol``
+   (a prediction within it is still corrected once unless |Phi| < 1e-3 newton_tol, so
+   that q is Newton's to round-off like the generic path's: the two agree to 3.4e-14
+   relative over a run) or when its step reaches round-off.
+2. The factorization at the solution and R there, by the last R projected on ker Phi_q
+   (:func:`_null_gen`); qd = R qd^i.
+3. qdd whole from index-1's Eq. (6) at (q, qd) (:func:`_acc_gen`) -- for a consistent
+   state the same accelerations as Eq. (23), to round-off.
+
+Nothing is redone at the y of the last evaluation (the step's end after
+:func:`_post_step` is the next step's first stage). The path is compiled without numba's
+reference counting (``_nrt=False``: it allocates nothing): counting cost more than the
+arithmetic (a call at an unchanged y 550 -> 116 ns). (A simplified Newton with the last
+evaluation's LU from the last solution moved along the last R took 2.7x the iterations
+for no gain in time and converged to the other assembly branch of four_bar and five_bar
+at rtol 1e-8: errors of 7.6 and 4.0 rad; each step here is a true Newton step from a
+prediction 1e5 times closer.) Without generated kernels (a model
+:func:`natcoord.compiled.codegen.load` declines, or ``generated = false``) the generic
+kernels above run.
 
 Kernels take plain arrays: the scleronomic constraint triplets ``k, i, j, v`` over qh =
 [q, 1] (:class:`~natcoord.model.constraints.QuadraticConstraints`), M (n, n) as its non-zeros
@@ -490,12 +514,12 @@ def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
 
 @njit(cache=True, _nrt=False, inline="always")
 def _kin_gen(part, gen, tol, y, pr, ws, cnt):
-    """:func:`_kinematics` on the generated path from the prediction pr = (q, qd) (n,),
-    ``gen`` =
-    (gk, gws, prow (m,), prr (r,), yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z
-    (f, f)): the model's generated kernels (addresses, :mod:`natcoord.compiled.codegen`) and
-    their work array, the kernels' row of every constraint row and of the partition's, the
-    y of the last evaluation, the accelerations' array and scratch. q by
+    """:func:`_kinematics` on the generated path from the prediction pr = (q, qd) (n,) of
+    the full coordinates at y (:func:`_stages`), ``gen`` = (gk, gws, prow (m,), prr (r,),
+    yl (2f,), qdd (n,), w (m,), d (n,), X, Rp (n, f), Z (f, f)): the model's generated
+    kernels (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the
+    kernels' row of every constraint row and of the partition's, the y of the last
+    evaluation, the accelerations' array, scratch and R predicted (Rp). q by
     :func:`_positions_gen`, R there, qd = R qd^i (S c is not formed: :func:`_acc_gen`
     gives qdd whole, with the factorization at q left in gws); at the y of the last
     evaluation nothing is redone. Compiled without reference counting: it allocates
