@@ -25,16 +25,40 @@ ported here, so the loop never leaves numba); a change of rank there stops the r
 2 at the step end or the dense output, qdd = S c + R qdd^i.
 
 The generated path (``gen``, :func:`generated`: index-1's kernels of the model, written
-out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`): each
-Newton step the M-weighted least-norm step of index-1's sparse factorization with q^i held
-(:func:`_positions_gen`), R from the last R projected on ker Phi_q (:func:`_null_gen`), no
-dense Jacobian or LU, and qdd whole from index-1's Eq. (6) at (q, qd) -- for a consistent
-state the same accelerations as Eq. (23), to round-off (3.5e-14 relative over a run) -- and
-nothing redone at the y of the last evaluation. Its
-kinematics is compiled without numba's reference counting (``_nrt=False``: it allocates
-nothing): counting cost more than the arithmetic (a call at an unchanged y 550 -> 116
-ns). Without generated kernels (a model :func:`natcoord.compiled.codegen.load` declines,
-or ``generated = false``) the generic kernels above run.
+out by :mod:`natcoord.compiled.codegen`) does steps 1-3 cheaper (:func:`_kin_gen`), with no
+dense Jacobian or LU:
+
+1. q from a prediction by the step's own Runge-Kutta sums of the full coordinates
+   (:func:`_stages`): the loop keeps the full q, qd at the step's start and the full qd,
+   qdd of every stage, and predicts stage s by qn + h sum_p A[s, p] Kq[p] (its q^i is
+   the stage's exactly), the step's end by the weights B and a sample by the continuous
+   extension of the full q (:func:`_step_end`, ``stepcontrol.dense_*``). DOP853's
+   stages from the sixth on have stage order 5, so the prediction misses Phi = 0 by the
+   stage's error (~1e-8 m) where the last solution moved along the last R missed by
+   ~1e-3 m: 1.1 Newton steps per evaluation instead of 2.1, and 2.1 factorizations
+   instead of 3.1. Each Newton step (:func:`_positions_gen`) is the M-weighted
+   least-norm step of index-1's sparse factorization at q (``refactor``) with q^i held,
+   Phi_q (d - R d^i) = -Phi (:func:`_step_gen`); its R is R at q (:func:`_null_gen`) or,
+   for the first step of one degree of freedom, the predicted full qd over qd^i
+   (:func:`_velocity_basis`: one projection less). Newton stops at |Phi| < ``newton_tol``
+   (a prediction within it is still corrected once unless |Phi| < 1e-3 newton_tol, so
+   that q is Newton's to round-off like the generic path's: the two agree to 3.4e-14
+   relative over a run) or when its step reaches round-off.
+2. The factorization at the solution and R there, by the last R projected on ker Phi_q
+   (:func:`_null_gen`); qd = R qd^i.
+3. qdd whole from index-1's Eq. (6) at (q, qd) (:func:`_acc_gen`) -- for a consistent
+   state the same accelerations as Eq. (23), to round-off.
+
+Nothing is redone at the y of the last evaluation (the step's end after
+:func:`_post_step` is the next step's first stage). The path is compiled without numba's
+reference counting (``_nrt=False``: it allocates nothing): counting cost more than the
+arithmetic (a call at an unchanged y 550 -> 116 ns). (A simplified Newton with the last
+evaluation's LU from the last solution moved along the last R took 2.7x the iterations
+for no gain in time and converged to the other assembly branch of four_bar and five_bar
+at rtol 1e-8: errors of 7.6 and 4.0 rad; each step here is a true Newton step from a
+prediction 1e5 times closer.) Without generated kernels (a model
+:func:`natcoord.compiled.codegen.load` declines, or ``generated = false``) the generic
+kernels above run.
 
 Kernels take plain arrays: the scleronomic constraint triplets ``k, i, j, v`` over qh =
 [q, 1] (:class:`~natcoord.model.constraints.QuadraticConstraints`), M (n, n) as its non-zeros
@@ -377,75 +401,133 @@ def _null_gen(gen, part, ws, R):
 
 
 @njit(cache=True, _nrt=False, inline="always")
-def _positions_gen(part, gen, tol, y, ws, cnt):
-    """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the last solution moved
-    along the last R, as :func:`_positions`, each step by the generated kernels: J, Y and
-    the factor of W = J M^-1 J^T at q (``refactor``), the M-weighted least-norm step d =
-    -Y W^-1 Phi and the step with q^i held, d - Rn d^i (Rn: R at q, :func:`_null_gen`;
-    Phi_q (d - Rn d^i) = -Phi, the Newton step of the dependent block). On return (OK)
-    the kernels' work array holds the factorization at q, ws[1] R at q and ws[16][0]
-    max|R^d|. A status code."""
-    gk, gws, prr, w, d, Rn = gen[0], gen[1], gen[3], gen[6], gen[7], gen[9]
+def _step_gen(gen, part, q, p, Rc):
+    """One Newton step on Phi[rows] = 0 over q^d, q (n,) in place, with the factorization
+    in the kernels' work array and Rc (n, f) the R at its q: the M-weighted least-norm
+    step d = -Y W^-1 Phi (p (m,): Phi at q), then q^d += d^d - Rc^d d^i (q^i held;
+    Phi_q (d - Rc d^i) = -Phi, the Newton step of the dependent block). Returns max |dq^d|
+    (m)."""
+    gk, gws, w, d = gen[0], gen[1], gen[6], gen[7]
     rows, dep, indep = part
-    ql, R, q, p = ws[0], ws[1], ws[3], ws[6]
     n, r, f = q.shape[0], dep.shape[0], indep.shape[0]
-    m = p.shape[0]
-    size = _predict(part, y, ws)
-    for _ in range(NEWTON_ITER):
+    for i in range(p.shape[0]):
+        w[i] = p[i]
+    for a in range(n):
+        d[a] = 0.0
+    _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(d))  # d = -Y W^-1 Phi
+    step = 0.0
+    for i in range(r):
+        a = dep[i]
+        s = d[a]
+        for c in range(f):
+            s -= Rc[a, c] * d[indep[c]]
+        q[a] += s
+        step = max(step, abs(s))
+    return step
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _residual_gen(gen, q, p):
+    """max |Phi[rows](q)| (m) by the generated ``phi`` kernel, Phi (m,) into p."""
+    prr = gen[3]
+    _call2(types.void, gen[0][0], _ptr(q), _ptr(p))
+    e = 0.0
+    for i in range(prr.shape[0]):
+        e = max(e, abs(p[prr[i]]))
+    return e
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _velocity_basis(part, y, qdp, Rc):
+    """f = 1: Rc (n, 1) = qdp / qd^i, R predicted from the predicted full qd (n,) (on Phi
+    = 0, qd = R qd^i), when qdp is a prediction at this y (its qd^i that of y, to 1e-9)
+    and qd^i is not small (> 1e-3 max|qdp|); False (Rc untouched) otherwise."""
+    indep = part[2]
+    f = indep.shape[0]
+    if f != 1:
+        return False
+    v, big = y[1], 0.0
+    for a in range(qdp.shape[0]):
+        big = max(big, abs(qdp[a]))
+    if not (abs(v) > 1e-3 * big and abs(qdp[indep[0]] - v) <= 1e-9 * abs(v)):
+        return False
+    for a in range(qdp.shape[0]):
+        Rc[a, 0] = qdp[a] / v
+    Rc[indep[0], 0] = 1.0
+    return True
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
+    """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the prediction qp (n,)
+    with q^i = y[:f] (the stages' own Runge-Kutta sums of the full qd,
+    :func:`_stages`: far closer to Phi = 0 than the last solution moved along the last
+    R), each step a Newton step by the generated kernels with q^i held (:func:`_step_gen`:
+    J, Y and the factor of W = J M^-1 J^T at q, ``refactor``, and R at q,
+    :func:`_null_gen`; the first step of f = 1 takes R from the predicted full qd, qdp
+    (n,), where it serves, :func:`_velocity_basis`: one ``_null_gen`` less), stopped at
+    |Phi| < ``tol`` -- a prediction within it is still corrected once unless |Phi| < 1e-3
+    tol, so that q is Newton's to round-off as the generic path's -- or when the step
+    reaches round-off. On return (OK) the kernels' work array holds the factorization at
+    q, ws[1] R at q and ws[16][0] max|R^d|. A status code."""
+    gk, gws, Rp = gen[0], gen[1], gen[9]
+    R, q, p = ws[1], ws[3], ws[6]
+    indep = part[2]
+    n, f = q.shape[0], indep.shape[0]
+    for a in range(n):
+        q[a] = qp[a]
+    for c in range(f):
+        q[indep[c]] = y[c]
+    e = _residual_gen(gen, q, p)
+    it = 0
+    size = 0.0
+    while e >= tol or (it == 0 and e > 1e-3 * tol):
+        if it >= NEWTON_ITER:
+            return ERR_NEWTON
+        if it == 0:  # the span of q: round-off scale of the Newton's stop
+            lo, hi = q[0], q[0]
+            for a in range(n):
+                lo = min(lo, q[a])
+                hi = max(hi, q[a])
+            size = max(hi - lo, 1e-300)
         _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
         cnt[C_FACT] += 1
-        _call2(types.void, gk[0], _ptr(q), _ptr(p))
-        e = 0.0
-        for i in range(r):
-            e = max(e, abs(p[prr[i]]))
-        if e < tol:
-            break
-        if _null_gen(gen, part, ws, Rn) < 0.0:
-            return ERR_SINGULAR
-        for i in range(m):
-            w[i] = p[i]
-        for a in range(n):
-            d[a] = 0.0
-        _call3(types.void, gk[3], _ptr(gws), _ptr(w), _ptr(d))  # d = -Y W^-1 Phi
-        step = 0.0
-        for i in range(r):
-            a = dep[i]
-            s = d[a]
-            for c in range(f):
-                s -= Rn[a, c] * d[indep[c]]
-            q[a] += s
-            step = max(step, abs(s))
+        if it == 0 and _velocity_basis(part, y, qdp, Rp):
+            step = _step_gen(gen, part, q, p, Rp)
+        else:
+            if _null_gen(gen, part, ws, R) < 0.0:
+                return ERR_SINGULAR
+            step = _step_gen(gen, part, q, p, R)
         cnt[C_NEWTON] += 1
-        if step < tol * 10.0 * max(1.0, size):  # round-off reached: factor at q
-            _call2(types.int64, gk[1], _ptr(q), _ptr(gws))
-            cnt[C_FACT] += 1
+        it += 1
+        if step < tol * 10.0 * max(1.0, size):  # round-off reached
             break
-    else:
-        return ERR_NEWTON
-    g = _null_gen(gen, part, ws, Rn)
+        e = _residual_gen(gen, q, p)
+    _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # the factorization at q
+    cnt[C_FACT] += 1
+    g = _null_gen(gen, part, ws, R)
     if g < 0.0:
         return ERR_SINGULAR
-    for a in range(n):
-        ql[a] = q[a]
-        for c in range(f):
-            R[a, c] = Rn[a, c]
     ws[16][0] = g
     return OK
 
 
-@njit(cache=True, _nrt=False)
-def _kin_gen(part, gen, tol, y, ws, cnt):
-    """:func:`_kinematics` on the generated path, ``gen`` = (gk, gws, prow (m,), prr (r,),
-    yl (2f,), qdd (n,), w (m,), d (n,), X, Rn (n, f), Z (f, f)): the model's generated kernels
-    (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the kernels' row of
-    every constraint row and of the partition's, the y of the last evaluation, the
-    accelerations' array and scratch. q by :func:`_positions_gen`, R there, qd = R qd^i (S
-    c is not formed: :func:`_acc_gen` gives qdd whole, with the factorization at q left in
-    gws); at the y of the last evaluation nothing is redone. Compiled without reference
-    counting: it allocates nothing.
-    (A simplified Newton with the last evaluation's LU took 2.7x the iterations for no
-    gain in time and converged to the other assembly branch of four_bar and five_bar at
-    rtol 1e-8: errors of 7.6 and 4.0 rad against the references.)"""
+@njit(cache=True, _nrt=False, inline="always")
+def _kin_gen(part, gen, tol, y, pr, ws, cnt):
+    """:func:`_kinematics` on the generated path from the prediction pr = (q, qd) (n,) of
+    the full coordinates at y (:func:`_stages`), ``gen`` = (gk, gws, prow (m,), prr (r,),
+    yl (2f,), qdd (n,), w (m,), d (n,), X, Rp (n, f), Z (f, f)): the model's generated
+    kernels (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the
+    kernels' row of every constraint row and of the partition's, the y of the last
+    evaluation, the accelerations' array, scratch and R predicted (Rp). q by
+    :func:`_positions_gen`, R there, qd = R qd^i (S c is not formed: :func:`_acc_gen`
+    gives qdd whole, with the factorization at q left in gws); at the y of the last
+    evaluation nothing is redone. Compiled without reference counting: it allocates
+    nothing.
+    (A simplified Newton with the last evaluation's LU from the last solution moved along
+    the last R took 2.7x the iterations for no gain in time and converged to the other
+    assembly branch of four_bar and five_bar at rtol 1e-8: errors of 7.6 and 4.0 rad
+    against the references.)"""
     flags, yl = ws[2], gen[4]
     f = part[2].shape[0]
     if flags[1]:
@@ -457,7 +539,7 @@ def _kin_gen(part, gen, tol, y, ws, cnt):
         if same:
             return OK
     flags[1] = 0
-    st = _positions_gen(part, gen, tol, y, ws, cnt)
+    st = _positions_gen(part, gen, tol, y, pr[0], pr[1], ws, cnt)
     if st != OK:
         return st
     R, qd = ws[1], ws[4]
@@ -482,18 +564,19 @@ def _acc_gen(gen, ws, cnt):
 
 
 @njit(cache=True, inline="always")
-def _kin(con, part, tol, y, ws, cnt, gen):
-    """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`."""
+def _kin(con, part, tol, y, pr, ws, cnt, gen):
+    """The kinematics at y: :func:`_kinematics`, or on the generated path :func:`_kin_gen`
+    from the prediction pr = (q, qd) (n,)."""
     if gen is None:
         return _kinematics(con, part, tol, y, ws, cnt)
-    return _kin_gen(part, gen, tol, y, ws, cnt)
+    return _kin_gen(part, gen, tol, y, pr, ws, cnt)
 
 
 @njit(cache=True, inline="always")
-def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt, gen):
-    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path, :func:`_acc_gen`); a
-    status code."""
-    st = _kin(con, part, tol, y, ws, cnt, gen)
+def _rhs(con, Msp, frc, part, tol, y, pr, dy, ws, cnt, gen):
+    """dy = [qd^i, qdd^i] (2f) at y (``gen``: the generated path from the prediction pr =
+    (q, qd) (n,), :func:`_acc_gen`); a status code."""
+    st = _kin(con, part, tol, y, pr, ws, cnt, gen)
     if st != OK:
         return st
     f = part[2].shape[0]
@@ -508,14 +591,15 @@ def _rhs(con, Msp, frc, part, tol, y, dy, ws, cnt, gen):
     return OK
 
 
-@njit(cache=True)
-def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
+@njit(cache=True, _nrt=False)
+def _sample(con, Msp, frc, part, tol, y, pr, k, out, ws, cnt, gen):
     """Sample k of out = (Q, QD, QDD, ...) at y: q, qd from the kinematics, qdd = S c + R
     qdd^i from a second evaluation there (``MaggiLoop.state`` then ``accelerations``); on
-    the generated path (``gen``) qdd of the generated kernel at that q, qd."""
+    the generated path (``gen``) from the prediction pr = (q, qd) (n,), qdd of the
+    generated kernel at that q, qd."""
     Q, QD, QDD = out[0], out[1], out[2]
     if gen is not None:
-        st = _kin_gen(part, gen, tol, y, ws, cnt)
+        st = _kin_gen(part, gen, tol, y, pr, ws, cnt)
         if st != OK:
             return st
         _acc_gen(gen, ws, cnt)
@@ -526,8 +610,9 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
     st = _kinematics(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
-    Q[k] = ws[3]
-    QD[k] = ws[4]
+    q, qd = ws[3], ws[4]
+    for a in range(q.shape[0]):
+        Q[k, a], QD[k, a] = q[a], qd[a]
     st = _kinematics(con, part, tol, y, ws, cnt)
     if st != OK:
         return st
@@ -545,13 +630,14 @@ def _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen):
     return OK
 
 
-@njit(cache=True)
-def _post_step(con, part, ctl, y, ws, cnt, gen):
-    """After an accepted step (``MaggiLoop.post_step``): re-partition at the step end when
-    max|R^d| exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status
-    code (ERR_SINGULAR when the rank of Phi_q changed)."""
+@njit(cache=True, _nrt=False)
+def _post_step(con, part, ctl, y, pr, ws, cnt, gen):
+    """After an accepted step (``MaggiLoop.post_step``): the kinematics at the step end y
+    (the generated path from the prediction pr = (q, qd) (n,)), re-partition there when max|R^d|
+    exceeds ``growth`` R0, then y = [q^i, qd^i] in the new partition; a status code
+    (ERR_SINGULAR when the rank of Phi_q changed)."""
     tol, rank_tol, growth = ctl[3], ctl[4], ctl[5]
-    st = _kin(con, part, tol, y, ws, cnt, gen)
+    st = _kin(con, part, tol, y, pr, ws, cnt, gen)
     if st != OK:
         return st
     gs = ws[16]
@@ -585,23 +671,65 @@ def _post_step(con, part, ctl, y, ws, cnt, gen):
 
 
 # ---- the loop ------------------------------------------------------------------------------
+@njit(cache=True, _nrt=False, inline="always")
+def _rk_sum(x0, h, A, s, K, out):
+    """out (N,) = x0 + h sum_{p < s} A[s, p] K[p] (zero weights skipped; per component the
+    terms in the order of p)."""
+    N = x0.shape[0]
+    for a in range(N):
+        out[a] = 0.0
+    for p in range(s):
+        w = A[s, p]
+        if w != 0.0:
+            for a in range(N):
+                out[a] += w * K[p, a]
+    for a in range(N):
+        out[a] = x0[a] + h * out[a]
+
+
 @njit(cache=True, _nrt=False)
-def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt):
+def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt, qk):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
-    frc, part, tol) as in :func:`run_maggi`; a status code."""
+    frc, part, tol) as in :func:`run_maggi`; a status code. The generated path (``gen``)
+    also keeps the stages of the full q, ``qk`` = (qn, qdn (n,) the full q, qd at y, Kq,
+    Kqd (stages, n) the full qd, qdd of every stage (written), pr = (qp, qdp) (n,)
+    scratch), and predicts stage s by the same sums: qp = qn + h sum_p A[s, p] Kq[p], whose
+    q^i is y_s[:f], and so qdp; their distance from Phi = 0 is the stage's error as a
+    Runge-Kutta stage of the full q' = qd, qd' = qdd (DOP853's stages from the sixth on
+    have stage order 5: ~1e-8 m where the last solution moved along the last R missed by
+    ~1e-3 m)."""
     con, Msp, frc, part, tol = mdl
-    N = y.shape[0]
+    qn, qdn, Kq, Kqd, pr = qk
     for s in range(lo, hi):
-        for a in range(N):
-            acc = 0.0
-            for p in range(s):
-                if A[s, p] != 0.0:
-                    acc += A[s, p] * K[p, a]
-            ys[a] = y[a] + h * acc
-        st = _rhs(con, Msp, frc, part, tol, ys, K[s], ws, cnt, gen)
+        _rk_sum(y, h, A, s, K, ys)
+        if gen is not None:
+            _rk_sum(qn, h, A, s, Kq, pr[0])
+            _rk_sum(qdn, h, A, s, Kqd, pr[1])
+        st = _rhs(con, Msp, frc, part, tol, ys, pr, K[s], ws, cnt, gen)
         if st != OK:
             return st
+        if gen is not None:
+            qd, qdd = ws[4], gen[5]
+            for a in range(qd.shape[0]):
+                Kq[s, a], Kqd[s, a] = qd[a], qdd[a]
     return OK
+
+
+@njit(cache=True, inline="always")
+def _step_end(gen, B, qk, s, h, pr1):
+    """The generated path's prediction of the full q, qd at the step's end, pr1 = (q, qd)
+    (n,): qn + h sum_p B[p] Kq[p] over the first s stages (its q^i is the step's y[:f]),
+    and so qd (``qk``: :func:`_stages`)."""
+    if gen is not None:
+        qn, qdn, Kq, Kqd = qk[0], qk[1], qk[2], qk[3]
+        for a in range(qn.shape[0]):
+            acc, acd = 0.0, 0.0
+            for p in range(s):
+                if B[p] != 0.0:
+                    acc += B[p] * Kq[p, a]
+                    acd += B[p] * Kqd[p, a]
+            pr1[0][a] = qn[a] + h * acc
+            pr1[1][a] = qdn[a] + h * acd
 
 
 @njit(cache=True)
@@ -645,22 +773,31 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     t, tend = times[0], times[T - 1]
     tfail[0] = t
     y = y0.copy()
-    st = _sample(con, Msp, frc, part, tol, y, 0, out, ws, cnt, gen)
+    s_st, n_ext = B.shape[0], Aext.shape[0]
+    # the full q, qd of the generated path's predictions (:func:`_stages`): at y, the
+    # stages' full qd and qdd, a prediction, at the step's end, their continuous extension
+    S = s_st + n_ext
+    qn, qdn, Kq, Kqd = q0.copy(), np.zeros(n), np.zeros((S, n)), np.zeros((S, n))
+    pr, pr1 = (q0.copy(), np.zeros(n)), (np.zeros(n), np.zeros(n))
+    Fq, Fqd = np.zeros((3 + D.shape[0], n)), np.zeros((3 + D.shape[0], n))
+    qk = (qn, qdn, Kq, Kqd, pr)
+    now = (qn, qdn)  # the prediction at y: the solution there
+    st = _sample(con, Msp, frc, part, tol, y, now, 0, out, ws, cnt, gen)
     if st != OK:
         return st
     if f == 0:  # no degrees of freedom: kinematics at every sample
         for k in range(1, T):
             tfail[0] = times[k]
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
-    s_st, n_ext = B.shape[0], Aext.shape[0]
     Aall = np.zeros((s_st + n_ext, s_st + n_ext))  # the step's and the extension's stages
     Aall[:s_st, :s_st] = A
     Aall[s_st:, :] = Aext[:, :s_st + n_ext]
     K = np.zeros((s_st + n_ext, N))
     Fd = np.zeros((3 + D.shape[0], N))  # dop853's continuous extension
+    qdn[:] = ws[4]
     ys, yn, yu, e5v, e3v = np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N), np.zeros(N)
     if h_fixed > 0.0:  # equal steps of at most h_fixed landing on every sample
         for k in range(1, T):
@@ -669,23 +806,26 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             hh = (t1 - t0) / nsub
             for i in range(nsub):
                 tfail[0] = t0 + i * hh
-                st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt, qk)
                 if st != OK:
                     return st
                 _weights(B, K, s_st, yn, hh)
                 for a in range(N):
                     y[a] += yn[a]
-                st = _post_step(con, part, ctl, y, ws, cnt, gen)
+                _step_end(gen, B, qk, s_st, hh, pr1)
+                st = _post_step(con, part, ctl, y, pr1, ws, cnt, gen)
                 if st != OK:
                     return st
+                qn[:] = ws[3]
+                qdn[:] = ws[4]
                 cnt[C_STEPS] += 1
             tfail[0] = t1
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
         return OK
     # adaptive: Hairer's initial step
-    st = _rhs(con, Msp, frc, part, tol, y, ys, ws, cnt, gen)
+    st = _rhs(con, Msp, frc, part, tol, y, now, ys, ws, cnt, gen)
     if st != OK:
         return st
     d0, d1 = 0.0, 0.0
@@ -699,7 +839,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
     while k < T:
         hh = min(h, tend - t)
         tfail[0] = t
-        st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt)
+        st = _stages(mdl, gen, y, hh, Aall, 0, s_st, K, ys, ws, cnt, qk)
         if st == ERR_NEWTON:  # the step is too long for the dependent positions
             if stepcontrol.underflow(hh * 1e-4, t):
                 return ERR_UNDERFLOW
@@ -729,33 +869,45 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             continue
         t1 = tend if hh == tend - t else t + hh
         tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
+        _step_end(gen, B, qk, s_st, hh, pr1)
         inner = False
         while k < T and times[k] < t1 - tol_t:  # samples inside the step: dense output
             tfail[0] = times[k]
             if dop853 and not inner:
-                st = _stages(mdl, gen, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt)
+                st = _stages(mdl, gen, y, hh, Aall, s_st, s_st + n_ext, K, ys, ws, cnt, qk)
                 if st != OK:
                     return st
                 stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
+                if gen is not None:  # and of the full q, qd: the samples' predictions
+                    stepcontrol.dense_dop853(qn, pr1[0], hh, Kq, s_st, D, Fq)
+                    stepcontrol.dense_dop853(qdn, pr1[1], hh, Kqd, s_st, D, Fqd)
             inner = True
             x = (times[k] - t) / hh
             if dop853:
                 stepcontrol.dense_at(Fd, y, x, yu)
+                if gen is not None:
+                    stepcontrol.dense_at(Fq, qn, x, pr[0])
+                    stepcontrol.dense_at(Fqd, qdn, x, pr[1])
             else:
                 stepcontrol.dense_dopri5(K, P, y, hh, x, yu)
-            st = _sample(con, Msp, frc, part, tol, yu, k, out, ws, cnt, gen)
+                if gen is not None:
+                    stepcontrol.dense_dopri5(Kq, P, qn, hh, x, pr[0])
+                    stepcontrol.dense_dopri5(Kqd, P, qdn, hh, x, pr[1])
+            st = _sample(con, Msp, frc, part, tol, yu, pr, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
         t = t1
         y[:] = yn
         tfail[0] = t
-        st = _post_step(con, part, ctl, y, ws, cnt, gen)
+        st = _post_step(con, part, ctl, y, pr1, ws, cnt, gen)
         if st != OK:
             return st
+        qn[:] = ws[3]
+        qdn[:] = ws[4]
         cnt[C_STEPS] += 1
         if k < T and times[k] <= t1 + tol_t:
-            st = _sample(con, Msp, frc, part, tol, y, k, out, ws, cnt, gen)
+            st = _sample(con, Msp, frc, part, tol, y, now, k, out, ws, cnt, gen)
             if st != OK:
                 return st
             k += 1
