@@ -523,11 +523,7 @@ def _kin_gen(part, gen, tol, y, pr, ws, cnt):
     :func:`_positions_gen`, R there, qd = R qd^i (S c is not formed: :func:`_acc_gen`
     gives qdd whole, with the factorization at q left in gws); at the y of the last
     evaluation nothing is redone. Compiled without reference counting: it allocates
-    nothing.
-    (A simplified Newton with the last evaluation's LU from the last solution moved along
-    the last R took 2.7x the iterations for no gain in time and converged to the other
-    assembly branch of four_bar and five_bar at rtol 1e-8: errors of 7.6 and 4.0 rad
-    against the references.)"""
+    nothing. (Why not a simplified Newton: the module docstring.)"""
     flags, yl = ws[2], gen[4]
     f = part[2].shape[0]
     if flags[1]:
@@ -721,15 +717,10 @@ def _step_end(gen, B, qk, s, h, pr1):
     (n,): qn + h sum_p B[p] Kq[p] over the first s stages (its q^i is the step's y[:f]),
     and so qd (``qk``: :func:`_stages`)."""
     if gen is not None:
-        qn, qdn, Kq, Kqd = qk[0], qk[1], qk[2], qk[3]
-        for a in range(qn.shape[0]):
-            acc, acd = 0.0, 0.0
-            for p in range(s):
-                if B[p] != 0.0:
-                    acc += B[p] * Kq[p, a]
-                    acd += B[p] * Kqd[p, a]
-            pr1[0][a] = qn[a] + h * acc
-            pr1[1][a] = qdn[a] + h * acd
+        for x0, Kx, out in ((qk[0], qk[2], pr1[0]), (qk[1], qk[3], pr1[1])):
+            _weights(B, Kx, s, out, h)
+            for a in range(x0.shape[0]):
+                out[a] += x0[a]
 
 
 @njit(cache=True)
