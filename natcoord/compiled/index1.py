@@ -216,8 +216,12 @@ def _stages(sp, gen, wg, cnt, y, h, lo, hi, rk):
     n = qdd.shape[0]
     for st in range(lo, hi):
         _combine(y, h, A, st, st, K, ys)
-        st_code = (kernels_sparse.acc_state(P, gk, frc, ys, qdd, ws, cnt)
-                   if wg is None else _accel_general(gen, ys, qdd, wg, cnt))
+        if wg is None:
+            st_code = kernels_sparse.acc_state(P, gk, frc, ys, K, st, qdd, ws, cnt)
+            if st_code != OK:
+                return st_code
+            continue
+        st_code = _accel_general(gen, ys, qdd, wg, cnt)
         if st_code != OK:
             return st_code
         for a in range(n):

@@ -324,7 +324,7 @@ def accelerations(P, gk, frc, q, qd, qdd, ws, cnt, fresh):
     the factorization at this q already). ``frc``: the packed forces, None with generated
     kernels (they carry them)."""
     if P is None:
-        _generated_acc(gk, _ptr(q), _ptr(qd), qdd, ws, cnt, fresh)
+        _generated_acc(gk, _ptr(q), _ptr(qd), _ptr(qdd), ws, cnt, fresh)
     else:
         cnt[C_RHS] += 1
         if fresh:
@@ -344,26 +344,34 @@ def _plan_acc(P, frc, q, qd, qdd, ws):
 
 
 @njit(cache=True, inline="always")
-def _generated_acc(gk, pq, pqd, qdd, ws, cnt, fresh):
-    """qdd by the generated kernels from pointers to q and qd (factoring there first when
-    ``fresh``)."""
+def _generated_acc(gk, pq, pqd, pqdd, ws, cnt, fresh):
+    """qdd by the generated kernels from pointers to q, qd and qdd (factoring there first
+    when ``fresh``)."""
     cnt[C_RHS] += 1
     if fresh:
         cnt[C_FACT] += 1
-    _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, _ptr(qdd), _ptr(ws))
+    _call4(types.void, gk[5] if fresh else gk[2], pq, pqd, pqdd, _ptr(ws))
 
 
 @njit(cache=True, inline="always")
-def acc_state(P, gk, frc, y, qdd, ws, cnt):
-    """qdd (n,) at the state y = [q, qd] (2n,), factoring there (a stage of the loop); a
-    status code. The generated kernels get pointers into y: slicing it costs two atomic
-    reference counts, a tenth of a stage on a small model."""
+def acc_state(P, gk, frc, y, K, st, qdd, ws, cnt):
+    """The stage K[st] = [qd, qdd] (2n,) at the state y = [q, qd] (2n,), factoring there
+    (a stage of the loop); qdd (n,): scratch; a status code. The generated kernels get
+    pointers into y and K: slicing costs two atomic reference counts, a tenth of a stage
+    on a small model, and their qdd written into K's row is not loaded back while their
+    stores are in flight (copied from qdd, a stage stalled on it)."""
     n = qdd.shape[0]
     if P is None:
-        _generated_acc(gk, _ptr(y), _ptr_at(y, n), qdd, ws, cnt, True)
-        return OK
+        _generated_acc(gk, _ptr(y), _ptr_at(y, n), _ptr_at(K, st * 2 * n + n), ws, cnt, True)
     else:
-        return accelerations(P, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
+        st_code = accelerations(P, gk, frc, y[:n], y[n:], qdd, ws, cnt, True)
+        if st_code != OK:
+            return st_code
+        for a in range(n):
+            K[st, n + a] = qdd[a]
+    for a in range(n):
+        K[st, a] = y[n + a]
+    return OK
 
 
 @njit(cache=True, _nrt=False)

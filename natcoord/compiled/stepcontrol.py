@@ -324,25 +324,40 @@ def dense_at(Fd, y, x, out):
 @njit(cache=True, inline="always")
 def dense_split(Fd, y, x, n, q, qd):
     """:func:`dense_at` into two arrays, q (n,) the first n components and qd the rest
-    (q may be qd when n = N): per component the same Horner sum, with q and qd holding it
-    while it runs, rows outer so that each pass over the components vectorises."""
+    (q may be qd when n = N): per component the same Horner sum, four components at a
+    time held in registers (rows outer over arrays left each row waiting for the last
+    row's stores: twice the time on a small model)."""
     nF, N = Fd.shape[0], y.shape[0]
     x1 = 1.0 - x
-    for a in range(n):
-        q[a] = 0.0
-    for a in range(N - n):
-        qd[a] = 0.0
-    for i in range(nF):
-        r = nF - 1 - i
-        f = x if i % 2 == 0 else x1
-        for a in range(n):
-            q[a] = (q[a] + Fd[r, a]) * f
-        for a in range(N - n):
-            qd[a] = (qd[a] + Fd[r, n + a]) * f
-    for a in range(n):
-        q[a] += y[a]
-    for a in range(N - n):
-        qd[a] += y[n + a]
+    for part in range(2):
+        off, m = (0, n) if part == 0 else (n, N - n)
+        out = q if part == 0 else qd
+        a = 0
+        while a < m:
+            k = min(4, m - a)  # components a .. a + k - 1 (unused lanes sum zeros)
+            s0 = 0.0
+            s1 = 0.0
+            s2 = 0.0
+            s3 = 0.0
+            c = off + a
+            for i in range(nF):
+                r = nF - 1 - i
+                f = x if i % 2 == 0 else x1
+                s0 = (s0 + Fd[r, c]) * f
+                if k > 1:
+                    s1 = (s1 + Fd[r, c + 1]) * f
+                if k > 2:
+                    s2 = (s2 + Fd[r, c + 2]) * f
+                if k > 3:
+                    s3 = (s3 + Fd[r, c + 3]) * f
+            out[a] = s0 + y[c]
+            if k > 1:
+                out[a + 1] = s1 + y[c + 1]
+            if k > 2:
+                out[a + 2] = s2 + y[c + 2]
+            if k > 3:
+                out[a + 3] = s3 + y[c + 3]
+            a += k
 
 
 @njit(cache=True)
