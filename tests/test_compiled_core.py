@@ -311,3 +311,23 @@ def test_index3_tangent_carries_the_springs_stiffness():
     assert np.max(np.abs(ref.q - ref.q[0])) > 5e-4  # the springs do move it
     assert err[1e-4] < 2e-10
     assert 3.0 < err[1e-4] / err[5e-5] < 5.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("path", ["sparse", "generated", "general", "maggi", "index3"])
+def test_a_compiled_path_compiles_first_in_a_fresh_process(tmp_path, path):
+    """A new machine compiles the path its first case takes, alone, with empty caches. A
+    function compiled without numba's reference counting hands that to a callee it
+    compiles first, so a path that reached an allocating callee only that way failed to
+    type there ("No implementation of function empty"), while any process that had
+    compiled the callee elsewhere first (the test suite's order) passed."""
+    import os
+    import subprocess
+    import sys
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "numba"),
+               NATCOORD_CACHE_DIR=str(tmp_path / "natcoord"))
+    done = subprocess.run(
+        [sys.executable, "-c", "from natcoord.compiled import cache; "
+                               f"cache.ensure_compiled({path!r})"],
+        env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]

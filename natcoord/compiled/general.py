@@ -110,7 +110,7 @@ def reachable(tol, q, power):
     big = 1.0
     for a in range(q.shape[0]):
         big = max(big, abs(q[a]))
-    return max(tol, ROUNDOFF * big ** power)
+    return max(tol, ROUNDOFF * (big if power == 1 else big * big))  # (no pow call)
 
 
 @njit(cache=True)
@@ -539,9 +539,11 @@ def forces(frc, q, qd, out):
         _torques_springs(G, toff, tau, S, spr, q, qd, out)
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def _torques_springs(G, toff, tau, S, spr, q, qd, out):
-    """Adds the torques' and spring-dampers' generalized forces to out (n,)."""
+    """Adds the torques' and spring-dampers' generalized forces to out (n,). (It allocates:
+    ``_nrt=True`` stated, because a callee that leaves it unset inherits the first caller's
+    setting, and the compiled loops' kernels run without reference counting.)"""
     n = q.shape[0]
     dim = G.shape[1]
     d = np.empty(3)

@@ -248,19 +248,30 @@ def _dep_norm(dep, x, y, yn, atol, rtol, affine):
     = (ptr, col, val, b, keep, drop): T_d by rows (columns over the kept coordinates), b_d,
     the coordinates kept and eliminated (:attr:`natcoord.compiled.elimination.Elimination.dep_map`);
     x, y, yn (2 n_r,)."""
+    return _dep_norms(dep, x, x, y, yn, atol, rtol, affine)[0]
+
+
+@njit(cache=True)
+def _dep_norms(dep, x, x2, y, yn, atol, rtol, affine):
+    """:func:`_dep_norm` of x and of x2 (2 n_r,) in one pass (dop853's two error
+    estimates share the scales)."""
     ptr, col, val, b = dep[0], dep[1], dep[2], dep[3]
     n = y.shape[0] // 2
     s = 0.0
+    s2 = 0.0
     for off in (0, n):
         for d in range(ptr.shape[0] - 1):
             if not affine and ptr[d] == ptr[d + 1]:
                 continue  # a constant coordinate (a fixed point's): x's term is 0
             c = b[d] if off == 0 else 0.0
             xv = _row_dot(ptr, col, val, d, x, off) + (c if affine else 0.0)
+            x2v = _row_dot(ptr, col, val, d, x2, off) + (c if affine else 0.0)
             yv = _row_dot(ptr, col, val, d, y, off) + c
             ynv = _row_dot(ptr, col, val, d, yn, off) + c
-            s += (xv / (atol + rtol * max(abs(yv), abs(ynv)))) ** 2
-    return s
+            sc = atol + rtol * max(abs(yv), abs(ynv))
+            s += (xv / sc) ** 2
+            s2 += (x2v / sc) ** 2
+    return s, s2
 
 
 @njit(cache=True, _nrt=False)
@@ -304,12 +315,14 @@ def _put(Q, k, x, off, n):
 
 
 @njit(cache=True, _nrt=False)
-def _settle(sp, gen, wg, q, qd, qdd, ptol, cnt, factored):
-    """Project (q, qd) (n,) in place and evaluate qdd there, on the sparse path or (``wg``
-    given) the general one; a status code."""
-    if wg is None:
-        return kernels_sparse.settle(sp, q, qd, qdd, ptol, cnt, factored)
-    return _settle_general(gen, q, qd, qdd, ptol, wg, cnt)
+def _settle_sparse(sp, q, qd, qdd, ptol, cnt, factored):
+    """Project (q, qd) (n,) in place and evaluate qdd there on the sparse path
+    (:func:`kernels_sparse.settle`); a status code. Called straight from the loop and
+    compiled without reference counting: unpacking ``sp`` with it, or inlining a wrapper
+    that branches to the general path, took 5-10 % of a small model's run. The general
+    path (:func:`_settle_general`: its forces allocate) is called from the loop itself: a
+    callee first compiled from a function without reference counting inherits that."""
+    return kernels_sparse.settle(sp, q, qd, qdd, ptol, cnt, factored)
 
 
 @njit(cache=True)
@@ -377,8 +390,11 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     t = times[0]
     tend = times[T_out - 1]
     fresh = fixed and not fixed  # False, typed bool: a literal False would make numba
-    # compile _settle (and all it calls) a second time, for Literal[bool]
-    st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, fresh)
+    # compile the projection (and all it calls) a second time, for Literal[bool]
+    if wg is None:
+        st_code = _settle_sparse(sp, qs, qds, qdd, ptol, cnt, fresh)
+    else:
+        st_code = _settle_general(gen, qs, qds, qdd, ptol, wg, cnt)
     if st_code != OK:
         return st_code
     for a in range(n):
@@ -438,8 +454,9 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
                     e5 += (hh * x5[a] / sc) ** 2
             if dop853:
                 if Nn > N:
-                    e5 += _dep_norm(dep, x5, y, yn, atol, rtol, False)
-                    e3 += _dep_norm(dep, x3, y, yn, atol, rtol, False)
+                    d5, d3 = _dep_norms(dep, x5, x3, y, yn, atol, rtol, False)
+                    e5 += d5
+                    e3 += d3
                 err = stepcontrol.dop853_norm(e5, e3, Nn, hh)  # (E5 K, E3 K without h)
             else:
                 if Nn > N:
@@ -470,7 +487,10 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
             qs[a] = yn[a]
             qds[a] = yn[n + a]
         # a last stage at yn (fsal) factored there: Newton from it
-        st_code = _settle(sp, gen, wg, qs, qds, qdd, ptol, cnt, fsal)
+        if wg is None:
+            st_code = _settle_sparse(sp, qs, qds, qdd, ptol, cnt, fsal)
+        else:
+            st_code = _settle_general(gen, qs, qds, qdd, ptol, wg, cnt)
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
             cnt[C_REJ] += 1                     # project back (near a singular position):
             h = stepcontrol.PROJECTION_FAILURE_FACTOR * hh  # and try a shorter one
@@ -502,7 +522,10 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
                 # true Newton from the sample: the M-orthogonal projection (a
                 # factorization from elsewhere lands it elsewhere on the manifold, which
                 # near a singular position shows in the reactions)
-                st_code = _settle(sp, gen, wg, zq, zqd, qdd, ptol, cnt, fresh)
+                if wg is None:
+                    st_code = _settle_sparse(sp, zq, zqd, qdd, ptol, cnt, fresh)
+                else:
+                    st_code = _settle_general(gen, zq, zqd, qdd, ptol, wg, cnt)
                 if st_code != OK:
                     return st_code
                 _put(X, k_out, zq, 0, n)

@@ -333,11 +333,12 @@ def accelerations(P, gk, frc, q, qd, qdd, ws, cnt, fresh):
     return OK
 
 
-@njit(cache=True)
+@njit(cache=True, _nrt=True)
 def _plan_acc(P, frc, q, qd, qdd, ws):
     """qdd (n,) of Eq. (6) by the generic kernels with the factorization in ``ws``. Kept
     apart from :func:`accelerations`, which is compiled without reference counting: the
-    view :func:`multipliers` returns must be released by a counting caller."""
+    view :func:`multipliers` returns must be released by a counting caller (``_nrt=True``
+    stated: a callee that leaves it unset inherits its first caller's)."""
     I, F, O = P
     w = multipliers(I, F, O, frc, q, qd, qdd, ws)
     sub_y(I, O, _seg(ws, O, W_Y_), w, qdd)
