@@ -248,13 +248,13 @@ def _dep_norm(dep, x, y, yn, atol, rtol, affine):
     = (ptr, col, val, b, keep, drop): T_d by rows (columns over the kept coordinates), b_d,
     the coordinates kept and eliminated (:attr:`natcoord.compiled.elimination.Elimination.dep_map`);
     x, y, yn (2 n_r,)."""
-    return _dep_norms(dep, x, x, y, yn, atol, rtol, affine)[0]
+    return _dep_norms(dep, x, x, y, yn, atol, rtol, affine, False)[0]
 
 
 @njit(cache=True)
-def _dep_norms(dep, x, x2, y, yn, atol, rtol, affine):
-    """:func:`_dep_norm` of x and of x2 (2 n_r,) in one pass (dop853's two error
-    estimates share the scales)."""
+def _dep_norms(dep, x, x2, y, yn, atol, rtol, affine, two=True):
+    """:func:`_dep_norm` of x and, when ``two``, of x2 (2 n_r,) in one pass (dop853's two
+    error estimates share the scales; else the second sum is 0)."""
     ptr, col, val, b = dep[0], dep[1], dep[2], dep[3]
     n = y.shape[0] // 2
     s = 0.0
@@ -265,7 +265,7 @@ def _dep_norms(dep, x, x2, y, yn, atol, rtol, affine):
                 continue  # a constant coordinate (a fixed point's): x's term is 0
             c = b[d] if off == 0 else 0.0
             xv = _row_dot(ptr, col, val, d, x, off) + (c if affine else 0.0)
-            x2v = _row_dot(ptr, col, val, d, x2, off) + (c if affine else 0.0)
+            x2v = (_row_dot(ptr, col, val, d, x2, off) + (c if affine else 0.0)) if two else 0.0
             yv = _row_dot(ptr, col, val, d, y, off) + c
             ynv = _row_dot(ptr, col, val, d, yn, off) + c
             sc = atol + rtol * max(abs(yv), abs(ynv))
@@ -295,14 +295,14 @@ def expand(dep, X, XD, XDD, Q, QD, QDD):
                 for k in range(T):
                     dst[k, c] = bd
                 continue
-            for e in range(ptr[d], ptr[d + 1]):  # T_d x in _row_dot's order, then + b_d
+            e0 = ptr[d]  # T_d x in _row_dot's order, then + b_d
+            v, ce = val[e0], col[e0]
+            for k in range(T):
+                dst[k, c] = v * src[k, ce]
+            for e in range(e0 + 1, ptr[d + 1]):
                 v, ce = val[e], col[e]
-                if e == ptr[d]:
-                    for k in range(T):
-                        dst[k, c] = v * src[k, ce]
-                else:
-                    for k in range(T):
-                        dst[k, c] += v * src[k, ce]
+                for k in range(T):
+                    dst[k, c] += v * src[k, ce]
             for k in range(T):
                 dst[k, c] += bd
 

@@ -71,18 +71,6 @@ class MaggiLoop(FormulationLoop):
             self.cs.con, self.M, q0)) if self.opt["generated"] else None
         return Prepared(self.compiled_path, self._frc)
 
-    def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
-        """``go(Q, QD, QDD)``: the whole compiled run from (q0, qd0) at t0 into (T, n) in
-        place (a benchmark repeats ``go``). The start's partition (``init``: a Gaussian
-        elimination with full pivoting, in Python) is made once here, before the timed
-        part: made at every run it took a quarter of a four_bar run. The loop copies the
-        start, so every run begins from the same state."""
-        y = self.init(t0, q0, qd0)
-
-        def go(Q, QD, QDD):
-            Q[:], QD[:], QDD[:] = self.run_compiled(times, y, method, rtol, atol, h)
-        return go
-
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.compiled.maggi.run` from ``init``'s y = [q^i,
         qd^i] (2f), its q (n,) and partition: (Q, QD, QDD) (T, n) at ``times`` (T,) s, the
