@@ -331,3 +331,51 @@ def test_a_compiled_path_compiles_first_in_a_fresh_process(tmp_path, path):
                                f"cache.ensure_compiled({path!r})"],
         env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
+
+
+@pytest.mark.parametrize("name, path", [("slider_crank", "generated"),
+                                        ("a02_four_bar_n2", "generated"),
+                                        ("a02_four_bar_n40", "sparse"),
+                                        ("four_bar_3d", "general")])
+def test_the_motion_does_not_depend_on_the_output_times(name, path):
+    """Adaptive steps cross the samples, and a step's end is projected the same way whether
+    samples fell inside it or not: asking for every tenth sample gives those samples bit
+    for bit. (It did not: after the dense output's extra stages the step's end was
+    projected with their factorization, not one at the end, and a02_four_bar_n2 moved by
+    3.6e-8 m with the output times.)"""
+    case, model, st = _model(name)
+    times = case.times[case.times <= 2.0 + 1e-12]
+    solver = Solver(Index1(), "dop853", Adaptive(rtol=1e-8, atol=1e-10))
+    every = integrate(model, st, times, solver)
+    tenth = integrate(model, st, times[::10], solver)
+    assert every.counters["path"] == path
+    assert every.counters["steps"] == tenth.counters["steps"] > 10
+    for a, b in ((every.q, tenth.q), (every.qd, tenth.qd), (every.qdd, tenth.qdd)):
+        assert np.array_equal(a[::10], b)
+
+
+@pytest.mark.parametrize("name", ["slider_crank", "a04_bricard", "a02_four_bar_n2"])
+def test_newton_bound_holds_after_a_true_newton_step(name):
+    """A Newton step from q0 with the factorization at q0 leaves |Phi| below the bound of
+    ks.newton_bound (the rows are quadratic), which settle uses to skip evaluating Phi: at
+    every distance from the constraints, the bound is above |Phi| and not loose by more
+    than the rows' structure allows."""
+    case, model, st = _model(name)
+    plan = sparsity.schur_plan(model.constraints, model.M)
+    P = plan.kernel_args
+    hq, gq = ks.newton_bound(P, model.n)
+    assert hq > 0 and gq >= hq
+    rng = np.random.default_rng(3)
+    q = np.asarray(st.q, float)
+    ws, cnt, w = ks.workspace(P), np.zeros(kernels.N_COUNTERS), np.zeros(plan.m)
+    for dist in (1e-3, 1e-5, 1e-7, 1e-9):
+        q0 = q + dist * rng.standard_normal(model.n)
+        ks._phi_max(P, ks.NO_GK, q0, w)
+        ks.refactor(P, ks.NO_GK, q0, ws, cnt)
+        q1 = q0.copy()
+        ks._newton_step(P, ks.NO_GK, ws, w, q1)
+        e = ks._phi_max(P, ks.NO_GK, q1, w)
+        bound = ks._newton_rest(q1, q0, (hq, gq))
+        assert e <= bound, (dist, e, bound)
+        if dist >= 1e-5:  # the quadratic part dominates: the bound is near |Phi|
+            assert bound < 1e3 * e

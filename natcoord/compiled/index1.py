@@ -315,14 +315,14 @@ def _put(Q, k, x, off, n):
 
 
 @njit(cache=True, _nrt=False)
-def _settle_sparse(sp, q, qd, qdd, ptol, cnt, factored):
+def _settle_sparse(sp, q, qd, qdd, ptol, bound, cnt, factored):
     """Project (q, qd) (n,) in place and evaluate qdd there on the sparse path
     (:func:`kernels_sparse.settle`); a status code. Called straight from the loop and
     compiled without reference counting: unpacking ``sp`` with it, or inlining a wrapper
     that branches to the general path, took 5-10 % of a small model's run. The general
     path (:func:`_settle_general`: its forces allocate) is called from the loop itself: a
     callee first compiled from a function without reference counting inherits that."""
-    return kernels_sparse.settle(sp, q, qd, qdd, ptol, cnt, factored)
+    return kernels_sparse.settle(sp, q, qd, qdd, ptol, bound, cnt, factored)
 
 
 @njit(cache=True)
@@ -344,9 +344,10 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     (which is why ``wg`` is an argument of its own). ``tab`` =
     (A, B, E5, E3, expo, dop853, n_ext, D, fsal): the method's tableau, A (s + n_ext,
     s + n_ext) the step's s stages and the extension's n_ext (:func:`packed_tableau`);
-    ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed): step control (h0 <= 0: Hairer's
-    initial step; h_fixed > 0: fixed steps of at most h_fixed, no error control) and
-    projection tolerance; ``dep``: the coordinates an elimination removed
+    ``ctl`` = (rtol, atol, h0, ptol, max_steps, h_fixed, bound): step control (h0 <= 0:
+    Hairer's initial step; h_fixed > 0: fixed steps of at most h_fixed, no error control),
+    projection tolerance and the plan's Newton bound (:func:`kernels_sparse.newton_bound`;
+    (0, 0) on the general path); ``dep``: the coordinates an elimination removed
     (:func:`_dep_norm`), which the error norm counts as the state's, and those it kept
     (q0, qd0 are read there); ``out`` = (X, XD, XDD (T, n_r): the samples over the
     coordinates kept, Q, QD, QDD (T, n_model): all of them (X is Q without an
@@ -357,7 +358,7 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     reference counts, which on a small model is a tenth of an evaluation.
     """
     A, B, E5, E3, expo, dop853, n_ext, D, fsal = tab
-    rtol, atol, h0, ptol, max_steps, h_fixed = ctl
+    rtol, atol, h0, ptol, max_steps, h_fixed, bound = ctl
     X, XD, XDD, Q, QD, QDD, cnt, tfail = out
     keep = dep[4]
     for i in range(cnt.shape[0]):
@@ -392,7 +393,7 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
     fresh = fixed and not fixed  # False, typed bool: a literal False would make numba
     # compile the projection (and all it calls) a second time, for Literal[bool]
     if wg is None:
-        st_code = _settle_sparse(sp, qs, qds, qdd, ptol, cnt, fresh)
+        st_code = _settle_sparse(sp, qs, qds, qdd, ptol, bound, cnt, fresh)
     else:
         st_code = _settle_general(gen, qs, qds, qdd, ptol, wg, cnt)
     if st_code != OK:
@@ -486,9 +487,11 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
         for a in range(n):
             qs[a] = yn[a]
             qds[a] = yn[n + a]
-        # a last stage at yn (fsal) factored there: Newton from it
+        # a last stage at yn (fsal) factored there, unless the extension's stages came
+        # after it: Newton from it
         if wg is None:
-            st_code = _settle_sparse(sp, qs, qds, qdd, ptol, cnt, fsal)
+            st_code = _settle_sparse(sp, qs, qds, qdd, ptol, bound, cnt,
+                                     fsal and not (dop853 and inner))
         else:
             st_code = _settle_general(gen, qs, qds, qdd, ptol, wg, cnt)
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
@@ -523,7 +526,7 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
                 # factorization from elsewhere lands it elsewhere on the manifold, which
                 # near a singular position shows in the reactions)
                 if wg is None:
-                    st_code = _settle_sparse(sp, zq, zqd, qdd, ptol, cnt, fresh)
+                    st_code = _settle_sparse(sp, zq, zqd, qdd, ptol, bound, cnt, fresh)
                 else:
                     st_code = _settle_general(gen, zq, zqd, qdd, ptol, wg, cnt)
                 if st_code != OK:
@@ -661,7 +664,8 @@ def prepare(name: str, con, frc, times, steps: Steps, route: Route | None = None
     ws = kernels_sparse.workspace(args)
     w = kernels_sparse.work_vector(args, ws)
     ctl = (float(rtol), float(atol), float(h0), float(ptol), int(max_steps),
-           0.0 if h is None else float(h))
+           0.0 if h is None else float(h),
+           kernels_sparse.newton_bound(plan, n) if plan is not None else (0.0, 0.0))
     generated = kern is not None and plan is not None  # they serve the sparse path
     # the general path hands the sparse branch (typed, never run) the generated path's
     # types, so that numba compiles (or loads) one set of those callees for both
