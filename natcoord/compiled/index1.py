@@ -471,27 +471,20 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
             if stepcontrol.underflow(h, t):
                 return ERR_UNDERFLOW
             continue
-        # accept: dense output from the unprojected step, then project the end state
+        # accept: project the end state, from the last stage's factorization (fsal: at
+        # yn), then the dense output from the unprojected step (its stages factor
+        # elsewhere: projected after them, the end moved with the output times)
         t1 = t + hh
         if fixed and abs(t1 - times[k_out]) <= 1e-9 * hh:
             t1 = times[k_out]
         if hh == tend - t:
             t1 = tend
         tol_t = stepcontrol.SAMPLE_TOL * max(1.0, abs(t1))
-        inner = k_out < T_out and times[k_out] < t1 - tol_t
-        if dop853 and inner:
-            st_code = _stages(sp, gen, wg, cnt, y, hh, s_st, s_st + n_ext, rk)
-            if st_code != OK:
-                return st_code
-            stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
         for a in range(n):
             qs[a] = yn[a]
             qds[a] = yn[n + a]
-        # a last stage at yn (fsal) factored there, unless the extension's stages came
-        # after it: Newton from it
         if wg is None:
-            st_code = _settle_sparse(sp, qs, qds, qdd, ptol, bound, cnt,
-                                     fsal and not (dop853 and inner))
+            st_code = _settle_sparse(sp, qs, qds, qdd, ptol, bound, cnt, fsal)
         else:
             st_code = _settle_general(gen, qs, qds, qdd, ptol, wg, cnt)
         if st_code == ERR_NEWTON and not fixed:  # the step left the manifold too far to
@@ -503,10 +496,16 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
         if st_code != OK:
             return st_code
         for a in range(n):
+            f1[a] = qds[a]
+            f1[n + a] = qdd[a]  # (qdd: the stages' scratch on the generic path)
+        if dop853 and k_out < T_out and times[k_out] < t1 - tol_t:  # samples inside
+            st_code = _stages(sp, gen, wg, cnt, y, hh, s_st, s_st + n_ext, rk)
+            if st_code != OK:
+                return st_code
+            stepcontrol.dense_dop853(y, yn, hh, K, s_st, D, Fd)
+        for a in range(n):
             yn[a] = qs[a]
             yn[n + a] = qds[a]
-            f1[a] = qds[a]
-            f1[n + a] = qdd[a]
         nsteps += 1
         cnt[C_STEPS] += 1
         # samples in (t, t1]
