@@ -306,16 +306,16 @@ def solve(I, O, Lv, b):
 def refactor(P, gk, q, ws, cnt):
     """J, Y and L at q into the work array ``ws``: by the generic kernels on the plan
     ``P`` = (I, F, O), or, P None, by the model's generated kernels ``gk`` (addresses, see
-    :mod:`natcoord.compiled.codegen`; :data:`NO_GK` with a plan). The generated path passes no plan
-    and no force tuple: their arrays cost more to pass than its kernels take to run, and
-    numba compiles the None branches away."""
-    if P is None:
-        _call2(types.int64, gk[1], _ptr(q), _ptr(ws))
-    else:
-        I, F, O = P
-        jacobian(I, F, O, q, _seg(ws, O, W_J_))
-        factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
+    :mod:`natcoord.compiled.codegen`; :data:`NO_GK` with a plan). Returns the number of
+    dependent rows. The generated path passes no plan and no force tuple: their arrays cost
+    more to pass than its kernels take to run, and numba compiles the None branches
+    away."""
     cnt[C_FACT] += 1
+    if P is None:
+        return _call2(types.int64, gk[1], _ptr(q), _ptr(ws))
+    I, F, O = P
+    jacobian(I, F, O, q, _seg(ws, O, W_J_))
+    return factor(I, F, O, _seg(ws, O, W_J_), _seg(ws, O, W_Y_), _seg(ws, O, W_L_))
 
 
 @njit(cache=True, _nrt=False)
@@ -465,10 +465,11 @@ def settle(sp, q, qd, qdd, tol, bound, cnt, factored):
     refreshed when the contraction is slow), factor once at the projected q, project qd on
     Phi_q qd = 0 with it and evaluate qdd there. Returns a status code. ``sp`` = (P, gk,
     frc, ws, w): the Schur path (plan or generated kernels, forces, work array and its work
-    vector (m,), :func:`work_vector`). After a true Newton step (the factorization at the
-    step's start) Phi is not evaluated when ``bound`` = (hq, gq) (:func:`newton_bound`; (0,
-    0): always evaluated) puts it below NEWTON_REST tol: a sample near the constraints
-    takes one Phi instead of two (5-8 % of a four_bar run at rtol 1e-6).
+    vector (m,), :func:`work_vector`). After a true Newton step (factored here, at the
+    step's start, with no dependent row: a dropped row's Phi is not bounded by the others')
+    Phi is not evaluated when ``bound`` = (hq, gq) (:func:`newton_bound`; (0, 0): always
+    evaluated) puts it below NEWTON_REST tol: a sample near the constraints takes one Phi
+    instead of two.
 
     It and the kernels it calls are compiled without numba's reference counting (they
     allocate nothing): on four_bar and slider_crank the counting took 13-15 % of a whole
@@ -477,8 +478,9 @@ def settle(sp, q, qd, qdd, tol, bound, cnt, factored):
     tol = reachable(tol, q, 1)  # phi adds no round-off: q's resolution is the floor
     e = _phi_max(P, gk, q, w)
     cnt[C_PHI] = max(cnt[C_PHI], e)
+    full = False  # the factorization here has no dependent row (its step solves every row)
     if not factored and e >= tol:
-        refactor(P, gk, q, ws, cnt)
+        full = refactor(P, gk, q, ws, cnt) == 0
     prev = math.inf
     fresh = False  # the factorization is at the current q (true Newton this iteration)
     it = 0
@@ -486,11 +488,11 @@ def settle(sp, q, qd, qdd, tol, bound, cnt, factored):
         if it >= NEWTON_MAX:
             return ERR_NEWTON
         if e > NEWTON_RATE * prev and not fresh:
-            refactor(P, gk, q, ws, cnt)
+            full = refactor(P, gk, q, ws, cnt) == 0
             fresh = True
         else:
             fresh = False
-        exact = it == 0 or fresh  # a true Newton step: the factorization at this q
+        exact = (it == 0 or fresh) and full  # a true Newton step on every row
         if exact:
             for a in range(q.shape[0]):
                 qdd[a] = q[a]  # the step's start (qdd: scratch until the end)
