@@ -33,11 +33,11 @@ def _run(case, **over):
 
 @pytest.mark.parametrize("rtol", [1e-10, 3e-11, 1e-11, 5e-12, 2e-12, 1e-12])
 def test_a02_n2_passes_at_every_rtol_near_the_case_settings(rtol):
-    """Measured against the exact reduction: 1.6e-8 m at rtol 1e-10 down to 7e-11 m at
-    1e-12, the same to 1 % under the Haswell, Zen, Sandybridge and Prescott kernels; under
-    SkylakeX (an AVX-512 machine's default), whose initial velocities differ in the last
-    bit, 6.3e-9 to 2.5e-8 m from rtol 1e-11 down and 1.5e-8 m at 1e-10: the passes amplify
-    round-off (and 1.4e-7 m at 2e-11). Leaving the parallelogram branch costs metres."""
+    """Measured against the exact reduction under the Haswell kernel and SkylakeX (an
+    AVX-512 machine's default, whose initial velocities differ in the last bit): 1.6e-8 m
+    at rtol 1e-10, 1.1e-9 m at 1e-11, 3.6-10.2e-9 m from 5e-12 to 1e-12; the passes amplify
+    round-off (2.2e-7 m at 2e-11 under Haswell). Leaving the parallelogram branch costs
+    metres."""
     case = load_case(CASES / "a02_four_bar_n2.toml")
     df = _run(case, rtol=rtol)
     ex = exact.n_four_bar(2, case.times)
