@@ -432,8 +432,8 @@ EPS = 2.220446049250313e-16  # the float64 machine epsilon
 
 def newton_bound(plan: tuple, n: int) -> tuple[float, float]:
     """(hq, gq) of the plan (I, F, O) over n coordinates: the largest sum over one row of
-    Phi of |v| for its terms v q_i q_j quadratic in q (hq, 1/m for a row in m^2) and for its
-    terms with a coordinate (gq). Every row being quadratic, Phi(q0 + d) = Phi(q0) + Phi_q
+    Phi of |v| for its terms v q_i q_j quadratic in q (hq) and for its terms with a
+    coordinate (gq). Every row being quadratic, Phi(q0 + d) = Phi(q0) + Phi_q
     d + Phi_2(d) exactly, so a Newton step from q0 leaves |Phi| <= hq max|d|^2 in exact
     arithmetic, and storing q0 + d rounds each coordinate by EPS/2 |q|, which moves a row
     by at most gq EPS max(1, max|q|)^2 (:func:`settle`)."""
