@@ -427,7 +427,7 @@ def _newton_step(P, gk, ws, w, x):
 
 NEWTON_REST = 0.1  # a Newton step's bound on |Phi| below this fraction of the tolerance:
 # converged without evaluating Phi (:func:`settle`)
-EPS = 2.220446049250313e-16  # the float64 machine epsilon
+EPS = float(np.finfo(np.float64).eps)
 
 
 def newton_bound(plan: tuple, n: int) -> tuple[float, float]:
