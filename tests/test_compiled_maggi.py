@@ -62,13 +62,39 @@ def _agree(a, b, tol_q=1e-10, tol_qdd=1e-9):
         assert np.max(np.abs(x - y)) < tol * max(1.0, float(np.max(np.abs(y))))
 
 
-@pytest.mark.parametrize("name", COMPILED)
+@pytest.mark.parametrize("name", [n for n in COMPILED if n != "a03_andrews"])
 def test_compiled_rk4_matches_the_python_loop(name):
+    """Fixed-step RK4, the same steps: the compiled loop (on the coordinates an
+    elimination keeps, where index-1's generated kernels serve it) and the Python loop
+    (the model's coordinates) agree to round-off (measured <= 1.5e-14 in q, 1.5e-12 in qd,
+    3e-10 in qdd relative; 1e-10 asserted)."""
     case, model, st = _model(name)
     h, times = rk4_window(case, name)
     a, b = _pair(model, st, times, "rk4", Fixed(h))
     assert a.counters["steps"] >= 50
     _agree(a, b)
+
+
+def test_compiled_rk4_on_kept_coordinates_follows_the_python_loop_to_the_newton_stop():
+    """Andrews' squeezer: the compiled loop's Newton solves the rows left over the kept
+    coordinates, the Python loop's all of the model's, each stopping at |Phi| < newton_tol;
+    the mechanism (its stiff spring) carries that difference to the velocities: measured
+    1.8e-10 in q, 3.1e-8 in qd, 3.5e-8 in qdd (relative) over 0.03 s at newton_tol 1e-13,
+    2.2e-10 in qd at 1e-15 (the same steps, counters and re-partitions both times).
+    Asserted: within 1e-9 / 1e-7 at the default, and at least 30x closer in qd with a 100x
+    tighter stop, so the gap is the Newton's stop, not a difference in the dynamics."""
+    case, model, st = _model("a03_andrews")
+    h, times = rk4_window(case, "a03_andrews")
+    gaps = []
+    for newton_tol in (1e-13, 1e-15):
+        a, b = _pair(model, st, times, "rk4", Fixed(h), newton_tol=newton_tol)
+        for key in SAME:
+            assert a.counters[key] == b.counters[key], key
+        assert a.counters["repartitions"] > 0
+        gaps.append([np.max(np.abs(x - y)) / max(1.0, float(np.max(np.abs(y))))
+                     for x, y in ((a.q, b.q), (a.qd, b.qd), (a.qdd, b.qdd))])
+    assert gaps[0][0] < 1e-9 and gaps[0][1] < 1e-7 and gaps[0][2] < 1e-7
+    assert gaps[1][1] < gaps[0][1] / 30
 
 
 @pytest.mark.parametrize("name, method, window, rtol", [
@@ -201,11 +227,11 @@ def _generic_and_generated(name, times, method, steps):
     for generated in (False, True):
         cnt = Counters()
         loop = MaggiLoop(model, {}, cnt)
-        y = loop.init(0.0, q0, qd0)
         loop.prepare_compiled(q0)
         assert loop._gen is not None  # the generated kernels serve these models
-        sol = kernels_maggi.run(loop._packed, loop._frc, times, y, loop.q,
-                                (loop.rows, loop.dep, loop.indep), method, steps, cnt,
+        y, q, part = loop.compiled_start(0.0, q0, qd0)
+        frc = loop._frc if loop._red is None else loop._red.frc
+        sol = kernels_maggi.run(loop._packed, frc, times, y, q, part, method, steps, cnt,
                                 loop._gen if generated else None)
         out.append((sol, cnt))
     return out

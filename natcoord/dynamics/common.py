@@ -240,6 +240,20 @@ class FormulationLoop:
     def post_step(self, t, y):
         return y
 
+    @functools.cached_property
+    def elimination(self):
+        """The coordinates the constant linear rows fix, eliminated
+        (:class:`natcoord.compiled.elimination.Elimination`), on which the compiled loops
+        run; None with drivers, no such row, or where the formulation declines
+        (``_eliminates``)."""
+        from ..compiled.elimination import eliminate
+        if self.cs.rheonomic or not self._eliminates():
+            return None
+        return eliminate(self.cs.con, self.M, self._frc)
+
+    def _eliminates(self) -> bool:
+        return True
+
     def compiled_candidate(self, method: str, h) -> bool:
         return False
 

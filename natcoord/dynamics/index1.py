@@ -71,17 +71,11 @@ class Index1Loop(FormulationLoop):
         from ..compiled.sparsity import is_spd
         return is_spd(self.M)
 
-    @functools.cached_property
-    def elimination(self):
-        """The coordinates the constant linear rows fix, eliminated
-        (:class:`natcoord.compiled.elimination.Elimination`); None with drivers, ``linsolve`` other
-        than auto, or no such row. The compiled loop runs on the coordinates kept; a
-        singular M's projections are M-orthogonal there (the kinetic metric) in both loops,
-        or minimum-norm there where M_r stays singular."""
-        from ..compiled.elimination import eliminate
-        if self.cs.rheonomic or self.opt["linsolve"] != "auto":
-            return None
-        return eliminate(self.cs.con, self.M, self._frc)
+    def _eliminates(self) -> bool:
+        """:attr:`elimination` with ``linsolve`` auto only. The compiled loop runs on the
+        coordinates kept; a singular M's projections are M-orthogonal there (the kinetic
+        metric) in both loops, or minimum-norm there where M_r stays singular."""
+        return self.opt["linsolve"] == "auto"
 
     @functools.cached_property
     def Minv(self) -> np.ndarray:

@@ -58,31 +58,87 @@ class MaggiLoop(FormulationLoop):
         return self._compiled_model(
             method in (kernels.ADAPTIVE if h is None else kernels.FIXED_STEP))
 
+    def _eliminates(self) -> bool:
+        """The compiled loop runs on :attr:`elimination`'s coordinates on its generated path
+        only (:meth:`prepare_compiled`)."""
+        return bool(self.opt["generated"])
+
     def prepare_compiled(self, q0: np.ndarray | None = None) -> Prepared:
         """Model-only set-up: the constraint triplets and M's non-zeros packed for the
         compiled loop (:func:`natcoord.compiled.maggi.pack`), and index-1's generated
         kernels, which give Phi and the accelerations there
-        (:func:`natcoord.compiled.maggi.generated`, a singular M's alpha from M and Phi_q
-        at ``q0``; None: the generic kernels)."""
+        (:func:`natcoord.compiled.maggi.generated`; None: the generic kernels). Where the
+        constant linear rows fix coordinates and leave M_r regular (:attr:`elimination`,
+        as index-1's compiled loop), the generated path runs on the coordinates kept, with
+        index-1's kernels of that model: the same motion (the linear rows hold
+        identically there), a quarter to a half of the work per evaluation on the
+        catalogue's planar mechanisms. Else on the model's coordinates (a singular M's
+        alpha from M and Phi_q at ``q0``)."""
         from ..compiled import maggi as kernels_maggi
-        self._packed = kernels_maggi.pack(self.cs.con, self.M)
-        q0 = None if q0 is None else np.asarray(q0, float)
-        self._gen = kernels_maggi.generated(self.cs.con, self.M, self._frc, _alpha(
-            self.cs.con, self.M, q0)) if self.opt["generated"] else None
+        e, self._gen = self.elimination, None
+        self._red = None
+        if e is not None and e.regular:
+            self._gen = kernels_maggi.generated(e.con, e.M, e.frc)
+            if self._gen is not None:
+                self._red = e
+                self._packed = kernels_maggi.pack(e.con, e.M)
+        if self._red is None:
+            self._packed = kernels_maggi.pack(self.cs.con, self.M)
+            q0 = None if q0 is None else np.asarray(q0, float)
+            self._gen = kernels_maggi.generated(self.cs.con, self.M, self._frc, _alpha(
+                self.cs.con, self.M, q0)) if self.opt["generated"] else None
         return Prepared(self.compiled_path, self._frc)
+
+    def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
+        """``go(Q, QD, QDD)`` (:meth:`FormulationLoop.compiled_runner`); on the coordinates
+        an elimination keeps (:meth:`prepare_compiled`), y = [q^i, qd^i] from the
+        partition of their Jacobian at q0, every sample written back to all coordinates
+        (q = T q_r + b)."""
+        if not hasattr(self, "_packed"):
+            self.prepare_compiled(q0)
+        e = self._red
+        if e is None:
+            return super().compiled_runner(times, t0, q0, qd0, method, rtol, atol, h)
+        from ..compiled import index1 as kernels
+        from ..compiled import maggi as kernels_maggi
+        y, qr, part = self.compiled_start(t0, q0, qd0)
+        steps = self._steps(rtol, atol, h)
+
+        def go(Q, QD, QDD):
+            X = kernels_maggi.run(self._packed, e.frc, times, y, qr, part, method, steps,
+                                  self.cnt, self._gen)
+            kernels.expand(e.dep_map, *X, Q, QD, QDD)
+        return go
+
+    def compiled_start(self, t0, q0, qd0) -> tuple:
+        """(y (2f), q (n_loop,), partition (rows, dep, indep)): the compiled loop's start
+        from a consistent (q0, qd0) (n,), on its coordinates (after
+        :meth:`prepare_compiled`: the model's, or those an elimination keeps)."""
+        e = self._red
+        if e is None:
+            y = self.init(t0, q0, qd0)
+            return y, self.q, (self.rows, self.dep, self.indep)
+        qr, qdr = np.asarray(q0, float)[e.keep], np.asarray(qd0, float)[e.keep]
+        part = full_pivot_partition(e.con.jacobian(qr), self.opt["rank_tol"])[:3]
+        self.cnt.factorizations += 1
+        return np.concatenate([qr[part[2]], qdr[part[2]]]), qr, part
 
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.compiled.maggi.run` from ``init``'s y = [q^i,
         qd^i] (2f), its q (n,) and partition: (Q, QD, QDD) (T, n) at ``times`` (T,) s, the
-        same steps as the Python loop."""
+        same steps as the Python loop (on the model's coordinates: with an elimination,
+        :meth:`compiled_runner`)."""
         from ..compiled import maggi as kernels_maggi
         if not hasattr(self, "_packed"):
             self.prepare_compiled()
-        steps = kernels_maggi.Steps(rtol, atol, h, self.opt["newton_tol"], self.opt["rank_tol"],
-                                    self.opt["repartition_growth"])
         return kernels_maggi.run(self._packed, self._frc, times, y, self.q,
-                                 (self.rows, self.dep, self.indep), method, steps, self.cnt,
-                                 self._gen)
+                                 (self.rows, self.dep, self.indep), method,
+                                 self._steps(rtol, atol, h), self.cnt, self._gen)
+
+    def _steps(self, rtol, atol, h):
+        from ..compiled import maggi as kernels_maggi
+        return kernels_maggi.Steps(rtol, atol, h, self.opt["newton_tol"], self.opt["rank_tol"],
+                                   self.opt["repartition_growth"])
 
     def _partition(self, t, q):
         J = self.cs.jacobian(q, t)
