@@ -113,3 +113,51 @@ def test_a_3d_acceleration_channel_loads(case_variant):
     path = case_variant("four_bar_3d", [(r'^yA = \{ kind = "position"',
                                          'yA = { kind = "acceleration"')])
     assert load_case(path).channel("yA").kind == "acceleration"
+
+
+MISSPELT = [
+    # (case, substitution, table path, misspelt key, the key meant): every table the loader
+    # reads refuses a key it does not know, naming the table and the key
+    ("slider_crank", (r"^mass = 1.0", "mass = 1.0\nmas = 2.0"), "bodies[0] (crank)", "mas",
+     "mass"),
+    ("a03_andrews", (r'^body = "K1"', 'body = "K1"\nfram = "body"'), "forces[0]", "fram",
+     "frame"),
+    ("a03_andrews", (r'relative_to = "beta"', 'relative_too = "beta"'), "channels.theta",
+     "relative_too", "relative_to"),
+    ("a03_andrews", (r"work = true", "wrok = true"), "channels.balance", "wrok", "work"),
+    ("slider_crank", (r"^velocity = \{ theta = 0.0 \}", "velocty = { theta = 1.0 }"),
+     "initial", "velocty", "velocity"),
+    ("four_bar", (r'angle = "110 deg"', 'angel = "110 deg"'), "initial.pose.rocker", "angel",
+     "angle"),
+    ("slider_crank", (r"^points = \{ O = \[0.0, 0.0\] \}", "points = { O = [0.0, 0.0] }\n"
+                      "pionts = {}"), "ground", "pionts", "points"),
+    ("five_bar", (r'within = "1 deg"', 'witin = "1 deg"'), "comparison.singular", "witin",
+     "within"),
+]
+
+
+@pytest.mark.parametrize("name, sub, table, key, meant", MISSPELT,
+                         ids=[f"{m[2]}.{m[3]}" for m in MISSPELT])
+def test_a_misspelt_key_is_refused_in_every_table(case_variant, name, sub, table, key, meant):
+    """A misspelt key used to be ignored in these tables: the four-bar's rocker pose without
+    its angle assembled the other branch, a channel without relative_to measured another
+    angle. Now it is refused, as at the top level and in [engines.*], joints, drivers and
+    rods."""
+    path = case_variant(name, [sub])
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    e = info.value
+    assert e.file == str(path)
+    assert e.field == f"{table}.{key}", str(e)
+    assert "unknown field" in e.reason and f"did you mean {meant}?" in e.reason, str(e)
+
+
+def test_a_misspelt_pose_key_exits_2_before_anything_runs(case_variant):
+    path = case_variant("four_bar", [(r'angle = "110 deg"', 'angel = "110 deg"')])
+    r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", str(path), "--engines",
+                        "natcoord", "--out", str(path.parent / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+    assert f"{path}: initial.pose.rocker.angel: unknown field" in r.stderr
+    assert not (path.parent / "out").exists()

@@ -14,6 +14,7 @@ printable and at most ``MAX_TEXT`` characters.
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import math
 import os
@@ -67,6 +68,16 @@ TOP_KEYS = {"name", "description", "dimension", "gravity", "duration", "output_d
             "bodies", "joints", "forces", "initial", "channels", "engines", "tags",
             "drivers", "rods", "springs", "reactions", "comparison", "timeout", "benchmark"}
 ENGINE_KEYS = {"settings", "tolerance", "reason", "unsupported"}  # of [engines.<name>]
+# the keys of every other table the loader reads (a key not in its set is refused)
+GROUND_KEYS = {"points"}
+BODY_KEYS = {"name", "kind", "mass", "points", "ends", "com", "inertia"}
+JOINT_KEYS = {"name", "type", "bodies", "points", "axis", "axis2"}
+FORCE_KEYS = {"type", "body", "frame", "value", "point"}
+DRIVER_KEYS = {"name", "type", "body", "angle0", "rate", "accel", "point", "axis", "value0"}
+CHANNEL_KEYS = {"kind", "body", "point", "axis", "joint", "joints", "driver", "rod", "points",
+                "plane", "relative_to", "of", "work", "frame", "about", "vectors"}
+INITIAL_KEYS = {"pose", "fix", "velocity"}
+POSE_KEYS = {"origin", "angle"}
 MAX_FILE_BYTES = 1 << 20
 MAX_DEPTH = 8
 MAX_SAMPLES = 1_000_000
@@ -114,6 +125,18 @@ class _Reader:
             self.fail(_join(path, key), f"must be printable text of at most {MAX_TEXT} "
                       "characters")
         return v
+
+    def known(self, table, allowed, path: str) -> None:
+        """Refuse a key of ``table`` (a table the loader reads) that is not in ``allowed``:
+        a misspelt key would otherwise be ignored silently. The message names the table's
+        path and the key, the expected keys and the closest of them to a typo."""
+        unknown = sorted(set(table) - set(allowed)) if isinstance(table, dict) else []
+        if unknown:
+            key, expected = unknown[0], sorted(allowed)
+            close = difflib.get_close_matches(str(key), expected, n=1)
+            self.fail(_join(path, shown(key)), f"unknown field; expected some of "
+                      f"{', '.join(expected)}" + (f" (did you mean {close[0]}?)" if close
+                                                  else ""))
 
     def name(self, table, key, path) -> str:
         """A name: a short safe identifier (it becomes a file name or a CSV column)."""
@@ -235,11 +258,7 @@ def load_case(path: str | Path) -> Case:
         r.fail("", f"nested too deeply (more than {MAX_DEPTH} levels)")
     if _depth(data, MAX_DEPTH) > MAX_DEPTH:
         r.fail("", f"nested too deeply (more than {MAX_DEPTH} levels of tables or arrays)")
-    unknown = sorted(set(data) - TOP_KEYS)
-    if unknown:
-        r.fail(unknown[0] if len(unknown[0]) <= 60 and unknown[0].isprintable()
-               else _short(unknown[0]), f"unknown field; expected some of "
-               f"{', '.join(sorted(TOP_KEYS))}")
+    r.known(data, TOP_KEYS, "")
 
     name = r.name(data, "name", "")
     if name != path.stem:
@@ -248,6 +267,7 @@ def load_case(path: str | Path) -> Case:
     if type(dim) is not int or dim not in (2, 3):
         r.fail("dimension", f"must be the integer 2 or 3, got {_short(dim)}")
     init = r.table(data, "initial", "", required=False)
+    r.known(init, INITIAL_KEYS, "initial")
     reference_frame = "pose" not in init
     if dim == 3 and not reference_frame:
         r.fail("initial.pose", "3-D cases give every body point as its world position at "
@@ -266,6 +286,7 @@ def load_case(path: str | Path) -> Case:
 
     ground = {}
     gtable = r.table(data, "ground", "", required=False)
+    r.known(gtable, GROUND_KEYS, "ground")
     for pname, value in r.table(gtable, "points", "ground", required=False).items():
         r.identifier(pname, "ground.points")
         ground[pname] = r.vector(value, f"ground.points.{pname}", dim, "length")
@@ -320,6 +341,7 @@ def load_case(path: str | Path) -> Case:
             r.fail(p, f"unknown body {bname!r}; bodies are {', '.join(names)}")
         if not isinstance(pose, dict):
             r.fail(p, "must be a table {origin = [x, y], angle = ...}")
+        r.known(pose, POSE_KEYS, p)
         guess[bname] = Pose(r.vector(r.get(pose, "origin", p), f"{p}.origin", dim, "length"),
                             r.number(pose, "angle", p, "angle", required=False, default=0.0))
     missing = [n for n in names if n not in guess]
@@ -343,10 +365,7 @@ def load_case(path: str | Path) -> Case:
                 r.fail(f"{p}.tolerance.{key}", "neither a channel name nor a channel kind")
             tol[key] = r.quantity(value, f"{p}.tolerance.{key}", _kind_dim(key, channels),
                                   positive=True)
-        unknown = sorted(set(spec) - ENGINE_KEYS) if isinstance(spec, dict) else []
-        if unknown:
-            r.fail(f"{p}.{shown(unknown[0])}", f"unknown field; expected some of "
-                   f"{', '.join(sorted(ENGINE_KEYS))}")
+        r.known(spec, ENGINE_KEYS, p)
         settings = r.table(spec, "settings", p, required=False)
         for field, reason in _engine_settings(ename, settings, output_dt):
             r.fail(f"{p}.settings" + (f".{field}" if field else ""), reason)
@@ -420,13 +439,12 @@ def _comparison(r: _Reader, table: dict, channels) -> dict:
     """``[comparison] singular = {channel, angles, within}``: force channels are not compared
     on samples where the reference's angle ``channel`` is within ``within`` of one of
     ``angles`` (modulo 360 deg): singular positions, where rigid-body forces diverge."""
-    unknown = sorted(set(table) - {"singular"})
-    if unknown:
-        r.fail(f"comparison.{unknown[0]}", "unknown field; expected singular")
+    r.known(table, {"singular"}, "comparison")
     if "singular" not in table:
         return {}
     p = "comparison.singular"
     spec = r.table(table, "singular", "comparison")
+    r.known(spec, {"channel", "angles", "within"}, p)
     ch = r.string(spec, "channel", p)
     if ch not in {c.name for c in channels if c.kind == "angle"}:
         r.fail(f"{p}.channel", f"must name an angle channel, got {ch!r}")
@@ -449,10 +467,7 @@ def _benchmark(r: _Reader, table: dict, channels) -> dict:
     (``max_abs``) or at the last sample (``final_abs``)."""
     if not table:
         return {}
-    unknown = sorted(set(table) - {"channels", "precision", "error", "source"})
-    if unknown:
-        r.fail(f"benchmark.{unknown[0]}", "unknown field; expected channels, precision, error, "
-               "source")
+    r.known(table, {"channels", "precision", "error", "source"}, "benchmark")
     names = r.get(table, "channels", "benchmark")
     if (not isinstance(names, list) or not names
             or not all(isinstance(n, str) for n in names)):
@@ -476,6 +491,7 @@ def _benchmark(r: _Reader, table: dict, channels) -> dict:
 
 def _force(r: _Reader, f: dict, i: int, dim: int, points_of: dict) -> Force:
     p = f"forces[{i}]"
+    r.known(f, FORCE_KEYS, p)
     ftype = r.string(f, "type", p, choices=("torque", "force"))
     body = r.string(f, "body", p)
     if body not in points_of or body == GROUND:
@@ -504,9 +520,7 @@ def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
     p = f"{p} ({name})"
     allowed = {"name", "ends"} | ({"stiffness", "damping", "length"} if key == "springs"
                                   else set())
-    unknown = sorted(set(x) - allowed)
-    if unknown:
-        r.fail(f"{p}.{unknown[0]}", f"unknown field; expected {', '.join(sorted(allowed))}")
+    r.known(x, allowed, p)
     if not reference_frame:
         r.fail(p, f"{key} need body points given as world positions at t = 0 "
                "(a case without [initial.pose])")
@@ -546,9 +560,7 @@ def _reactions(r: _Reader, table: dict, links: dict, bodies) -> dict[str, dict]:
         p = f"reactions.{method}"
         if not isinstance(spec, dict):
             r.fail(p, "must be a table")
-        unknown = sorted(set(spec) - {"stiffness"})
-        if unknown:
-            r.fail(f"{p}.{unknown[0]}", "unknown field; expected stiffness")
+        r.known(spec, {"stiffness"}, p)
         stiffness = {}
         for name, value in r.table(spec, "stiffness", p, required=False).items():
             f = f"{p}.stiffness.{name}"
@@ -588,6 +600,7 @@ def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
     p = f"bodies[{i}]"
     name = r.name(b, "name", p)
     p = f"bodies[{i}] ({name})"
+    r.known(b, BODY_KEYS, p)
     kind = r.string(b, "kind", p, choices=BODY_KINDS)
     mass = r.number(b, "mass", p, "mass", positive=True)
     pts = r.table(b, "points", p)
@@ -667,10 +680,7 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
         if pt not in points_of[b]:
             r.fail(f"{p}.points", f"body {b!r} has no point {pt!r}; it has "
                    f"{', '.join(points_of[b]) or 'none'}")
-    unknown = sorted(set(j) - {"name", "type", "bodies", "points", "axis", "axis2"})
-    if unknown:
-        r.fail(f"{p}.{unknown[0]}", "unknown field; expected name, type, bodies, points, "
-               "axis, axis2")
+    r.known(j, JOINT_KEYS, p)
     if dim == 2 and jtype not in PLANAR_JOINTS:
         r.fail(f"{p}.type", f"{jtype!r} joints need a 3-D case; a 2-D case has "
                f"{' and '.join(PLANAR_JOINTS)} joints")
@@ -702,10 +712,7 @@ def _driver(r: _Reader, d: dict, i: int, bodies, points_of, dim: int) -> Driver:
     p = f"drivers[{i}]"
     name = r.name(d, "name", p)
     p = f"drivers[{i}] ({name})"
-    unknown = sorted(set(d) - {"name", "type", "body", "angle0", "rate", "accel", "point",
-                               "axis", "value0"})
-    if unknown:
-        r.fail(f"{p}.{unknown[0]}", "unknown field")
+    r.known(d, DRIVER_KEYS, p)
     dtype = r.string(d, "type", p, choices=DRIVER_TYPES)
     body = r.string(d, "body", p)
     if body not in bodies:
@@ -742,6 +749,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                    "name the channel otherwise")
         if not isinstance(c, dict):
             r.fail(p, "must be a table {kind = ..., ...}")
+        r.known(c, CHANNEL_KEYS, p)
         kind = r.string(c, "kind", p, choices=CHANNEL_KINDS)
         body = point = joint = axis = driver = rod = points = relative_to = None
         plane, of, work, gap_joints = "xy", (), False, ()
