@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .case.casefile import load_case
+from .case.casefile import MAX_NAME, NAME_PATTERN, check_file_name, load_case
 from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
@@ -97,6 +97,7 @@ def _cases(names: list[str] | None, cases_dir: Path | None):
             files = []
             for n in names:
                 p = Path(n) if n.endswith(".toml") else Path(cases_dir) / f"{n}.toml"
+                check_file_name(p)
                 if not p.exists():
                     known = ", ".join(sorted(f.stem for f in Path(cases_dir).glob("*.toml")))
                     _fail(f"unknown case {n!r} (looked in {cases_dir}); cases are: "
@@ -117,8 +118,11 @@ def _check_references(jobs, references: Path) -> None:
     try:
         for name in (getattr(j, "case", j) for j in jobs):
             name = getattr(name, "name", name)
-            if not isinstance(name, str) or "/" in name or name.startswith("."):
-                continue  # not a case name (a malformed record: the summary check's job)
+            if not isinstance(name, str):
+                continue  # a malformed record: the summary check's job
+            if not NAME_PATTERN.fullmatch(name):  # its file would be past the system's limit
+                _fail(f"{name[:MAX_NAME]!r}{'...' if len(name) > MAX_NAME else ''} is not a "
+                      f"case name (at most {MAX_NAME} letters, digits and _ . + -)")
             load_reference(name, references)
             load_provenance(name, references)
     except NatcoordError as e:

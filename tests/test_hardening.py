@@ -20,6 +20,7 @@ import pandas as pd
 import pytest
 
 from natcoord import CaseError, load_case
+from natcoord.case.casefile import NAME_PATTERN
 from natcoord.suite import gate
 from natcoord.suite.io import read_json, write_json
 from natcoord.suite.runner import run_suite
@@ -71,6 +72,31 @@ def test_channel_names_that_are_not_names_are_refused(tmp_path):
     assert text != PENDULUM
     with pytest.raises(CaseError, match=r"channels: 'x\[/\]' is not a name"):
         load_case(_case_file(tmp_path, text))
+
+
+def test_a_case_name_over_64_characters_is_refused_as_bad_input(tmp_path):
+    """README: names are at most 64 characters. A longer case name used to reach the file
+    system, which refused the file name (ENAMETOOLONG: exit 5, "a fault of the
+    environment")."""
+    long = "a" * 300
+    assert NAME_PATTERN.fullmatch("a" * 64) and not NAME_PATTERN.fullmatch("a" * 65)
+    with pytest.raises(CaseError, match="name is 65 characters long without .toml; a case "
+                                        "name .* is at most 64"):
+        load_case(tmp_path / f"{'a' * 65}.toml")
+    for arg in (long, tmp_path / f"{long}.toml"):
+        for command in (("run", arg, "--engines", "natcoord", "--out", tmp_path / "o"),
+                        ("propose", arg)):
+            p = _cli(*command)
+            assert p.returncode == 2, (command[0], p.returncode, p.stderr)
+            assert "is 300 characters long without .toml" in p.stderr, p.stderr
+            assert "at most 64" in p.stderr and long not in p.stderr, p.stderr
+            _no_traceback(p)
+    assert not (tmp_path / "o").exists()
+    d = _summary(tmp_path, [_record(case=long)])
+    for command in ("gate", "report"):
+        p = _cli(command, "--results", d)
+        assert p.returncode == 2 and "is not a case name" in p.stderr, (command, p.stderr)
+        _no_traceback(p)
 
 
 def test_sample_counts_and_durations_beyond_the_budget_are_refused(tmp_path):

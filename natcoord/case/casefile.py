@@ -85,7 +85,9 @@ MAX_DURATION_S = 1e5
 MAX_NAME = 64
 MAX_TEXT = 10_000
 RESERVED_CHANNELS = ("t", "time")  # result and reference CSVs' time column
-NAME_PATTERN = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+-]*")
+# a name, at most MAX_NAME characters: the pattern bounds the length, so every check of a
+# case name against it (a file name: longer ones the file system refuses) keeps the limit
+NAME_PATTERN = re.compile(rf"[A-Za-z0-9_][A-Za-z0-9_.+-]{{0,{MAX_NAME - 1}}}")
 
 
 class _Reader:
@@ -233,6 +235,19 @@ def _read_bounded(path: Path, r: _Reader) -> bytes:
     return data
 
 
+def check_file_name(path: str | Path) -> None:
+    """Refuse, before the file system is asked, a case file whose name without ``.toml`` is
+    longer than a case name may be (``MAX_NAME``): the case's name must equal it, and a name
+    past the file system's limit would otherwise be an error of the environment, not of the
+    input. The name is shown cut (a 10 000-character name is not echoed)."""
+    path = Path(path)
+    if len(path.stem) > MAX_NAME:
+        raise CaseError(path.parent / f"{path.stem[:MAX_NAME]}...{path.suffix}", "",
+                        f"not a case file: its name is {len(path.stem)} characters long "
+                        f"without {path.suffix or 'its extension'}; a case name (which must "
+                        f"equal it) is at most {MAX_NAME}")
+
+
 def load_case(path: str | Path) -> Case:
     """Parse and validate one case file.
 
@@ -242,6 +257,7 @@ def load_case(path: str | Path) -> Case:
         With file, field and reason, for every malformed or inconsistent input.
     """
     path = Path(path)
+    check_file_name(path)
     r = _Reader(str(path))
     try:
         raw = _read_bounded(path, r)  # read once: the hash below is of these bytes
