@@ -103,6 +103,12 @@ def _cases(names: list[str] | None, cases_dir: Path | None):
                     _fail(f"unknown case {n!r} (looked in {cases_dir}); cases are: "
                           f"{known or 'none'}")
                 files.append(p)
+            by_name = {}  # a case's results go to results/<its name>: one file per name
+            for p in files:
+                first = by_name.setdefault(p.stem, p)
+                if first is not p and not first.samefile(p):
+                    _fail(f"two case files named {p.stem}: {first}, {p}")
+            files = list(by_name.values())  # a file given twice runs once
         cases = [load_case(f) for f in files]
     except NatcoordError as e:
         _fail(str(e))

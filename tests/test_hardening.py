@@ -194,6 +194,29 @@ def test_a_refused_run_publishes_nothing_and_keeps_the_previous_results(tmp_path
     assert [q.name for q in tmp_path.iterdir() if q.name.startswith(".res")] == []
 
 
+def test_two_case_files_of_one_name_are_refused_before_anything_runs(tmp_path):
+    """Both would write results/<name>/: the second run's files were taken from under the
+    first (exit 3 and a traceback). Now the command refuses them before running (exit 2,
+    naming both files); the same file given twice runs once."""
+    other = _case_file(tmp_path / "x", PENDULUM.replace("duration = 10.0", "duration = 1.0"))
+    out = tmp_path / "o"
+    for command in (("run", "--out", out), ("suite", "--out", out), ("bench",)):
+        p = _cli(command[0], CASES / "pendulum.toml", other, "--engines", "natcoord",
+                 *command[1:])
+        assert p.returncode == 2, (command[0], p.returncode, p.stderr)
+        assert f"two case files named pendulum: {CASES / 'pendulum.toml'}, {other}" in \
+            " ".join(p.stderr.split()), p.stderr
+        _no_traceback(p)
+        assert not out.exists()
+    home = _project(tmp_path, "pendulum")
+    short = PENDULUM.replace("duration = 10.0", "duration = 0.5")
+    _case_file(home / "cases", short)
+    p = _cli("run", "pendulum", home / "cases" / "pendulum.toml", "--engines", "natcoord",
+             "--out", out, env={"NATCOORD_HOME": str(home)})
+    assert p.returncode == 0, p.stderr
+    assert [r["case"] for r in read_json(out / "summary.json")["records"]] == ["pendulum"]
+
+
 def test_no_stale_file_survives_a_new_run(tmp_path):
     cases = [load_case(CASES / "pendulum.toml")]
     out = tmp_path / "res"
