@@ -156,6 +156,63 @@ def test_a_killed_run_leaves_no_staging_folder_for_ever(tmp_path):
     assert sorted(q.name for q in runs.iterdir()) == ["b"]
 
 
+def _dead_pid() -> int:
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
+
+
+def _results_folder(folder: Path, pid: int, text: str) -> Path:
+    """A results folder as natcoord writes it (summary.json and its marker) by ``pid``."""
+    (folder / "results").mkdir(parents=True)
+    (folder / "summary.json").write_text(text)
+    (folder / "results" / "a.csv").write_text(text)
+    (folder / outdir.MARKER).write_text(json.dumps({
+        "natcoord": "0.1.0", "command": "run", "state": "complete", "pid": pid,
+        "created": "2026-01-01T00:00:00+00:00", "files": ["results/a.csv", "summary.json"]}))
+    return folder
+
+
+@pytest.mark.parametrize("next_target", ["beside", "the same"])
+def test_a_command_killed_between_the_two_renames_loses_no_results(tmp_path, next_target):
+    """SIGKILL after the previous folder was set aside and before the new one took its
+    place: the next command writing beside it (or to it) puts the previous folder back
+    and removes the killed command's staging folder; nothing is deleted but that."""
+    pid = _dead_pid()
+    old = _snapshot(_results_folder(tmp_path / "keep", 1, "previous"))
+    shutil.copytree(tmp_path / "keep", tmp_path / f".res.replaced-{pid}")
+    _results_folder(tmp_path / f".res.staging-{pid}", pid, "new, never published")
+    (tmp_path / ".res.lock").write_text(str(pid))
+    target = tmp_path / ("other" if next_target == "beside" else "res")
+    with outdir.publishing(target) as staging:
+        assert _snapshot(tmp_path / "res") == old  # put back before anything is written
+        (staging / "summary.json").write_text("next")
+    names = sorted(q.name for q in tmp_path.iterdir())
+    if next_target == "beside":
+        assert names == ["keep", "other", "res"] and _snapshot(tmp_path / "res") == old
+    else:  # replaced by the complete command, as any previous results folder is
+        assert names == ["keep", "res"] and (tmp_path / "res" / "summary.json").read_text() \
+            == "next" and not (tmp_path / "res" / "results").exists()
+
+
+def test_a_command_killed_after_the_swap_leaves_only_its_new_results(tmp_path):
+    """Killed while removing the previous files it had set aside: the next command removes
+    what is left of them; a set-aside folder whose target holds other files is kept."""
+    pid = _dead_pid()
+    _results_folder(tmp_path / "res", pid, "new")
+    _results_folder(tmp_path / f".res.replaced-{pid}", 1, "previous")
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    _results_folder(tmp_path / f".mine.replaced-{pid}", 1, "previous")
+    kept = _snapshot(tmp_path / f".mine.replaced-{pid}")
+    assert outdir.clean_stale(tmp_path) == [tmp_path / f".res.replaced-{pid}"]
+    assert sorted(q.name for q in tmp_path.iterdir()) == [f".mine.replaced-{pid}", "mine",
+                                                          "res"]
+    assert _snapshot(tmp_path / f".mine.replaced-{pid}") == kept
+    assert (tmp_path / "res" / "summary.json").read_text() == "new"
+
+
 def test_point_latest_never_moves_a_users_folder(tmp_path):
     latest = tmp_path / "latest"
     latest.mkdir()

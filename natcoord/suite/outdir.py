@@ -12,13 +12,16 @@ complete; then the files its marker lists are removed, and nothing else. An inte
 crashed or refused command publishes nothing and leaves the previous folder as it was.
 A lock file beside the target keeps a second command from writing the same folder (it is
 refused with the other command's pid); staging folders of commands that were killed (their
-pid is gone) are removed by the next command in the same parent folder.
+pid is gone) are removed by the next command in the same parent folder, which also puts
+back a previous folder that a command killed while swapping had set aside.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import datetime as dt
+import errno
 import fcntl
 import json
 import os
@@ -195,11 +198,13 @@ def _locked(target: Path) -> Iterator[None]:
 
 
 def clean_stale(parent: Path, held: str = "") -> list[Path]:
-    """Remove the staging folders (and set-aside previous folders) that killed commands
-    left in ``parent``: those whose pid is gone and whose target's lock is free. A staging
-    folder goes whole (natcoord made it); a set-aside results folder loses only the files
-    its marker lists. ``held``: the name of a target whose lock the caller holds already.
-    Returns what was removed."""
+    """Tidy what killed commands left in ``parent`` (their pid is gone and their target's
+    lock is free). A staging folder goes whole (natcoord made it). A set-aside previous
+    results folder goes back in its target's place when the target is absent (the command
+    was killed between the two renames of :func:`_swap`); it loses the files its marker
+    lists only when the target holds that command's new results, and is kept otherwise.
+    ``held``: the name of a target whose lock the caller holds already. Returns what was
+    removed or put back."""
     removed = []
     try:
         entries = list(Path(parent).iterdir())
@@ -210,17 +215,70 @@ def clean_stale(parent: Path, held: str = "") -> list[Path]:
         if not m or p.is_symlink() or not p.is_dir() or int(m["pid"]) == os.getpid() \
                 or _pid_alive(int(m["pid"])) or read_marker(p) is None:
             continue
+        target = Path(parent) / m["name"]
         try:
-            with contextlib.nullcontext() if m["name"] == held else \
-                    _locked(Path(parent) / m["name"]):
+            with contextlib.nullcontext() if m["name"] == held else _locked(target):
+                if not p.exists():
+                    continue  # tidied by another command meanwhile
                 if m["kind"] == "staging":
                     shutil.rmtree(p)
-                else:
+                    removed.append(p)
+                elif (fate := _set_aside_fate(p, target, int(m["pid"]))) == "put back":
+                    _rename_noreplace(p, target)
+                    removed.append(target)
+                elif fate == "replaced":
                     _remove_written(p)
-                removed.append(p)
+                    removed.append(p)
         except (FolderBusy, OSError):
             continue
     return removed
+
+
+def _set_aside_fate(aside: Path, target: Path, pid: int) -> str:
+    """What becomes of ``aside``, the previous results of ``target`` that the killed
+    command ``pid`` set aside in :func:`_swap`: "put back", "replaced" (its written files
+    go) or "kept".
+
+    ``target`` absent: the command was killed between the two renames; its staging folder
+    holds its complete new results, ``aside`` the previous ones. The previous ones go back
+    (a rename that replaces nothing: nothing is deleted), the staging folder goes as any
+    killed command's: a killed command publishes nothing and leaves the previous folder as
+    it was. Promoting the staging folder instead would publish results their command never
+    reported, without the rest of its ending (``reports/latest``, a suite's report and
+    history record), and its marker proves only that its files were listed, not that the
+    command finished what it meant to do. ``target`` holding the command's own marker: it
+    was killed after the swap, while removing the previous files. Anything else in
+    ``target`` (put there by hand since): ``aside`` is kept, with a warning."""
+    if not target.exists() and not target.is_symlink():
+        return "put back"
+    marker = None if target.is_symlink() else read_marker(target)
+    if marker is not None and marker.get("pid") == pid:
+        return "replaced"
+    print(f"warning: {aside} holds the previous results of {target}, set aside by a "
+          f"command that was killed (pid {pid}); {target} now holds something else: both "
+          "are left as they are", file=sys.stderr)
+    return "kept"
+
+
+def _rename_noreplace(src: Path, dst: Path) -> None:
+    """Rename ``src`` to ``dst``, never replacing ``dst`` (rename(2) would replace an empty
+    folder): renameat2's RENAME_NOREPLACE, else a check just before the rename (the
+    caller holds ``dst``'s lock, so no natcoord command creates it meanwhile)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        fn = libc.renameat2
+    except (OSError, AttributeError):
+        fn = None
+    if fn is not None:
+        at_fdcwd, rename_noreplace = -100, 1
+        if fn(at_fdcwd, os.fsencode(src), at_fdcwd, os.fsencode(dst), rename_noreplace) == 0:
+            return
+        err = ctypes.get_errno()
+        if err not in (errno.ENOSYS, errno.EINVAL):  # EINVAL: a filesystem without it
+            raise OSError(err, os.strerror(err), str(src), None, str(dst))
+    if dst.exists() or dst.is_symlink():
+        raise FileExistsError(errno.EEXIST, os.strerror(errno.EEXIST), str(dst))
+    os.rename(src, dst)
 
 
 # ---- publishing ---------------------------------------------------------------------------
