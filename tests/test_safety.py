@@ -16,6 +16,7 @@ import sys
 import tempfile
 import textwrap
 import time
+import types
 from pathlib import Path
 
 import pytest
@@ -211,6 +212,40 @@ def test_a_command_killed_after_the_swap_leaves_only_its_new_results(tmp_path):
                                                           "res"]
     assert _snapshot(tmp_path / f".mine.replaced-{pid}") == kept
     assert (tmp_path / "res" / "summary.json").read_text() == "new"
+
+
+def test_two_commands_stamped_in_the_same_second_get_two_folders(tmp_path, monkeypatch):
+    """The default folder's name is reserved when it is chosen: a second command started in
+    the same second gets the next name and is not refused as a writer of the first's."""
+    import datetime as dt
+
+    class Frozen(dt.datetime):
+        @classmethod
+        def now(cls, tz=None):
+            return cls(2026, 1, 2, 3, 4, 5, tzinfo=tz)
+
+    monkeypatch.setattr(outdir, "dt", types.SimpleNamespace(datetime=Frozen, UTC=dt.UTC))
+    runs = tmp_path / "runs"
+    first = outdir.stamped(runs, "run")
+    second = outdir.stamped(runs, "run")
+    assert (first.name, second.name) == ("20260102T030405Z-run", "20260102T030405Z-run-2")
+    with outdir.publishing(first) as a, outdir.publishing(second) as b:
+        (a / "summary.json").write_text("first")
+        (b / "summary.json").write_text("second")
+    assert (first / "summary.json").read_text() == "first"
+    assert (second / "summary.json").read_text() == "second"
+    assert sorted(q.name for q in runs.iterdir()) == [first.name, second.name]
+    third = outdir.stamped(runs, "run")  # the published folders' names are taken
+    assert third.name == "20260102T030405Z-run-3"
+    # a command that ended before publishing leaves its reservation; once its pid is gone
+    # the next command beside it removes it (a live one's, or a lock not natcoord's, stays)
+    (runs / f".{third.name}.lock").write_text(str(_dead_pid()))
+    (runs / ".20260102T030405Z-run-4.lock").write_text(str(os.getppid()))
+    (runs / ".tool.lock").write_text(str(_dead_pid()))
+    with outdir.publishing(runs / "x"):
+        pass
+    assert sorted(q.name for q in runs.iterdir()) == [
+        ".20260102T030405Z-run-4.lock", ".tool.lock", first.name, second.name, "x"]
 
 
 def test_point_latest_never_moves_a_users_folder(tmp_path):

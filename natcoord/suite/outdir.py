@@ -36,6 +36,8 @@ from ..errors import NatcoordError
 
 MARKER = ".natcoord-results"
 _STAGING = re.compile(r"^\.(?P<name>.+)\.(?P<kind>staging|replaced)-(?P<pid>\d+)$")
+# the lock file of a stamped folder's name (see stamped): a reservation
+_RESERVED = re.compile(r"^\.(?P<name>\d{8}T\d{6}Z-.+)\.lock$")
 
 
 class FolderBusy(NatcoordError):
@@ -47,14 +49,36 @@ class NotResults(NatcoordError):
 
 
 def stamped(parent: Path, kind: str) -> Path:
-    """A fresh folder name under ``parent``: ``<UTC time>-<kind>`` (made unique)."""
+    """A fresh folder name under ``parent``, ``<UTC time>-<kind>`` (then ``-2``, ``-3`` ...),
+    reserved for this command: a name is free when nothing of it is in ``parent`` (the
+    folder, its lock, a staging or set-aside folder of it), and taken by creating its lock
+    file exclusively with this command's pid. Two commands started in the same second so
+    get two folders (checking the folder alone gave both the same name, and the second
+    was refused as a writer of the first's folder). The reservation is the lock file that
+    :func:`publishing` then holds and removes; a command that ends before (refused or
+    killed) leaves it, and the next command in ``parent`` removes it once its pid is gone
+    (:func:`clean_stale`)."""
+    parent = Path(parent)
+    parent.mkdir(parents=True, exist_ok=True)
     stamp = dt.datetime.now(dt.UTC).strftime("%Y%m%dT%H%M%SZ")
-    path = Path(parent) / f"{stamp}-{kind}"
+    present = os.listdir(parent)
     k = 1
-    while path.exists() or path.is_symlink():
+    while True:
+        name = f"{stamp}-{kind}" + (f"-{k}" if k > 1 else "")
         k += 1
-        path = Path(parent) / f"{stamp}-{kind}-{k}"
-    return path
+        if name in present or any(n.startswith(f".{name}.") for n in present):
+            continue
+        lock = parent / f".{name}.lock"
+        try:
+            fd = os.open(lock, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue  # another command took it since the listing
+        with os.fdopen(fd, "w") as f:
+            f.write(str(os.getpid()))
+        if os.path.lexists(parent / name):  # published (and its lock removed) meanwhile
+            lock.unlink(missing_ok=True)
+            continue
+        return parent / name
 
 
 # ---- the marker ---------------------------------------------------------------------------
@@ -203,6 +227,7 @@ def clean_stale(parent: Path, held: str = "") -> list[Path]:
     results folder goes back in its target's place when the target is absent (the command
     was killed between the two renames of :func:`_swap`); it loses the files its marker
     lists only when the target holds that command's new results, and is kept otherwise.
+    The lock file of a stamped name (:func:`stamped`) whose command is gone goes too.
     ``held``: the name of a target whose lock the caller holds already. Returns what was
     removed or put back."""
     removed = []
@@ -212,7 +237,14 @@ def clean_stale(parent: Path, held: str = "") -> list[Path]:
         return removed
     for p in entries:
         m = _STAGING.match(p.name)
-        if not m or p.is_symlink() or not p.is_dir() or int(m["pid"]) == os.getpid() \
+        if not m:
+            lock = _RESERVED.match(p.name)
+            if lock and lock["name"] != held and _stale_lock(p):
+                with contextlib.suppress(FolderBusy, OSError), \
+                        _locked(Path(parent) / lock["name"]):
+                    removed.append(p)  # the lock file goes on release
+            continue
+        if p.is_symlink() or not p.is_dir() or int(m["pid"]) == os.getpid() \
                 or _pid_alive(int(m["pid"])) or read_marker(p) is None:
             continue
         target = Path(parent) / m["name"]
@@ -232,6 +264,18 @@ def clean_stale(parent: Path, held: str = "") -> list[Path]:
         except (FolderBusy, OSError):
             continue
     return removed
+
+
+def _stale_lock(path: Path) -> bool:
+    """True when the lock file ``path`` names a process that is gone (an empty one is
+    being written: not stale)."""
+    try:
+        if path.is_symlink() or not path.is_file():
+            return False
+        text = path.read_text(encoding="ascii", errors="replace").strip()
+    except OSError:
+        return False
+    return text.isdigit() and int(text) != os.getpid() and not _pid_alive(int(text))
 
 
 def _set_aside_fate(aside: Path, target: Path, pid: int) -> str:
