@@ -473,6 +473,27 @@ def test_a_passing_gate_that_updates_the_baseline_exits_0(tmp_path):
     assert all(0 <= stored[c.name] <= own.tolerance_for(c) for c in case.channels)
 
 
+def test_updating_a_baseline_given_as_a_link_writes_its_target(tmp_path):
+    """A baseline kept elsewhere and linked: the update writes the file the link leads to,
+    atomically, and the link stays a link."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    shutil.copy(REFERENCES / "baseline.json", mine / "baseline.json")
+    link = tmp_path / "baseline.json"
+    link.symlink_to(Path("mine") / "baseline.json")
+    p = _cli("gate", "--results", _gate_folder(tmp_path), "--baseline", link,
+             "--history", tmp_path / "none.db", "--update-baseline")
+    _clean(p, 0)
+    assert link.is_symlink() and os.readlink(link) == str(Path("mine") / "baseline.json")
+    assert "pendulum/natcoord" in read_json(mine / "baseline.json")["errors"]
+    assert sorted(q.name for q in mine.iterdir()) == ["baseline.json"]  # no temporary left
+    loop = tmp_path / "loop"
+    loop.symlink_to("loop")
+    with pytest.raises(OSError):
+        write_json(loop, {})
+    assert loop.is_symlink() and os.readlink(loop) == "loop"
+
+
 @pytest.mark.parametrize("code", [errno.ENOSPC, errno.EROFS])
 def test_a_full_disk_or_read_only_folder_exits_5_never_1(tmp_path, code):
     base = tmp_path / "baseline.json"

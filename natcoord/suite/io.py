@@ -4,6 +4,7 @@ and a lock for read-modify-write updates of a shared file."""
 from __future__ import annotations
 
 import contextlib
+import errno
 import fcntl
 import json
 import math
@@ -27,9 +28,18 @@ def write_atomic(path: Path, text: str, *, replace: bool = True) -> None:
     """Write ``text`` to ``path`` through a temporary file in the same folder and a rename.
     The file gets ordinary permissions (0666 less the umask), not the temporary's 0600.
     With ``replace=False`` an existing ``path`` is kept (FileExistsError): the temporary is
-    linked into place, which fails when the name exists, so no reader ever sees part of it."""
+    linked into place, which fails when the name exists, so no reader ever sees part of it.
+    A symbolic link (a user's baseline kept elsewhere) is never replaced: the file it
+    leads to is written the same way, in that file's folder (a rename over the link would
+    put a file in its place and leave its target as it was); a link loop, or a link into a
+    folder that does not exist, raises OSError."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    if path.is_symlink():
+        path = Path(os.path.realpath(path))
+        if path.is_symlink():  # a loop: realpath stops at a link
+            raise OSError(errno.ELOOP, os.strerror(errno.ELOOP), str(path))
+    else:
+        path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         os.fchmod(fd, 0o666 & ~_umask())
