@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import math
 import os
 import pickle
@@ -38,10 +39,11 @@ import numpy as np  # noqa: E402
 
 from ..case.mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..engines import adapter  # noqa: E402
-from ..engines.base import InitialState  # noqa: E402
+from ..engines.base import EngineRun, InitialState  # noqa: E402
 from ..engines.capabilities import why_not  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..outputs.result import Result, Status, evaluate_channels, methods_table  # noqa: E402
+from ..outputs.result import (Motion, Result, Status, evaluate_channels,  # noqa: E402
+                              methods_table)
 from . import batches  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
@@ -87,6 +89,107 @@ def truncated(case: Case, fraction: float) -> Case:
     return dataclasses.replace(case, duration=k * case.output_dt)
 
 
+class BadReturn(Exception):
+    """An engine's ``run`` returned something other than the :class:`EngineRun` its
+    contract promises (the message says what): its cell fails, nothing of it is kept."""
+
+
+def _short(x, n: int = 80) -> str:
+    s = repr(x)
+    return s if len(s) <= n else s[:n] + "..."
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"{type(x).__name__} is not JSON")
+
+
+def _table_problem(what: str, x) -> str:
+    """Why ``x`` cannot be a record's table ``what`` (settings, counters): a dict with
+    string keys whose values JSON can hold; "" when it can."""
+    if not isinstance(x, dict):
+        return f"{what} {_short(x)} ({type(x).__name__}), not a dict"
+    bad = [k for k in x if not isinstance(k, str)]
+    if bad:
+        return f"{what} with the key {_short(bad[0])}, not a string"
+    try:
+        json.dumps(x, default=_json_default)
+    except (TypeError, ValueError, RecursionError, OverflowError) as e:
+        return f"{what} that JSON cannot hold ({e})"
+    return ""
+
+
+def _number(x) -> bool:
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(
+        x, (bool, np.bool_))
+
+
+def _motion_problem(what: str, m, case: Case) -> str:
+    """Why ``m`` is not a Motion at ``case``'s sample times; "" when it is."""
+    if not isinstance(m, Motion):
+        return f"{what} {_short(m)} ({type(m).__name__}), not a natcoord Motion"
+    try:
+        t = np.asarray(m.t, dtype=float)
+    except (TypeError, ValueError):
+        return f"{what} with sample times {_short(m.t)}, not numbers"
+    want = case.times
+    if t.shape != want.shape or not np.allclose(t, want, atol=1e-9):  # as the gate reads
+        return (f"{what} with {t.size} samples at other times than the case's "
+                f"{want.size} (t = {_short(t.tolist(), 60)}; the case's start at "
+                f"{want[0]:g} s, every {case.output_dt:g} s to {want[-1]:g} s)")
+    return ""
+
+
+def run_problem(run, case: Case) -> str:
+    """Why ``run`` is not a valid :class:`EngineRun` of ``case``: what every later reader
+    (the record, its CSV, the report, the gate) trusts of it; "" when it is valid."""
+    if not isinstance(run, EngineRun):
+        return f"{_short(run)} ({type(run).__name__}), not a natcoord EngineRun"
+    why = _motion_problem("a motion", run.motion, case)
+    if why:
+        return why
+    for name in ("build_time_s", "wall_time_s"):
+        x = getattr(run, name)
+        if not _number(x) or not math.isfinite(x) or x < 0:
+            return f"{name} = {_short(x)}, not a finite number of seconds >= 0"
+    if not isinstance(run.n_steps, (int, np.integer)) or isinstance(run.n_steps, bool) \
+            or run.n_steps < 0:
+        return f"n_steps = {_short(run.n_steps)}, not a whole number >= 0"
+    for name in ("settings", "counters"):
+        why = _table_problem(name, getattr(run, name))
+        if why:
+            return why
+    if not isinstance(run.notes, list) or not all(isinstance(n, str) for n in run.notes):
+        return f"notes {_short(run.notes)}, not a list of strings"
+    if not isinstance(run.methods, dict):
+        return f"methods {_short(run.methods)}, not a dict"
+    for k, m in run.methods.items():
+        why = ((f"methods with the key {_short(k)}, not a string" if not isinstance(k, str)
+                else "") or _motion_problem(f"method {k!r}'s motion", m, case))
+        if why:
+            return why
+    return ""
+
+
+def checked(run_fn):
+    """``run_fn`` (an adapter's run) whose every return is checked (:func:`run_problem`):
+    BadReturn saying what is wrong instead of a run later code would trust."""
+
+    def run(case, init, settings):
+        out = run_fn(case, init, settings)
+        why = run_problem(out, case)
+        if why:
+            raise BadReturn(f"the engine's run returned {why}")
+        if not isinstance(out.n_steps, int):
+            out.n_steps = int(out.n_steps)
+        return out
+
+    return run
+
+
 def cannot_run(case: Case, engine: str, settings: dict | None = None) -> str:
     """Why ``engine`` does not run ``case`` before it runs (the case file's ``unsupported``,
     else the engine's declared capabilities, :mod:`natcoord.engines.capabilities`); "" when
@@ -117,21 +220,31 @@ def run_job(job: Job) -> tuple[Result, dict]:
         res.status, res.reason = Status.UNSUPPORTED, why
         return res, {}
     try:
-        res.engine_version = mod.version()
+        version = mod.version()
     except ImportError as e:
         res.status = Status.SKIPPED
         res.reason = f"package {mod.PACKAGE!r} is not installed ({e}); pip install {mod.PACKAGE}"
         return res, {}
+    except Exception as e:  # the adapter's own bug: this cell fails, the suite goes on
+        res.status = Status.FAILED
+        res.reason = f"the engine's version() raised {type(e).__name__}: {e}"
+        return res, {}
+    if not isinstance(version, str):
+        res.status = Status.FAILED
+        res.reason = f"the engine's version() returned {_short(version)}, not a string"
+        return res, {}
+    res.engine_version = version
     if job.init is None:
         res.status, res.reason = Status.FAILED, f"the case does not assemble: {job.assembly_error}"
         return res, {}
     settings = {**spec.settings, **job.settings}
     short_case = truncated(case, job.truncate) if 0 < job.truncate < 1 else None
     extra: dict = {}
+    run_fn = checked(mod.run)
     try:
         if job.batch_s > 0:
             run, cut, full, part = batches.measure(
-                mod.run, case, short_case, job.init, settings, engine=engine,
+                run_fn, case, short_case, job.init, settings, engine=engine,
                 samples=max(1, job.repeat), min_batch_s=job.batch_s, budget_s=job.budget_s)
             res.samples_s = full.wall_s
             extra = {"cpu_samples_s": full.cpu_s, "batch_runs": full.runs}
@@ -140,22 +253,34 @@ def run_job(job: Job) -> tuple[Result, dict]:
                                   "counters": cut.counters} | part.record()
         else:
             for _ in range(max(1, job.repeat)):  # every repeat a whole run
-                run = mod.run(case, job.init, settings)
+                run = run_fn(case, job.init, settings)
                 res.samples_s.append(run.wall_time_s)
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
+        return res, {}
+    except BadReturn as e:
+        res.status, res.reason = Status.FAILED, str(e)
+        res.samples_s = []
         return res, {}
     except Exception as e:  # an engine's failure must not take the suite down
         res.status = Status.FAILED
         res.reason = f"{type(e).__name__}: {e}"
         res.notes.append(traceback.format_exc(limit=4))
         return res, {}
-    res.table = evaluate_channels(case, run.motion)
+    try:
+        table = evaluate_channels(case, run.motion)
+        methods = methods_table(case, run) if run.methods else None
+    except Exception as e:  # a motion missing a body, arrays of the wrong shape, ...
+        res.status = Status.FAILED
+        res.reason = (f"the engine's motion does not give the case's channels: "
+                      f"{type(e).__name__}: {e}")
+        res.samples_s = []
+        res.notes.append(traceback.format_exc(limit=4))
+        return res, {}
+    res.table, res.methods = table, methods
     res.build_time_s, res.n_steps = run.build_time_s, run.n_steps
     res.wall_time_s = min(res.samples_s) if res.samples_s else run.wall_time_s
     res.settings, res.counters, res.notes = run.settings, run.counters, run.notes
-    if run.methods:
-        res.methods = methods_table(case, run)
     motion = [c for c in case.channels if c.kind not in FORCE_KINDS]
     absent = [c.name for c in motion if c.kind in MAYBE_ABSENT
               and np.all(np.isnan(res.table[c.name]))]
