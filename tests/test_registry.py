@@ -3,6 +3,8 @@ the fallback for the built-ins, and what is refused with a reason."""
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 
 import natcoord.engines.registry as reg
@@ -48,3 +50,83 @@ def test_plugins_come_after_the_builtins_sorted_and_bad_ones_are_named(entries):
     with pytest.raises(KeyError, match="unknown engine 'zz'"):
         reg.adapter("zz")
     assert reg.adapter("rk4").NAME == "rk4"
+
+
+VALID = '''
+from natcoord.engines.capabilities import Capabilities
+from natcoord.engines.schema import Setting
+
+NAME = "{name}"
+PACKAGE = "p-{name}"
+SETTINGS = (Setting("dt", "number", 1e-3, "time step", "s", exclusive_minimum=0.0),)
+CAPABILITIES = Capabilities(dimensions={{2}})
+
+
+def version():
+    return "0.1"
+
+
+def run(case, init, settings):
+    raise RuntimeError("not run here")
+'''
+
+
+@pytest.fixture
+def modules(tmp_path, monkeypatch, entries):
+    """``modules({name: body})``: adapter modules p_<name> (the valid one above with
+    ``body`` appended, or ``body`` alone when it starts with "!"), discovered."""
+    monkeypatch.syspath_prepend(str(tmp_path))
+    made = []
+
+    def make(bodies: dict):
+        for name, body in bodies.items():
+            text = body[1:] if body.startswith("!") else VALID.format(name=name) + body
+            (tmp_path / f"p_{name}.py").write_text(text)
+            sys.modules.pop(f"p_{name}", None)
+            made.append(name)
+        return entries([(n, f"p_{n}") for n in bodies])
+
+    yield make
+    for n in made:
+        sys.modules.pop(f"p_{n}", None)
+
+
+def test_mistyped_declarations_are_refused_at_discovery(modules):
+    """CAPABILITIES a dict, SETTINGS strings or None, ...: the plug-in is listed with its
+    problem (cases --json and check-engine crashed on it), the others load."""
+    r = modules({
+        "good": "",
+        "capdict": "CAPABILITIES = {'dimensions': [2]}\n",
+        "setstr": "SETTINGS = ('dt', 'number')\n",
+        "setnone": "SETTINGS = None\n",
+        "setlist": "SETTINGS = list(SETTINGS)\n",
+        "fields": "SETTINGS = (Setting('t', 'table', {}, 'a table', fields=('x',)),)\n",
+        "twice": "SETTINGS = SETTINGS * 2\n",
+        "nanjson": "SETTINGS = (Setting('k', 'number', float('nan'), 'k'),)\n",
+        "objdefault": "SETTINGS = (Setting('k', 'number', object(), 'k'),)\n",
+        "strbound": "SETTINGS = (Setting('k', 'number', 1.0, 'k', minimum='0'),)\n",
+        "rules": "CAPABILITIES = Capabilities(rules='no')\n",
+        "why": "CAPABILITIES = Capabilities(why=[1])\n",
+        "runnot": "run = 3\n",
+        "package": "PACKAGE = None\n",
+    })
+    assert r.names == (*reg.BUILTIN, "good")
+    why = {p.name: p.error for p in r.problems}
+    assert set(why) == {"capdict", "setstr", "setnone", "setlist", "fields", "twice",
+                        "nanjson", "objdefault", "strbound", "rules", "why", "runnot",
+                        "package"}
+    assert why["capdict"] == ("its CAPABILITIES is {'dimensions': [2]} (dict), not a "
+                              "natcoord.engines.capabilities.Capabilities")
+    assert why["setstr"] == ("its SETTINGS holds 'dt' (str), not a "
+                             "natcoord.engines.schema.Setting")
+    assert why["setnone"].startswith("its SETTINGS is None (NoneType), not a tuple")
+    assert why["setlist"].startswith("its SETTINGS is [Setting(") and "(list)" in why["setlist"]
+    assert why["fields"].startswith("its setting 't''s fields holds 'x' (str)")
+    assert why["twice"] == "its SETTINGS names a setting 'dt': not a new non-empty string"
+    for name in ("nanjson", "objdefault", "strbound", "why"):
+        assert why[name].startswith("its declarations (CAPABILITIES, SETTINGS) cannot be "
+                                    "described as JSON"), why[name]
+    assert why["rules"] == "its CAPABILITIES.rules is 'no', not a function"
+    assert why["runnot"] == "its run is 3, not a function"
+    assert why["package"] == "its PACKAGE is None, not a package name (a string)"
+

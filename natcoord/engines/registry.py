@@ -8,9 +8,12 @@ way in its ``pyproject.toml``; when natcoord's own metadata is missing (a source
 ``PYTHONPATH``, never installed), :data:`BUILTIN` registers them all the same. Order is
 stable: the built-ins in :data:`BUILTIN`'s order, then the plug-ins by name.
 
-A plug-in whose module fails to import or breaks the contract (no ``NAME``, ``PACKAGE``,
-``SETTINGS``, ``CAPABILITIES``, ``version`` or ``run``; a ``NAME`` other than its entry
-point's) is left out and listed in :attr:`Registry.problems` with the reason, and so is one
+A plug-in whose module fails to import or breaks the
+contract (no ``NAME``, ``PACKAGE``, ``SETTINGS``, ``CAPABILITIES``, ``version`` or ``run``; a
+``NAME`` other than its entry point's; ``CAPABILITIES`` not a
+:class:`~natcoord.engines.capabilities.Capabilities`, ``SETTINGS`` not a tuple of
+:class:`~natcoord.engines.schema.Setting`, or declarations that cannot be described as
+JSON) is left out and listed in :attr:`Registry.problems` with the reason, and so is one
 that takes a built-in's name: one broken plug-in never takes the suite down.
 """
 
@@ -20,6 +23,7 @@ import hashlib
 import importlib
 import importlib.metadata as md
 import importlib.util
+import json
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -75,13 +79,79 @@ def _entries() -> list[tuple[str, str]]:
     return list(dict.fromkeys((ep.name, ep.value) for ep in md.entry_points(group=GROUP)))
 
 
+def _short(x, n: int = 60) -> str:
+    s = repr(x)
+    return s if len(s) <= n else s[:n] + "..."
+
+
+def _settings_error(schema, where: str = "SETTINGS") -> str:
+    """Why ``schema`` is not a tuple of Setting (recursively, a table's ``fields`` too)."""
+    from .schema import Setting
+
+    if not isinstance(schema, tuple):
+        return (f"its {where} is {_short(schema)} ({type(schema).__name__}), not a tuple of "
+                "natcoord.engines.schema.Setting")
+    names = set()
+    for s in schema:
+        if not isinstance(s, Setting):
+            return (f"its {where} holds {_short(s)} ({type(s).__name__}), not a "
+                    "natcoord.engines.schema.Setting")
+        if not isinstance(s.name, str) or not s.name or s.name in names:
+            return f"its {where} names a setting {_short(s.name)}: not a new non-empty string"
+        names.add(s.name)
+        why = _settings_error(s.fields, f"setting {s.name!r}'s fields") if s.fields else ""
+        if why:
+            return why
+    return ""
+
+
 def _contract_error(name: str, module: ModuleType) -> str:
+    """Why a plug-in's adapter module breaks the contract (:class:`natcoord.engines.base.
+    Adapter`): a missing or mistyped declaration; "" when it holds."""
+    from .capabilities import Capabilities
+    from .schema import describe
+
     missing = [a for a in REQUIRED if not hasattr(module, a)]
     if missing:
         return f"the adapter module lacks {', '.join(missing)} (see natcoord.engines.base)"
     if module.NAME != name:
-        return f"its NAME is {module.NAME!r}, not the entry point's name {name!r}"
+        return f"its NAME is {_short(module.NAME)}, not the entry point's name {name!r}"
+    if not isinstance(module.PACKAGE, str) or not module.PACKAGE:
+        return f"its PACKAGE is {_short(module.PACKAGE)}, not a package name (a string)"
+    for fn in ("version", "run", "check_settings"):
+        if hasattr(module, fn) and not callable(getattr(module, fn)):
+            return f"its {fn} is {_short(getattr(module, fn))}, not a function"
+    caps = module.CAPABILITIES
+    if not isinstance(caps, Capabilities):
+        return (f"its CAPABILITIES is {_short(caps)} ({type(caps).__name__}), not a "
+                "natcoord.engines.capabilities.Capabilities")
+    if caps.rules is not None and not callable(caps.rules):
+        return f"its CAPABILITIES.rules is {_short(caps.rules)}, not a function"
+    if not isinstance(caps.step, str):
+        return f"its CAPABILITIES.step is {_short(caps.step)}, not a setting's name"
+    why = _settings_error(module.SETTINGS)
+    if why:
+        return why
+    try:  # what `natcoord cases --json` prints of it
+        json.dumps({"capabilities": caps.summary(), "settings": describe(module.SETTINGS)},
+                   allow_nan=False)
+    except Exception as e:
+        return (f"its declarations (CAPABILITIES, SETTINGS) cannot be described as JSON: "
+                f"{type(e).__name__}: {e}")
     return ""
+
+
+def _load(name: str, value: str) -> str:
+    """Import a plug-in's adapter module and check its contract: "" when it loads, else
+    why not."""
+    try:
+        module = importlib.import_module(value.split(":")[0])
+    except Exception as e:  # any failure of a plug-in is its own
+        return f"import failed: {type(e).__name__}: {e}"
+    try:
+        return _contract_error(name, module)
+    except Exception as e:  # a declaration whose reading raises
+        return f"its declarations could not be read: {type(e).__name__}: {e}"
 
 
 @cache
@@ -101,13 +171,7 @@ def discover() -> Registry:
             found[name] = value
     plugins = {}
     for name in sorted(found):
-        try:
-            module = importlib.import_module(found[name].split(":")[0])
-        except Exception as e:  # any failure of a plug-in is its own
-            problems.append(Problem(name, found[name], f"import failed: "
-                                    f"{type(e).__name__}: {e}"))
-            continue
-        why = _contract_error(name, module)
+        why = _load(name, found[name])
         if why:
             problems.append(Problem(name, found[name], why))
         else:
