@@ -130,3 +130,16 @@ def test_mistyped_declarations_are_refused_at_discovery(modules):
     assert why["runnot"] == "its run is 3, not a function"
     assert why["package"] == "its PACKAGE is None, not a package name (a string)"
 
+
+def test_a_plugin_that_exits_on_import_is_listed_not_obeyed(modules):
+    """SystemExit from a plug-in's import (it took every command down, exit 1) is its own
+    failure: listed, the other engines load."""
+    r = modules({"bye": "!raise SystemExit('no')\n", "good": ""})
+    assert r.names == (*reg.BUILTIN, "good")
+    assert {p.name: p.error for p in r.problems} == {"bye": "import failed: SystemExit: no"}
+
+
+def test_an_interrupt_while_a_plugin_imports_is_not_swallowed(modules):
+    with pytest.raises(KeyboardInterrupt):
+        modules({"ctrlc": "!raise KeyboardInterrupt\n"})
+

@@ -8,7 +8,7 @@ way in its ``pyproject.toml``; when natcoord's own metadata is missing (a source
 ``PYTHONPATH``, never installed), :data:`BUILTIN` registers them all the same. Order is
 stable: the built-ins in :data:`BUILTIN`'s order, then the plug-ins by name.
 
-A plug-in whose module fails to import or breaks the
+A plug-in whose module fails to import (any exception, ``SystemExit`` too) or breaks the
 contract (no ``NAME``, ``PACKAGE``, ``SETTINGS``, ``CAPABILITIES``, ``version`` or ``run``; a
 ``NAME`` other than its entry point's; ``CAPABILITIES`` not a
 :class:`~natcoord.engines.capabilities.Capabilities`, ``SETTINGS`` not a tuple of
@@ -143,14 +143,15 @@ def _contract_error(name: str, module: ModuleType) -> str:
 
 def _load(name: str, value: str) -> str:
     """Import a plug-in's adapter module and check its contract: "" when it loads, else
-    why not."""
+    why not. Whatever the plug-in raises (SystemExit too, not KeyboardInterrupt) is its
+    own failure."""
     try:
         module = importlib.import_module(value.split(":")[0])
-    except Exception as e:  # any failure of a plug-in is its own
+    except (Exception, SystemExit) as e:  # any failure of a plug-in is its own
         return f"import failed: {type(e).__name__}: {e}"
     try:
         return _contract_error(name, module)
-    except Exception as e:  # a declaration whose reading raises
+    except (Exception, SystemExit) as e:  # a declaration whose reading raises
         return f"its declarations could not be read: {type(e).__name__}: {e}"
 
 
