@@ -143,3 +143,10 @@ def test_an_interrupt_while_a_plugin_imports_is_not_swallowed(modules):
     with pytest.raises(KeyboardInterrupt):
         modules({"ctrlc": "!raise KeyboardInterrupt\n"})
 
+
+def test_what_a_plugin_prints_on_import_goes_to_stderr(modules, capsys):
+    """Printed to standard output it corrupted every --json command's output."""
+    r = modules({"loud": "!print('hello')\nraise ImportError('x')\n", "chatty": "print('hi')\n"})
+    out, err = capsys.readouterr()
+    assert out == "" and "hello" in err and "hi" in err
+    assert "chatty" in r.names and r.problems[0].error == "import failed: ImportError: x"

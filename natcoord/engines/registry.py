@@ -14,16 +14,20 @@ contract (no ``NAME``, ``PACKAGE``, ``SETTINGS``, ``CAPABILITIES``, ``version`` 
 :class:`~natcoord.engines.capabilities.Capabilities`, ``SETTINGS`` not a tuple of
 :class:`~natcoord.engines.schema.Setting`, or declarations that cannot be described as
 JSON) is left out and listed in :attr:`Registry.problems` with the reason, and so is one
-that takes a built-in's name: one broken plug-in never takes the suite down.
+that takes a built-in's name: one broken plug-in never takes the suite down. What a
+plug-in prints while it is imported goes to standard error, never into a command's output
+(``cases --json``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import importlib.metadata as md
 import importlib.util
 import json
+import sys
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -144,15 +148,16 @@ def _contract_error(name: str, module: ModuleType) -> str:
 def _load(name: str, value: str) -> str:
     """Import a plug-in's adapter module and check its contract: "" when it loads, else
     why not. Whatever the plug-in raises (SystemExit too, not KeyboardInterrupt) is its
-    own failure."""
-    try:
-        module = importlib.import_module(value.split(":")[0])
-    except (Exception, SystemExit) as e:  # any failure of a plug-in is its own
-        return f"import failed: {type(e).__name__}: {e}"
-    try:
-        return _contract_error(name, module)
-    except (Exception, SystemExit) as e:  # a declaration whose reading raises
-        return f"its declarations could not be read: {type(e).__name__}: {e}"
+    own failure; what it prints goes to standard error."""
+    with contextlib.redirect_stdout(sys.stderr):
+        try:
+            module = importlib.import_module(value.split(":")[0])
+        except (Exception, SystemExit) as e:  # any failure of a plug-in is its own
+            return f"import failed: {type(e).__name__}: {e}"
+        try:
+            return _contract_error(name, module)
+        except (Exception, SystemExit) as e:  # a declaration whose reading raises
+            return f"its declarations could not be read: {type(e).__name__}: {e}"
 
 
 @cache
