@@ -285,11 +285,11 @@ def cases_cmd(cases_dir: CasesDir = None,
     """List the cases with a one-line description, the engines that can run each and, for
     the others, why not (the case file's reason, else the engine's declared capabilities)."""
     from .engines import adapter
-    from .suite.worker import cannot_run
+    from .suite.runner import assessed
 
     jobs = _cases(None, cases_dir)
     names = _known_engines()
-    why = {(c.name, e): cannot_run(c, e) for c in (j.case for j in jobs) for e in names}
+    why = assessed([j.case for j in jobs], names)  # a plug-in's rules in its own process
     if as_json:
         import json
 

@@ -24,7 +24,7 @@ from natcoord.case.casefile import load_case
 from natcoord.suite import worker
 from natcoord.suite.runner import prepare
 
-from .conftest import CASES, project_copy
+from .conftest import CASES, ROOT, project_copy
 
 HEAD = '''
 from natcoord.engines.capabilities import Capabilities
@@ -146,3 +146,135 @@ def test_a_broken_version_fails_the_cell(plugin, pendulum, body, why):
     plugin("vr", body)
     rec = run_in_process(pendulum, "vr")
     assert rec["status"] == "failed" and rec["reason"] == why
+
+
+# ------------------------------------------------------------ the capability rules
+@pytest.mark.parametrize("rules, status, why", [
+    ("raise RuntimeError('bug')", "failed",
+     "the engine's capability rules raised RuntimeError: bug"),
+    ("raise SystemExit(0)", "failed", "the engine's capability rules raised SystemExit: 0"),
+    ("return 'no'", "failed", "the engine's capability rules returned 'no', not a list of "
+     "reasons (strings)"),
+    ("return None", "failed", "the engine's capability rules returned None, not a list"),
+    ("return [1]", "failed", "the engine's capability rules returned [1], not a list"),
+    ("return ['no pendulums here']", "unsupported", "no pendulums here"),
+    ("print('chatter'); return []", "ok", ""),
+])
+def test_a_fault_in_the_rules_fails_the_cell(plugin, pendulum, capsys, rules, status, why):
+    """A bug in a plug-in's rules was recorded as ``unsupported`` (the reason: the
+    exception) and passed a gate that required the engine; now the cell fails."""
+    plugin("rr", f'''
+def rules(case, settings):
+    {rules}
+CAPABILITIES = Capabilities(dimensions={{2}}, rules=rules)
+''')
+    rec = run_in_process(pendulum, "rr")
+    assert rec["status"] == status and rec["reason"].startswith(why), rec["reason"]
+    assert "chatter" not in capsys.readouterr().out  # printed to stderr
+
+
+def test_a_plugins_rules_never_run_in_the_commands_process(plugin, pendulum, tmp_path):
+    """Only its engine process asks a plug-in's rules (an exit or a hang there is the
+    run's, under its time limit); a built-in engine's are asked before any process."""
+    marker = tmp_path / "asked"
+    plugin("rm", f'''
+def rules(case, settings):
+    open({str(marker)!r}, "a").write("x")
+    return ["never here"]
+CAPABILITIES = Capabilities(dimensions={{2}}, rules=rules)
+''')
+    assert worker.cannot_run(pendulum.case, "rm") == ""
+    assert not marker.exists()
+    three_d = dataclasses.replace(pendulum.case, dimension=3)  # the declared fields still say
+    assert worker.cannot_run(three_d, "rm") == "3-D cases are not modelled"
+    assert worker.assess(pendulum.case, "rm") == ("unsupported", "never here")
+    assert marker.exists()
+
+
+def natcoord(args, home: Path, site: Path, timeout: float = 600):
+    """A natcoord command in project ``home`` with the plug-ins of ``site`` installed."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join((str(site), str(ROOT))),
+           "NATCOORD_HOME": str(home), "COLUMNS": "300"}  # this natcoord, not an installed one
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", *args], cwd=home, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rules, why", [
+    ("import os; os._exit(0)", "engine process exited with status 0 without writing its "
+     "record"),
+    ("import time; time.sleep(300)", "timed out after 5 s (killed)"),
+])
+def test_rules_that_exit_or_hang_end_their_own_run(tmp_path, rules, why):
+    """os._exit in a plug-in's rules ended `run` in the command's process (exit 0, nothing
+    published: a later gate judged the folder's old results) and a sleep there blocked it
+    past --timeout: they run in the engine process now, whose end fails the cell."""
+    import time
+
+    home = project_copy(tmp_path, "pendulum")
+    site = write_plugin(tmp_path / "site", "rx", f'''
+def rules(case, settings):
+    {rules}
+CAPABILITIES = Capabilities(dimensions={{2}}, rules=rules)
+''')
+    out = tmp_path / "out"
+    t0 = time.perf_counter()
+    r = natcoord(["run", "pendulum", "--engines", "rx", "--out", str(out), "--timeout", "5"],
+                 home, site)
+    assert time.perf_counter() - t0 < 120
+    assert r.returncode == 3, r.stdout + r.stderr
+    [rec] = json.loads((out / "summary.json").read_text())["records"]
+    assert rec["status"] == "failed" and rec["reason"] == why, rec
+    r = natcoord(["gate", "--results", str(out), "--require", "rx"], home, site)
+    assert r.returncode == 3, r.stdout + r.stderr
+
+
+@pytest.mark.slow
+def test_cases_lists_faulty_plugins_and_stays_json(tmp_path):
+    """Plug-ins that exit on import, declare a dict for CAPABILITIES, print on import or in
+    their rules, or whose rules raise or exit: `cases --json` stays JSON, lists the ones
+    that do not load with their problem, gives a rule's fault as the reason (evaluated in
+    an engine process: the exit ends that process, not the listing) and lists the rest."""
+    home = project_copy(tmp_path, "pendulum")
+    site = tmp_path / "site"
+    write_plugin(site, "se", "raise SystemExit('no')\n", head=False)
+    write_plugin(site, "cd", "CAPABILITIES = {'dimensions': [2]}\n")
+    write_plugin(site, "pr", "print('hello'); raise ImportError('x')\n", head=False)
+    write_plugin(site, "rp", '''
+def rules(case, settings):
+    print("hello from rules")
+    return []
+CAPABILITIES = Capabilities(dimensions={2}, rules=rules)
+''')
+    write_plugin(site, "rr", '''
+def rules(case, settings):
+    raise RuntimeError("bug in rules")
+CAPABILITIES = Capabilities(dimensions={2}, rules=rules)
+''')
+    write_plugin(site, "rx", '''
+def rules(case, settings):
+    import os
+    os._exit(0)
+CAPABILITIES = Capabilities(dimensions={2}, rules=rules)
+''')
+    r = natcoord(["cases", "--json"], home, site)
+    assert r.returncode == 0, r.stderr
+    data = json.loads(r.stdout)
+    assert list(data["engines"])[-3:] == ["rp", "rr", "rx"] and "natcoord" in data["engines"]
+    problems = {p["name"]: p["error"] for p in data["engine_problems"]}
+    assert problems == {
+        "se": "import failed: SystemExit: no", "pr": "import failed: ImportError: x",
+        "cd": "its CAPABILITIES is {'dimensions': [2]} (dict), not a "
+              "natcoord.engines.capabilities.Capabilities"}
+    [case] = data["cases"]
+    assert case["engines"]["natcoord"] is None and case["engines"]["rp"] is None
+    assert case["engines"]["rr"] == ("failed: the engine's capability rules raised "
+                                     "RuntimeError: bug in rules")
+    assert case["engines"]["rx"].startswith("failed: the engine process evaluating its "
+                                            "capability rules exited with status 0")
+    assert "hello" in r.stderr and "Traceback" not in r.stderr
+
+    r = natcoord(["check-engine", "cd", "--json"], home, site)  # listed, not a crash
+    assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
+    assert "unknown engine 'cd'" in r.stderr and "not a natcoord.engines.capabilities" in r.stderr
+    assert "Traceback" not in r.stderr

@@ -54,7 +54,9 @@ class Capabilities:
         (the case loader refuses one given in a case file that does not)
     why : capability field -> the engine's explanation, appended to a refusal
     rules : ``rules(case, settings) -> list[str]``: the adapter's further refusals (only
-        asked when the fields above find none), ``settings`` over the adapter's defaults
+        asked when the fields above find none), ``settings`` over the adapter's defaults;
+        rules that raise or return anything but a list of strings raise
+        :class:`RulesError` (the run fails: a bug is not a refusal)
     """
 
     dimensions: frozenset = frozenset({2, 3})
@@ -93,6 +95,30 @@ class Capabilities:
         return out
 
 
+class RulesError(Exception):
+    """An engine's capability ``rules`` raised, or returned something other than a list of
+    reasons: a fault of the engine, never a reason it cannot run a case."""
+
+
+def _short(x, n: int = 80) -> str:
+    s = repr(x)
+    return s if len(s) <= n else s[:n] + "..."
+
+
+def _rules(caps: Capabilities, case: Case, settings: dict) -> list[str]:
+    """The reasons of ``caps.rules``; RulesError when they raise (SystemExit too) or return
+    anything but a list (or tuple) of strings."""
+    try:
+        got = caps.rules(case, settings)
+    except (Exception, SystemExit) as e:
+        raise RulesError(f"the engine's capability rules raised {type(e).__name__}: "
+                         f"{e}") from e
+    if not isinstance(got, (list, tuple)) or not all(isinstance(x, str) for x in got):
+        raise RulesError(f"the engine's capability rules returned {_short(got)}, not a "
+                         "list of reasons (strings)")
+    return list(got)
+
+
 def tree(case: Case, caps: Capabilities) -> tuple[list[Joint], list[Joint]]:
     """(tree joints, loop-closing joints) as this engine builds its tree: natcoord's
     spanning tree, rebuilt with the ``recut`` types first when it leaves one of them to
@@ -110,9 +136,12 @@ def _say(caps: Capabilities, what: str, text: str) -> str:
     return f"{text}: {caps.why[what]}" if what in caps.why else text
 
 
-def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> list[str]:
+def reasons(caps: Capabilities, case: Case, settings: dict | None = None, *,
+            rules: bool = True) -> list[str]:
     """Why an engine with ``caps`` cannot run ``case`` (at ``settings``: the case's own for
-    the engine when None is given); [] when it can."""
+    the engine when None is given); [] when it can. ``rules``: False leaves out the
+    adapter's ``rules`` (the declared fields only); else a fault of theirs raises
+    :class:`RulesError`."""
     out: list[str] = []
     dim = case.dimension
     if dim not in caps.dimensions:
@@ -160,8 +189,8 @@ def reasons(caps: Capabilities, case: Case, settings: dict | None = None) -> lis
                 out.append(f"force on {f.body!r} at point {f.point!r}: forces " + (
                     "only at a body's centre of mass" if caps.forces == "com"
                     else "are not modelled"))
-    if caps.rules is not None and not out:
-        out += caps.rules(case, settings if settings is not None else {})
+    if rules and caps.rules is not None and not out:
+        out += _rules(caps, case, settings if settings is not None else {})
     return out
 
 
@@ -228,10 +257,12 @@ def massless(case: Case, what: str) -> list[str]:
             for b in case.bodies if b.mass <= 0][:1]
 
 
-def why_not(case: Case, engine: str, settings: dict | None = None) -> str:
+def why_not(case: Case, engine: str, settings: dict | None = None, *,
+            rules: bool = True) -> str:
     """Why ``engine`` does not run ``case`` before any run: the case file's own
     ``unsupported`` (a measured reason), else its declared capabilities' reasons joined
-    by "; " (at the case's settings for it over ``settings``); "" when it can."""
+    by "; " (at the case's settings for it over ``settings``); "" when it can.
+    ``rules``: as :func:`reasons` (False: the adapter's own code is not run)."""
     from .registry import adapter
     from .schema import defaults
 
@@ -240,4 +271,4 @@ def why_not(case: Case, engine: str, settings: dict | None = None) -> str:
         return spec.unsupported
     mod = adapter(engine)
     merged = {**defaults(mod.SETTINGS), **spec.settings, **(settings or {})}
-    return "; ".join(reasons(mod.CAPABILITIES, case, merged))
+    return "; ".join(reasons(mod.CAPABILITIES, case, merged, rules=rules))

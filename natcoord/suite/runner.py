@@ -31,9 +31,10 @@ from ..errors import NatcoordError
 from ..outputs.channels import initial_body_states
 from . import evidence, zygote
 from .io import read_json, write_json
-from .worker import Job, cannot_run
+from .worker import Assessment, Job, cannot_run
 
 DEFAULT_TIMEOUT_S = 600.0
+ASSESS_TIMEOUT_S = 60.0  # a plug-in's capability rules on every case (natcoord cases)
 
 
 def _cpu_model() -> str:
@@ -127,12 +128,65 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
         if returncode and returncode < 0:
             why = f"engine process killed by signal {signal.Signals(-returncode).name}"
         else:
-            why = f"engine process exited with status {returncode}"
+            why = f"engine process exited with status {returncode}" + (
+                " without writing its record" if returncode == 0 else "")
         tail = "\n".join((err or "").strip().splitlines()[-3:])
         return _failed(case, engine, f"{why}{': ' + tail if tail else ''}")
     record = read_json(record_file)
     record["process_time_s"] = time.perf_counter() - t0
     return record
+
+
+def assessed(cases: Sequence[Case], engines: Sequence[str],
+             timeout_s: float = ASSESS_TIMEOUT_S) -> dict[tuple[str, str], str]:
+    """(case name, engine) -> why the engine cannot run the case ("" when it can), as
+    listed by ``natcoord cases``: :func:`cannot_run`, and a plug-in's capability rules
+    evaluated in an engine process of its own (one per plug-in, every case, within
+    ``timeout_s``: a rule that raises, hangs, exits or prints does so there). A fault of the
+    rules is given as the reason, prefixed "failed: " (a run of that cell fails)."""
+    from ..engines import adapter, discover
+
+    reg = discover()
+    out = {(c.name, e): cannot_run(c, e) for c in cases for e in engines}
+    for e in engines:
+        todo = [c for c in cases if not out[c.name, e]]
+        if reg.builtin(e) or not todo or adapter(e).CAPABILITIES.rules is None:
+            continue
+        for name, (status, why) in _assess(todo, e, timeout_s).items():
+            out[name, e] = f"failed: {why}" if status == "failed" else why
+    return out
+
+
+def _assess(cases: list[Case], engine: str, timeout_s: float) -> dict[str, tuple[str, str]]:
+    """case name -> (status, reason) of :func:`natcoord.suite.worker.assess` of ``engine``,
+    evaluated in an engine process; every case failed with the reason when that process
+    does not finish, or finishes without its answer."""
+    with tempfile.TemporaryDirectory(prefix="natcoord-assess-") as tmp:
+        job_file = Path(tmp) / "assess.pkl"
+        with open(job_file, "wb") as f:
+            pickle.dump(Assessment(tuple(cases), engine), f)
+        answer = Path(tmp) / f"{engine}.assessed.json"
+        got = None
+        try:
+            returncode, err = run_worker(job_file, Path(tmp), timeout_s)
+        except subprocess.TimeoutExpired:
+            why = f"the engine's capability rules did not finish within {timeout_s:g} s"
+        except _Stopping:
+            why = "not evaluated: the command is stopping"
+        else:
+            tail = "\n".join((err or "").strip().splitlines()[-3:])
+            why = (f"the engine process evaluating its capability rules "
+                   + (f"was killed by signal {signal.Signals(-returncode).name}"
+                      if returncode < 0 else f"exited with status {returncode}"
+                      + (" without its answer" if returncode == 0 else ""))
+                   + (f": {tail}" if tail else ""))
+            if returncode == 0 and answer.is_file():
+                with contextlib.suppress(NatcoordError):
+                    got = read_json(answer)
+    if not isinstance(got, dict):
+        return {c.name: ("failed", why) for c in cases}
+    return {c.name: tuple(got.get(c.name) or ("failed", "no answer from the engine process"))
+            for c in cases}
 
 
 def run_worker(job_file: Path, out: Path, timeout_s: float,

@@ -8,7 +8,11 @@ again), the engine and its setting overrides. Writes
 ``OUT_DIR/results/<case>/<engine>.csv`` (when the run produced data) and
 ``OUT_DIR/results/<case>/<engine>.json`` (the run record), both atomically. The parent
 process owns time limits and crashes: whatever this process does not write is reported by
-the parent as ``failed``.
+the parent as ``failed``. The engine's capability rules are evaluated here first (a
+plug-in's rules are its own code: an exception, a hang or an exit there fails this cell
+alone); a fault in them fails the cell, a reason from them makes it ``unsupported``.
+``JOB_FILE`` may instead hold an :class:`Assessment`: the rules of one engine on many
+cases, for listing (``natcoord cases``), no run.
 
 A bench job (``Job.batch_s`` > 0) takes ``repeat`` timing samples, each a calibrated batch
 of at least ``batch_s`` of stepping, within ``budget_s`` (:mod:`natcoord.suite.batches`:
@@ -22,6 +26,7 @@ machine load (their samples go to the record's ``short``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -40,7 +45,7 @@ import numpy as np  # noqa: E402
 from ..case.mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..engines import adapter  # noqa: E402
 from ..engines.base import EngineRun, InitialState  # noqa: E402
-from ..engines.capabilities import why_not  # noqa: E402
+from ..engines.capabilities import RulesError, why_not  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
 from ..outputs.result import (Motion, Result, Status, evaluate_channels,  # noqa: E402
                               methods_table)
@@ -79,6 +84,16 @@ class Job:
     truncate: float = 0.0
     batch_s: float = 0.0
     budget_s: float = math.inf
+
+
+@dataclass(frozen=True)
+class Assessment:
+    """A job of an engine process that runs nothing: :func:`assess` ``engine`` on every
+    case (its capability rules evaluated in this process, under the caller's time limit);
+    ``main`` writes ``OUT_DIR/<engine>.assessed.json``, case name -> [status, reason]."""
+
+    cases: tuple[Case, ...]
+    engine: str
 
 
 def truncated(case: Case, fraction: float) -> Case:
@@ -191,13 +206,36 @@ def checked(run_fn):
 
 
 def cannot_run(case: Case, engine: str, settings: dict | None = None) -> str:
-    """Why ``engine`` does not run ``case`` before it runs (the case file's ``unsupported``,
-    else the engine's declared capabilities, :mod:`natcoord.engines.capabilities`); "" when
-    it can. A plug-in whose capability rules raise gets that as its reason."""
+    """Why ``engine`` does not run ``case``, known in the command's own process before an
+    engine process starts: the case file's ``unsupported``, else the engine's declared
+    capabilities (:mod:`natcoord.engines.capabilities`), with the capability rules of a
+    built-in engine. A plug-in's rules are its own code: they run in its engine process
+    (:func:`assess`, under the run's time limit), never here. "" when it may run; "" too
+    when the capabilities cannot be read here (the engine process then fails the cell
+    with the reason)."""
+    from ..engines import discover
+
     try:
-        return why_not(case, engine, settings)
-    except Exception as e:  # a plug-in's bug must not take the suite down
-        return f"the engine's capability rules raised {type(e).__name__}: {e}"
+        return why_not(case, engine, settings, rules=discover().builtin(engine))
+    except Exception:  # a fault, not a reason: the engine process finds and reports it
+        return ""
+
+
+def assess(case: Case, engine: str, settings: dict | None = None) -> tuple[str, str]:
+    """(status, reason) of ``engine`` on ``case`` before it runs, its capability rules
+    included (in an engine process: a plug-in's rules are its code): ("", "") when it may
+    run, ("unsupported", why) when it cannot, ("failed", what went wrong) when its
+    declarations or rules fail (raise, return something other than a list of reasons).
+    What the rules print goes to standard error."""
+    try:
+        with contextlib.redirect_stdout(sys.stderr):
+            why = why_not(case, engine, settings)
+    except RulesError as e:
+        return str(Status.FAILED), str(e)
+    except Exception as e:  # a declaration that cannot be read: the engine's fault
+        return str(Status.FAILED), (f"the engine's capabilities could not be read: "
+                                    f"{type(e).__name__}: {e}")
+    return (str(Status.UNSUPPORTED), why) if why else ("", "")
 
 
 def run_one(job: Job) -> Result:
@@ -215,9 +253,9 @@ def run_job(job: Job) -> tuple[Result, dict]:
     spec = case.engine(engine)
     res = Result(case.name, engine)
     mod = adapter(engine)
-    why = cannot_run(case, engine, job.settings)
-    if why:
-        res.status, res.reason = Status.UNSUPPORTED, why
+    status, why = assess(case, engine, job.settings)
+    if status:
+        res.status, res.reason = Status(status), why
         return res, {}
     try:
         version = mod.version()
@@ -307,7 +345,11 @@ def main(argv=None) -> int:
     p.add_argument("out_dir")
     a = p.parse_args(argv)
     with open(a.job_file, "rb") as f:
-        job: Job = pickle.load(f)
+        job: Job | Assessment = pickle.load(f)
+    if isinstance(job, Assessment):
+        write_json(Path(a.out_dir) / f"{job.engine}.assessed.json",
+                   {c.name: list(assess(c, job.engine)) for c in job.cases})
+        return 0
     res, extra = run_job(job)
     folder = Path(a.out_dir) / "results" / res.case
     if res.table is not None:
