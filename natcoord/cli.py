@@ -1101,7 +1101,8 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     reversed), energy on a conservative pendulum, convergence order under the engine's step
     setting, agreement with the stored references on every case it can run (first 0.5 s),
     determined and undetermined reactions. Exit 0 all pass, 1 a check failed, 2 an unknown
-    engine, 3 the engine's package is not installed."""
+    engine, 3 the engine's package is not installed (or its version() fails)."""
+    import contextlib
     import json
 
     from .engines import adapter
@@ -1110,10 +1111,17 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     _engines(engine)  # an unknown name: exit 2, naming the engines
     mod = adapter(engine)
     try:
-        mod.version()
+        with contextlib.redirect_stdout(sys.stderr):  # the adapter's code: never in --json
+            version = mod.version()
     except ImportError as e:
         _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({e}); pip install "
               f"{mod.PACKAGE}", RUN_FAILED)
+    except (Exception, SystemExit) as e:  # the adapter's bug: no run could be recorded
+        _fail(f"{engine}: the engine's version() raised {type(e).__name__}: {e}; every run "
+              "needs it, so nothing was checked", RUN_FAILED)
+    if not isinstance(version, str):
+        _fail(f"{engine}: the engine's version() returned {version!r}, not a string; every "
+              "run needs it, so nothing was checked", RUN_FAILED)
     say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
                                                                      style="dim")))
     try:

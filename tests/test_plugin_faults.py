@@ -278,3 +278,70 @@ CAPABILITIES = Capabilities(dimensions={2}, rules=rules)
     assert r.returncode == 2 and r.stdout == "", r.stdout + r.stderr
     assert "unknown engine 'cd'" in r.stderr and "not a natcoord.engines.capabilities" in r.stderr
     assert "Traceback" not in r.stderr
+
+
+# ------------------------------------------------------------------- check-engine
+@pytest.mark.slow
+def test_check_engine_fails_a_check_on_runs_at_other_times(tmp_path):
+    """An engine sampling at other times than the case's ended the scorecard with exit 2
+    ("bad input", naming a deleted temporary folder): now those checks fail, with why."""
+    home = project_copy(tmp_path, "pendulum")
+    site = write_plugin(tmp_path / "site", "tm", '''
+import dataclasses
+_run = run
+def run(case, init, settings):
+    r = _run(case, init, settings)
+    r.motion = dataclasses.replace(r.motion, t=r.motion.t * 1.01)
+    return r
+''')
+    r = natcoord(["check-engine", "tm", "--json"], home, site)
+    assert r.returncode == 1, r.stdout + r.stderr
+    card = json.loads(r.stdout)
+    rows = {x["check"]: x for x in card["rows"]}
+    assert card["version"] == "0.1"
+    for check in ("reaction sign", "energy", "momentum", "reference pendulum"):
+        assert rows[check]["result"] == "fail", rows[check]
+        assert rows[check]["detail"].startswith("the engine's run returned a motion with "), \
+            rows[check]
+        assert "samples at other times than the case's" in rows[check]["detail"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("version, why", [
+    ("raise RuntimeError('version broke')",
+     "vr: the engine's version() raised RuntimeError: version broke"),
+    ("print('chatter'); return 2", "vr: the engine's version() returned 2, not a string"),
+])
+def test_check_engine_says_a_broken_version(tmp_path, version, why):
+    """A version() that raised gave a traceback: now a one-line error, exit 3."""
+    home = project_copy(tmp_path, "pendulum")
+    site = write_plugin(tmp_path / "site", "vr", f'''
+def version():
+    {version}
+''')
+    r = natcoord(["check-engine", "vr", "--json"], home, site)
+    assert r.returncode == 3 and r.stdout == "", r.stdout + r.stderr
+    assert why in " ".join(r.stderr.split()) and "Traceback" not in r.stderr
+
+
+def test_check_engine_fails_a_run_whose_results_cannot_be_read(tmp_path, monkeypatch):
+    """A run's unreadable results are that check's failure, not bad input (exit 2)."""
+    from natcoord.suite import conformance
+
+    def run_subprocess(job, engine, out, timeout_s, settings=None):
+        folder = out / "results" / job.case.name
+        folder.mkdir(parents=True, exist_ok=True)
+        (folder / f"{engine}.csv").write_text("t,theta\n0,x\n")
+        return {"status": "ok", "reason": ""}
+
+    monkeypatch.setattr(conformance, "run_subprocess", run_subprocess)
+    b = conformance.Battery("natcoord", tmp_path, tmp_path)
+    try:
+        rec, table = b.run(conformance.rod(b.tmp))
+        b.not_run("reaction sign", rec, "reactions")
+    finally:
+        import shutil
+        shutil.rmtree(b.tmp, ignore_errors=True)
+    assert table is None and rec["status"] == "failed", rec
+    assert rec["reason"].startswith("its results cannot be read: unreadable (ValueError")
+    assert b.rows[0].result == "fail"

@@ -29,7 +29,9 @@ the engine cannot run it, with the reason), the figure, the capability it touche
 
 from __future__ import annotations
 
+import contextlib
 import math
+import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -41,7 +43,7 @@ import numpy as np
 from ..case.casefile import load_case
 from ..case.mechanism import FORCE_KINDS, Case
 from .compare import channel_errors
-from .evidence import BadReference, cell_folder, read_reference, read_table
+from .evidence import BadEvidence, BadReference, cell_folder, read_reference, read_table
 from .runner import prepare, run_subprocess
 
 SPAN_S = 0.5  # simulated seconds of a reference case at most
@@ -139,7 +141,12 @@ class Battery:
         if rec["status"] != "ok":
             return rec, None
         path = cell_folder(self.tmp, case.name) / f"{engine}.csv"
-        return rec, read_table(path.read_bytes(), path, case)
+        try:
+            return rec, read_table(path.read_bytes(), path, case)
+        except (OSError, BadEvidence) as e:  # this run's results, not the command's input
+            why = str(e).replace(f"{path}: ", "")
+            return {**rec, "status": "failed", "reason": f"its results cannot be read: "
+                    f"{why}"}, None
 
     def add(self, *args, **kw) -> None:
         self.rows.append(Row(*args, **kw))
@@ -305,6 +312,11 @@ def check_engine(engine: str, cases_dir: Path, references: Path,
         b.references_()
     finally:
         shutil.rmtree(b.tmp, ignore_errors=True)
-    return {"engine": engine, "version": adapter(engine).version(),
+    try:
+        with contextlib.redirect_stdout(sys.stderr):  # the adapter's code
+            version = str(adapter(engine).version())
+    except (Exception, SystemExit) as e:
+        version = f"unknown (version() raised {type(e).__name__}: {e})"
+    return {"engine": engine, "version": version,
             "seconds": round(time.perf_counter() - t0, 1),
             "rows": [asdict(r) for r in b.rows]}
