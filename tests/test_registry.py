@@ -150,3 +150,21 @@ def test_what_a_plugin_prints_on_import_goes_to_stderr(modules, capsys):
     out, err = capsys.readouterr()
     assert out == "" and "hello" in err and "hi" in err
     assert "chatty" in r.names and r.problems[0].error == "import failed: ImportError: x"
+
+
+@pytest.mark.parametrize("body, why", [
+    ("def check_settings(settings):\n    print('chatter')\n    raise RuntimeError('broke')\n",
+     "the engine's check_settings raised RuntimeError: broke"),
+    ("def check_settings(settings):\n    return 'bad'\n",
+     "the engine's check_settings returned 'bad', not a list of (field, reason) pairs"),
+    ("def check_settings(settings):\n    return [('dt',)]\n",
+     "the engine's check_settings returned [('dt',)], not a list of (field, reason) pairs"),
+])
+def test_a_broken_check_settings_is_one_problem_not_a_crash(modules, capsys, body, why):
+    """A plug-in's check_settings that raised crashed every command loading a case that
+    sets the engine's settings (a traceback): it is now the case's problem, one line."""
+    from natcoord.engines.schema import problems
+
+    modules({"cs": body})
+    assert problems(reg.adapter("cs"), {"dt": 1e-3}) == [("", why)]
+    assert "chatter" not in capsys.readouterr().out

@@ -172,10 +172,25 @@ def check(settings, schema: tuple[Setting, ...], prefix: str = "") -> list[tuple
 def problems(adapter, settings) -> list[tuple[str, str]]:
     """Problems of an engine's ``settings`` against its adapter's declared ``SETTINGS``
     and, when the schema holds, the adapter's own ``check_settings`` (rules between
-    settings)."""
+    settings). A ``check_settings`` that raises or returns anything but (field, reason)
+    pairs of strings is one problem saying so (field ""); what it prints goes to standard
+    error."""
+    import contextlib
+    import sys
+
     out = check(settings, tuple(getattr(adapter, "SETTINGS", ())))
     if not out and hasattr(adapter, "check_settings"):
-        out = list(adapter.check_settings(settings))
+        try:
+            with contextlib.redirect_stdout(sys.stderr):
+                got = adapter.check_settings(settings)
+            out = list(got)
+        except (Exception, SystemExit) as e:  # the adapter's bug, said in one line
+            return [("", f"the engine's check_settings raised {type(e).__name__}: {e}")]
+        if not all(isinstance(x, (tuple, list)) and len(x) == 2
+                   and all(isinstance(y, str) for y in x) for x in out):
+            return [("", f"the engine's check_settings returned {_short(got)}, not a list "
+                     "of (field, reason) pairs")]
+        out = [tuple(x) for x in out]
     return out
 
 
