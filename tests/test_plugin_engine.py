@@ -16,7 +16,7 @@ import sys
 import pytest
 import setuptools
 
-from .conftest import DATA, project_copy
+from .conftest import DATA, ROOT, project_copy
 
 pytestmark = pytest.mark.slow
 
@@ -57,7 +57,8 @@ def plugins(tmp_path_factory):
 
 
 def _natcoord(args, cwd, site):
-    env = {**os.environ, "PYTHONPATH": str(site), "NATCOORD_HOME": str(cwd),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join((str(site), str(ROOT))),
+           "NATCOORD_HOME": str(cwd),  # this checkout's natcoord, not an installed one
            "COLUMNS": "300"}  # the cases table unwrapped
     return subprocess.run([sys.executable, "-m", "natcoord.cli", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=900)
@@ -124,7 +125,8 @@ def test_without_the_plugin_the_engine_is_unknown(tmp_path):
     """Uninstalled, the plug-in's name is refused with the engines that are there."""
     home = project_copy(tmp_path, "pendulum")
     r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", "--engines", "rk4"],
-                       cwd=home, env={**os.environ, "NATCOORD_HOME": str(home)},
+                       cwd=home, env={**os.environ, "NATCOORD_HOME": str(home),
+                                      "PYTHONPATH": str(ROOT)},
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 2 and "unknown engine 'rk4'" in r.stderr
     assert "natcoord, mujoco, pinocchio, exudyn, dart, simbody" in r.stderr
