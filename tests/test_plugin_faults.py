@@ -345,3 +345,22 @@ def test_check_engine_fails_a_run_whose_results_cannot_be_read(tmp_path, monkeyp
     assert table is None and rec["status"] == "failed", rec
     assert rec["reason"].startswith("its results cannot be read: unreadable (ValueError")
     assert b.rows[0].result == "fail"
+
+
+def test_a_builtin_engines_rule_fault_is_listed_as_failed(pendulum, monkeypatch):
+    """natcoord's own rules are asked in the command's process; a fault there is listed by
+    `cases` as "failed: ...", and left to the engine process to fail the run."""
+    from natcoord.engines import natcoord_engine
+    from natcoord.suite.runner import assessed
+
+    def rules(case, settings):
+        raise ValueError("oops")
+
+    monkeypatch.setattr(natcoord_engine, "CAPABILITIES",
+                        dataclasses.replace(natcoord_engine.CAPABILITIES, rules=rules))
+    assert assessed([pendulum.case], ["natcoord"]) == {
+        ("pendulum", "natcoord"): "failed: the engine's capability rules raised ValueError: "
+                                  "oops"}
+    assert worker.cannot_run(pendulum.case, "natcoord") == ""
+    rec = run_in_process(pendulum, "natcoord")
+    assert rec["status"] == "failed" and "rules raised ValueError: oops" in rec["reason"]

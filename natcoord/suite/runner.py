@@ -140,20 +140,26 @@ def run_subprocess(case: Case | Job, engine: str, out: Path, timeout_s: float,
 def assessed(cases: Sequence[Case], engines: Sequence[str],
              timeout_s: float = ASSESS_TIMEOUT_S) -> dict[tuple[str, str], str]:
     """(case name, engine) -> why the engine cannot run the case ("" when it can), as
-    listed by ``natcoord cases``: :func:`cannot_run`, and a plug-in's capability rules
-    evaluated in an engine process of its own (one per plug-in, every case, within
-    ``timeout_s``: a rule that raises, hangs, exits or prints does so there). A fault of the
-    rules is given as the reason, prefixed "failed: " (a run of that cell fails)."""
+    listed by ``natcoord cases``: a built-in engine's :func:`~natcoord.suite.worker.assess`
+    here, a plug-in's :func:`cannot_run` here and its capability rules in an engine process
+    of its own (one per plug-in, every case, within ``timeout_s``: a rule that raises,
+    hangs, exits or prints does so there). A fault of the rules is given as the reason,
+    prefixed "failed: " (a run of that cell fails)."""
     from ..engines import adapter, discover
+    from .worker import assess
+
+    def listed(status: str, why: str) -> str:
+        return f"failed: {why}" if status == "failed" else why
 
     reg = discover()
-    out = {(c.name, e): cannot_run(c, e) for c in cases for e in engines}
+    out = {(c.name, e): (listed(*assess(c, e)) if reg.builtin(e) else cannot_run(c, e))
+           for c in cases for e in engines}
     for e in engines:
         todo = [c for c in cases if not out[c.name, e]]
         if reg.builtin(e) or not todo or adapter(e).CAPABILITIES.rules is None:
             continue
-        for name, (status, why) in _assess(todo, e, timeout_s).items():
-            out[name, e] = f"failed: {why}" if status == "failed" else why
+        for name, answer in _assess(todo, e, timeout_s).items():
+            out[name, e] = listed(*answer)
     return out
 
 
