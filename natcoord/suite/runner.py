@@ -181,7 +181,7 @@ def _assess(cases: list[Case], engine: str, timeout_s: float) -> dict[str, tuple
             why = "not evaluated: the command is stopping"
         else:
             tail = "\n".join((err or "").strip().splitlines()[-3:])
-            why = (f"the engine process evaluating its capability rules "
+            why = ("the engine process evaluating its capability rules "
                    + (f"was killed by signal {signal.Signals(-returncode).name}"
                       if returncode < 0 else f"exited with status {returncode}"
                       + (" without its answer" if returncode == 0 else ""))

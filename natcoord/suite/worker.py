@@ -47,8 +47,7 @@ from ..engines import adapter  # noqa: E402
 from ..engines.base import EngineRun, InitialState  # noqa: E402
 from ..engines.capabilities import RulesError, why_not  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
-from ..outputs.result import (Motion, Result, Status, evaluate_channels,  # noqa: E402
-                              methods_table)
+from ..outputs.result import Motion, Result, Status, evaluate_channels, methods_table  # noqa: E402
 from . import batches  # noqa: E402
 from .io import write_csv, write_json  # noqa: E402
 
