@@ -191,7 +191,9 @@ def _assess(cases: list[Case], engine: str, timeout_s: float) -> dict[str, tuple
                     got = read_json(answer)
     if not isinstance(got, dict):
         return {c.name: ("failed", why) for c in cases}
-    return {c.name: tuple(got.get(c.name) or ("failed", "no answer from the engine process"))
+    return {c.name: (tuple(a) if isinstance(a := got.get(c.name), list) and len(a) == 2
+                     and all(isinstance(x, str) for x in a)
+                     else ("failed", "no answer from the engine process"))
             for c in cases}
 
 
