@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -18,6 +19,7 @@ import pandas as pd
 import pytest
 
 from natcoord import CaseError, load_case
+from natcoord.errors import StoredFileError
 from natcoord.suite import gate, references
 from natcoord.suite.evidence import BadReference, sha256_of
 from natcoord.suite.io import read_json, write_csv, write_json
@@ -361,6 +363,47 @@ def test_a_record_relabelled_unsupported_cannot_hide_a_cell_the_baseline_holds(t
     write_json(base, {"errors": {CELL: {"x": 1.0}}})
     p = _cli("gate", "--results", out, "--baseline", base)
     assert p.returncode == 0, p.stderr
+
+
+@pytest.fixture(scope="module")
+def two(tmp_path_factory) -> Path:
+    """A results folder of two cells: pendulum and four_bar in natcoord."""
+    out = tmp_path_factory.mktemp("evidence") / "two"
+    p = _cli("run", "pendulum", "four_bar", "--engines", "natcoord", "--out", out)
+    assert p.returncode == 0, p.stderr
+    return out
+
+
+def test_a_record_field_edited_to_another_type_is_bad_input_naming_it(two, tmp_path):
+    """pendulum's record relabelled unsupported with an int for its reason, four_bar's
+    intact: the gate (whose baseline holds pendulum's errors, so it says why the cell is
+    missing) and compare (whose base judged it) used to crash on the reason; the summary is
+    bad input naming the file and the field."""
+    folder = tmp_path / "r"
+    shutil.copytree(two, folder)
+    _edit_summary(folder, lambda r: r.update(status="unsupported", reason=5))
+    base = tmp_path / "baseline.json"
+    write_json(base, {"errors": {CELL: {"x": 1e-9}}})
+    where = f"{folder / 'summary.json'}: records[0].reason: not a string"
+    p = _cli("gate", "--results", folder, "--baseline", base)
+    _clean(p)
+    assert p.returncode == 2 and where in p.stderr, p.stderr
+    for c in (_cli("compare", two, folder), _cli("compare", folder, two)):
+        _clean(c)
+        assert c.returncode == 2 and where in c.stderr, c.stderr
+
+
+@pytest.mark.parametrize("field, value", [
+    ("reason", 5), ("verdict_reason", {}), ("case_hash", 7), ("engine_version", 1.5),
+    ("settings", [1]), ("counters", "many"), ("notes", "one"), ("samples_s", [-1]),
+    ("wall_time_s", "fast"), ("files", {"natcoord.csv": 3}),
+    ("channels", {"x": {"max_abs": "small"}}), ("channels", {"x": {"pass": "yes"}})])
+def test_every_record_field_a_reader_uses_has_its_type_checked(run, tmp_path, field, value):
+    summary = read_json(run / "summary.json")
+    summary["records"][0][field] = value
+    write_json(tmp_path / "summary.json", summary)
+    with pytest.raises(StoredFileError, match=re.escape(f"records[0].{field}")):
+        gate.load_summary(tmp_path)
 
 
 def test_propose_keeps_an_existing_out_file(tmp_path):

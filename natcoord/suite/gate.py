@@ -16,7 +16,6 @@ ran, or a required engine failed or was skipped, or a cell the baseline holds di
 
 from __future__ import annotations
 
-import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -28,11 +27,10 @@ from ..engines import engine_names
 from ..errors import CaseError, StoredFileError
 from . import evidence
 from .io import locked, read_json, write_json
+from .stored import check_summary
 
 OK, REGRESSION, BAD_INPUT, NOT_RUN = 0, 1, 2, 3
 CANNOT_WRITE = 5  # the baseline could not be written (a read-only folder, a full disk)
-REQUIRED_FIELDS = ("case", "engine", "status", "verdict", "channels")
-STATUSES = ("ok", "failed", "skipped", "unsupported")
 
 
 @dataclass
@@ -94,48 +92,14 @@ def _fmt(x: float | None, unit: str = "") -> str:
 
 
 def load_summary(results: Path) -> dict:
-    """Read and check ``results/summary.json`` (every field the gate reads, with its type);
-    raises ValueError naming the problem."""
+    """Read and check ``results/summary.json`` (every field a reader uses, with its type:
+    :func:`natcoord.suite.stored.check_summary`); raises ValueError (StoredFileError)
+    naming the file, the field and the problem."""
     path = Path(results) / "summary.json"
-    if not path.exists():
-        raise ValueError(f"{path}: no summary (run `natcoord run` first; an interrupted run "
-                         "leaves none on purpose)")
-    try:
-        summary = read_json(path)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise ValueError(f"{path}: not valid JSON ({e})") from None
-    except OSError as e:
-        raise ValueError(f"{path}: unreadable ({e.strerror or e})") from None
-    records = summary.get("records") if isinstance(summary, dict) else None
-    if not isinstance(records, list):
-        raise ValueError(f"{path}: records: missing or not a list")
-    for i, r in enumerate(records):
-        missing = [k for k in REQUIRED_FIELDS if not isinstance(r, dict) or k not in r]
-        if missing:
-            raise ValueError(f"{path}: records[{i}]: missing field {missing[0]!r}")
-        for k in ("case", "engine", "status", "verdict"):
-            if not isinstance(r[k], str):
-                raise ValueError(f"{path}: records[{i}].{k}: not a string")
-        if r["status"] not in STATUSES:
-            raise ValueError(f"{path}: records[{i}].status: {r['status'][:40]!r} is not one "
-                             f"of {', '.join(STATUSES)}")
-        files = r.get("files", {})
-        if not isinstance(files, dict) or not all(
-                isinstance(k, str) and isinstance(x, str) for k, x in files.items()):
-            raise ValueError(f"{path}: records[{i}].files: not a table of file hashes")
-        if not isinstance(r["channels"], dict) or not all(
-                isinstance(c, dict) for c in r["channels"].values()):
-            raise ValueError(f"{path}: records[{i}].channels: not a table of channels")
-        for name, c in r["channels"].items():
-            for k in ("max_abs", "tolerance"):
-                if c.get(k) is not None and (isinstance(c[k], bool)
-                                             or not isinstance(c[k], (int, float))):
-                    raise ValueError(f"{path}: records[{i}].channels.{name}.{k}: not a number")
-    for k in ("cases", "engines"):
-        if k in summary and not (isinstance(summary[k], list)
-                                 and all(isinstance(x, str) for x in summary[k])):
-            raise ValueError(f"{path}: {k}: not a list of names")
-    return summary
+    if not path.exists() and not path.is_symlink():
+        raise StoredFileError(f"{path}: no summary (run `natcoord run` first; an interrupted "
+                              "run leaves none on purpose)")
+    return check_summary(path, read_json(path))
 
 
 def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
@@ -159,12 +123,12 @@ def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
     for r in records:
         key = f"{r['case']}/{r['engine']}"
         if r["status"] in ("failed", "skipped") and (required is None or r["engine"] in required):
-            v.worse(NOT_RUN, f"{key}: required engine {r['status']}: {r.get('reason', '')}")
+            v.worse(NOT_RUN, f"{key}: required engine {r['status']}: {r.get('reason') or ''}")
         elif r["status"] == "ok":
             _judge_cell(v, r, key, Path(results), cases, Path(references),
                         (baseline or {}).get(key) or {}, baseline_factor, floor)
         elif (baseline or {}).get(key):
-            v.worse(NOT_RUN, f"{key}: {r['status']} ({r.get('reason', '')[:200]}), but the "
+            v.worse(NOT_RUN, f"{key}: {r['status']} ({(r.get('reason') or '')[:200]}), but the "
                     "baseline holds its errors from a judged run: a cell that passed "
                     "before must run and be judged again")
     return v

@@ -10,9 +10,27 @@ from ..errors import StoredFileError
 
 _NUMBERS = ("wall_time_s", "us_per_step", "n_steps", "build_time_s")
 
+# summary.json: what a record must hold, the statuses a run gives, and the type of every
+# other field a reader uses (gate, compare, report, the suite's summary.md)
+SUMMARY_REQUIRED = ("case", "engine", "status", "verdict", "channels")
+STATUSES = ("ok", "failed", "skipped", "unsupported")
+_TEXTS = ("reason", "verdict_reason", "engine_version", "case_hash", "description",
+          "tolerance_reason")
+_RECORD_NUMBERS = ("wall_time_s", "build_time_s", "n_steps", "us_per_step", "sim_time_s",
+                   "process_time_s")
+_TABLES = ("settings", "counters")
+_CHANNEL_NUMBERS = ("max_abs", "max_rel", "tolerance", "scale")
+_CHANNEL_FLAGS = ("pass", "determined", "balance")
+_CHANNEL_TEXTS = ("kind", "unit", "note", "rel_to")
+
 
 def _number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _durations(xs) -> bool:
+    return isinstance(xs, list) and all(_number(s) and math.isfinite(s) and s >= 0
+                                        for s in xs)
 
 
 def carried(record: dict) -> bool:
@@ -50,3 +68,74 @@ def check_bench(path: Path, data) -> dict:
             if r.get(k) is not None and not isinstance(r[k], dict):
                 raise StoredFileError(f"{where}.{k}: not a table")
     return data
+
+
+def check_summary(path: Path, data) -> dict:
+    """``data`` (the content of ``path``, a summary.json) as it is, or StoredFileError
+    naming the file, the field (``records[3].reason``) and the problem: every field the
+    readers use has its type checked here, once, so a summary edited by hand is refused as
+    bad input, never a traceback in the gate or compare."""
+    if not isinstance(data, dict):
+        raise StoredFileError(f"{path}: not a JSON object")
+    records = data.get("records")
+    if not isinstance(records, list):
+        raise StoredFileError(f"{path}: records: missing or not a list")
+    for k in ("cases", "engines"):
+        if k in data and not (isinstance(data[k], list)
+                              and all(isinstance(x, str) for x in data[k])):
+            raise StoredFileError(f"{path}: {k}: not a list of names")
+    for k in ("generated", "mode", "natcoord_version"):
+        if data.get(k) is not None and not isinstance(data[k], str):
+            raise StoredFileError(f"{path}: {k}: not a string")
+    if data.get("machine") is not None and not isinstance(data["machine"], dict):
+        raise StoredFileError(f"{path}: machine: not a table")
+    for i, r in enumerate(records):
+        _check_record(f"{path}: records[{i}]", r)
+    return data
+
+
+def _check_record(where: str, r) -> None:
+    if not isinstance(r, dict):
+        raise StoredFileError(f"{where}: not a table")
+    missing = [k for k in SUMMARY_REQUIRED if k not in r]
+    if missing:
+        raise StoredFileError(f"{where}: missing field {missing[0]!r}")
+    for k in ("case", "engine", "status", "verdict"):
+        if not isinstance(r[k], str):
+            raise StoredFileError(f"{where}.{k}: not a string")
+    if r["status"] not in STATUSES:
+        raise StoredFileError(f"{where}.status: {r['status'][:40]!r} is not one of "
+                              f"{', '.join(STATUSES)}")
+    for k in _TEXTS:
+        if r.get(k) is not None and not isinstance(r[k], str):
+            raise StoredFileError(f"{where}.{k}: not a string")
+    for k in _RECORD_NUMBERS:
+        if r.get(k) is not None and not _number(r[k]):
+            raise StoredFileError(f"{where}.{k}: not a number")
+    for k in _TABLES:
+        if r.get(k) is not None and not isinstance(r[k], dict):
+            raise StoredFileError(f"{where}.{k}: not a table")
+    if "samples_s" in r and not _durations(r["samples_s"]):
+        raise StoredFileError(f"{where}.samples_s: not a list of durations (s)")
+    if "notes" in r and not (isinstance(r["notes"], list)
+                             and all(isinstance(x, str) for x in r["notes"])):
+        raise StoredFileError(f"{where}.notes: not a list of strings")
+    files = r.get("files", {})
+    if not isinstance(files, dict) or not all(
+            isinstance(k, str) and isinstance(x, str) for k, x in files.items()):
+        raise StoredFileError(f"{where}.files: not a table of file hashes")
+    if not isinstance(r["channels"], dict):
+        raise StoredFileError(f"{where}.channels: not a table of channels")
+    for name, c in r["channels"].items():
+        at = f"{where}.channels.{name[:40]}"
+        if not isinstance(c, dict):
+            raise StoredFileError(f"{at}: not a table")
+        for k in _CHANNEL_NUMBERS:
+            if c.get(k) is not None and not _number(c[k]):
+                raise StoredFileError(f"{at}.{k}: not a number")
+        for k in _CHANNEL_FLAGS:
+            if c.get(k) is not None and not isinstance(c[k], bool):
+                raise StoredFileError(f"{at}.{k}: not true or false")
+        for k in _CHANNEL_TEXTS:
+            if c.get(k) is not None and not isinstance(c[k], str):
+                raise StoredFileError(f"{at}.{k}: not a string")
