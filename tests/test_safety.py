@@ -382,7 +382,9 @@ def test_the_gate_reads_a_locked_history_without_waiting_long_or_writing(tmp_pat
 @pytest.mark.parametrize("text, problem", [
     ("not json", "not valid JSON"), ('{"records": 3}', "records"),
     ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": "fast"}]}',
-     "samples_s")])
+     "samples_s"),
+    ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": [0.1, 0.1, 0.1],'
+     ' "cpu_samples_s": 5}]}', "records[0].cpu_samples_s: not a list of durations")])
 def test_a_malformed_bench_json_exits_2_naming_it(tmp_path, text, problem):
     d = _gate_folder(tmp_path)
     (d / "bench.json").write_text(text)

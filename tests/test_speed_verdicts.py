@@ -4,7 +4,9 @@ test compares an unchanged cell and a deliberately slowed one with wide margins.
 
 from __future__ import annotations
 
+import json
 import os
+import re
 import subprocess
 import sys
 from types import SimpleNamespace
@@ -14,6 +16,7 @@ import pytest
 
 from natcoord import load_case, timing
 from natcoord.engines import natcoord_engine
+from natcoord.errors import StoredFileError
 from natcoord.outputs.result import evaluate_channels
 from natcoord.suite import batches, bench, diff, history, speed
 from natcoord.suite.runner import as_job, machine_info
@@ -176,6 +179,26 @@ def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
     notes = diff.speed_notes([judged, unseen], db)
     assert notes[0].startswith("c/natcoord: cannot judge speed: 3 vs 2 samples")
     assert notes[1].startswith("speed not judged for 1 cell(s): no earlier benchmark")
+
+
+@pytest.mark.parametrize("field, value", [("cpu_samples_s", 5), ("cpu_samples_s", ["x"]),
+                                          ("samples_s", [float("nan")]),
+                                          ("batch_runs", {})])
+def test_two_benchmarks_with_a_malformed_sample_list_are_bad_input(tmp_path, field, value):
+    """Two benchmark folders (speed only) whose bench.json holds a sample list of another
+    shape: compare used to crash judging them; the file is named with the field, exit 2."""
+    rec = {"case": "pendulum", "engine": "natcoord", "samples_s": [0.1] * 3,
+           "cpu_samples_s": [0.1] * 3}
+    for name in ("b1", "b2"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "bench.json").write_text(json.dumps({"records": [rec | {field: value}]}))
+    with pytest.raises(StoredFileError, match=re.escape(
+            f"{tmp_path / 'b1' / 'bench.json'}: records[0].{field}: not a list")):
+        diff.compare_runs(tmp_path / "b1", tmp_path / "b2", cases=None, references=tmp_path)
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "compare", tmp_path / "b1",
+                        tmp_path / "b2"], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert f"records[0].{field}: not a list" in p.stderr, p.stderr
 
 
 # ---------------------------------------------------------------- the real timing path

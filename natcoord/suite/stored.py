@@ -9,6 +9,8 @@ from pathlib import Path
 from ..errors import StoredFileError
 
 _NUMBERS = ("wall_time_s", "us_per_step", "n_steps", "build_time_s")
+# bench.json: the timing samples of a cell, each a list of durations (s) when present
+_SAMPLES = ("samples_s", "cpu_samples_s")
 
 # summary.json: what a record must hold, the statuses a run gives, and the type of every
 # other field a reader uses (gate, compare, report, the suite's summary.md)
@@ -47,9 +49,12 @@ def check_bench(path: Path, data) -> dict:
     records = data.get("records", [])
     if not isinstance(records, list):
         raise StoredFileError(f"{path}: records: not a list")
-    for k in ("machine",):
+    for k in ("machine", "cold_start"):
         if k in data and not isinstance(data[k], dict):
             raise StoredFileError(f"{path}: {k}: not a table")
+    if "samples_s" in data.get("cold_start", {}) and not _durations(
+            data["cold_start"]["samples_s"]):
+        raise StoredFileError(f"{path}: cold_start.samples_s: not a list of durations (s)")
     for i, r in enumerate(records):
         where = f"{path}: records[{i}]"
         if not isinstance(r, dict):
@@ -57,10 +62,14 @@ def check_bench(path: Path, data) -> dict:
         for k in ("case", "engine"):
             if not isinstance(r.get(k), str):
                 raise StoredFileError(f"{where}.{k}: missing or not a string")
-        samples = r.get("samples_s", [])
-        if not isinstance(samples, list) or not all(
-                _number(s) and math.isfinite(s) and s >= 0 for s in samples):
-            raise StoredFileError(f"{where}.samples_s: not a list of durations (s)")
+        for k in _SAMPLES:
+            if k in r and not _durations(r[k]):
+                raise StoredFileError(f"{where}.{k}: not a list of durations (s)")
+        if "batch_runs" in r and not _durations(r["batch_runs"]):
+            raise StoredFileError(f"{where}.batch_runs: not a list of run counts")
+        for k in ("status", "reason", "case_hash", "engine_version"):
+            if r.get(k) is not None and not isinstance(r[k], str):
+                raise StoredFileError(f"{where}.{k}: not a string")
         for k in _NUMBERS:
             if r.get(k) is not None and not _number(r[k]):
                 raise StoredFileError(f"{where}.{k}: not a number")
