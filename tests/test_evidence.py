@@ -406,6 +406,56 @@ def test_every_record_field_a_reader_uses_has_its_type_checked(run, tmp_path, fi
         gate.load_summary(tmp_path)
 
 
+def test_a_record_taken_out_of_the_summary_fails_gate_and_compare(two, run, tmp_path):
+    """pendulum's record deleted from the summary (and pendulum from its cases) while its
+    result files stay, listed in the folder's marker: the gate used to pass on four_bar
+    alone. It fails naming the file, compare too (bad input when that folder is the
+    base); with the files deleted as well, the marker still names them. A run of fewer
+    cases holds no result files of the others: it passes."""
+    folder = tmp_path / "r"
+    shutil.copytree(two, folder)
+    summary = read_json(folder / "summary.json")
+    summary["records"] = [r for r in summary["records"] if r["case"] != "pendulum"]
+    summary["cases"].remove("pendulum")
+    write_json(folder / "summary.json", summary)
+    line = f"{_csv(folder)} has no record in summary.json"
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and line in p.stderr, p.stderr
+    c = _cli("compare", two, folder)
+    _clean(c)
+    assert c.returncode == 1 and line in c.stderr, c.stderr
+    c = _cli("compare", folder, two)
+    _clean(c)
+    assert c.returncode == 2 and f"(base): {line}" in c.stderr, c.stderr
+    shutil.rmtree(folder / "results" / "pendulum")
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and f"{_csv(folder)}: missing (the folder's .natcoord-results " \
+        "lists it" in p.stderr, p.stderr
+    c = _cli("compare", two, run)  # pendulum alone: a run of fewer cases
+    _clean(c)
+    assert c.returncode == 0, c.stderr
+
+
+def test_a_result_file_put_in_a_folder_without_a_marker_has_no_record(folder, tmp_path):
+    """A results folder written without a marker (run_suite itself) is checked against its
+    result CSVs; a damaged marker is bad input naming it."""
+    (folder / ".natcoord-results").unlink()
+    extra = folder / "results" / "four_bar" / "natcoord.csv"
+    extra.parent.mkdir()
+    shutil.copy(_csv(folder), extra)
+    v = gate.judge(gate.load_summary(folder), folder, cases=gate.CaseBook(CASES),
+                   references=REFERENCES)
+    assert v.code == gate.REGRESSION and len(v.faults) == 1 and v.faults[0].startswith(
+        f"{extra} has no record in summary.json"), v.lines
+    assert v.outcome == {CELL: "pass"}
+    extra.unlink()
+    (folder / ".natcoord-results").write_text("{not json")
+    v = gate.judge(gate.load_summary(folder), folder, cases=gate.CaseBook(CASES),
+                   references=REFERENCES)
+    assert v.code == gate.BAD_INPUT and ".natcoord-results: damaged results marker" in \
+        v.faults[0], v.lines
+
+
 def test_propose_keeps_an_existing_out_file(tmp_path):
     """`propose --out` onto an existing file: exit 2 before any run, the file unchanged;
     a folder in its place is never replaced, even with --force."""

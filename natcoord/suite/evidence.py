@@ -7,6 +7,11 @@ tolerances and the stored reference. The summary is an index of the cells, never
 of their errors. A result file that is missing, altered since the run, unreadable or at
 other sample times fails its cell (:class:`BadEvidence`: a regression); a reference that is
 missing or damaged is bad input naming the reference file (:class:`BadReference`).
+
+The records themselves are checked against the folder (:func:`unrecorded`): a result file
+on disk, or one the folder's marker lists as written by natcoord, with no record in the
+summary means a cell was taken out of the summary (or a file put in); a result file the
+marker lists that is gone means one was deleted. Either damages the folder's evidence.
 """
 
 from __future__ import annotations
@@ -14,13 +19,15 @@ from __future__ import annotations
 import hashlib
 import io
 import json
-from pathlib import Path
+import os
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 import pandas as pd
 
 from ..case.mechanism import Case
-from ..errors import NatcoordError
+from ..errors import NatcoordError, StoredFileError
+from . import outdir
 from .compare import channel_errors
 
 SUFFIXES = (".csv", ".methods.csv", ".json")  # a cell's result files: <engine><suffix>
@@ -48,6 +55,61 @@ def hashes(results: Path, case: str, engine: str) -> dict[str, str]:
     folder = cell_folder(results, case)
     return {f"{engine}{s}": sha256_of((folder / f"{engine}{s}").read_bytes())
             for s in SUFFIXES if (folder / f"{engine}{s}").is_file()}
+
+
+def _files_on_disk(results: Path) -> list[str]:
+    """Every regular file under ``results/results``, as a path relative to ``results``
+    (links are not followed)."""
+    top = Path(results) / "results"
+    out = []
+    for root, dirs, names in os.walk(top):
+        dirs[:] = [d for d in dirs if not os.path.islink(os.path.join(root, d))]
+        out += [os.path.relpath(os.path.join(root, n), results) for n in names
+                if os.path.isfile(os.path.join(root, n))]
+    return sorted(out)
+
+
+def unrecorded(results: Path, records: list[dict]) -> list[str]:
+    """What the folder holds (or its marker says natcoord wrote in it) that the summary's
+    records do not account for, one line each: a result file (``results/<case>/<engine>``
+    ``.csv``, ``.methods.csv``, ``.json``) whose cell has no record; a result file or
+    ``bench.json`` the marker lists that is gone. A folder without a marker (written by
+    :func:`natcoord.suite.runner.run_suite` itself) is checked against its CSVs alone; a
+    run of some cases holds no result files of the others, so it passes. Raises
+    StoredFileError when the marker is there but unreadable (the list of what natcoord
+    wrote is lost: bad input)."""
+    results = Path(results)
+    marker = outdir.read_marker(results)
+    path = results / outdir.MARKER
+    if marker is None and (path.exists() or path.is_symlink()):
+        raise StoredFileError(f"{path}: damaged results marker (not natcoord's JSON list of "
+                              "the files it wrote): the folder's evidence cannot be checked")
+    listed = [] if marker is None else [
+        f for f in marker["files"]
+        if not PurePosixPath(f).is_absolute() and ".." not in PurePosixPath(f).parts]
+    mine: dict[str, dict] = {}  # results/<case>/<file> -> the record the file belongs to
+    for r in records:
+        for s in SUFFIXES:
+            mine[f"results/{r['case']}/{r['engine']}{s}"] = r
+    lines = []
+    on_disk = _files_on_disk(results)
+    for rel in sorted({f for f in on_disk if f.endswith(".csv")}
+                      | {f for f in listed if f.startswith("results/") and f in on_disk}):
+        if rel not in mine:
+            lines.append(f"{results / rel} has no record in summary.json (a result of a cell "
+                         "the summary does not list: a record was removed, or the file "
+                         "added, since the run)")
+    for rel in listed:
+        if not (rel.startswith("results/") or rel == "bench.json") or rel in on_disk \
+                or (results / rel).is_file():
+            continue
+        r = mine.get(rel)
+        if r is not None and r["status"] == "ok" and PurePosixPath(rel).name in \
+                (r.get("files") or {}):
+            continue  # judging its cell says it is missing
+        lines.append(f"{results / rel}: missing (the folder's {outdir.MARKER} lists it as "
+                     "written by natcoord: deleted since)")
+    return lines
 
 
 def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) -> bytes:

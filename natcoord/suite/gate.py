@@ -8,8 +8,10 @@ which cells there are; the numbers it holds are never trusted.
 
 Exit codes: 0 all hold; 1 an accuracy regression (a gated channel over its tolerance or
 non-finite, an error grown past the stored baseline, a result file missing, altered since
-the run or unreadable); 2 bad input (no or malformed summary or baseline, a case file or
-reference missing or damaged, a case without tolerances for an engine that ran); 3 nothing
+the run or unreadable, a result file whose cell has no record in the summary, a file the
+folder's marker lists gone); 2 bad input (no or malformed summary or baseline, a damaged
+marker, a case file or reference missing or damaged, a case without tolerances for an
+engine that ran); 3 nothing
 ran, or a required engine failed or was skipped, or a cell the baseline holds did not run
 (a record that says ``unsupported`` or ``skipped`` cannot hide a cell that passed before).
 """
@@ -111,6 +113,11 @@ def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
     (3 > 2 > 1 > 0)."""
     v = Verdict(OK)
     records = summary["records"]
+    try:  # every result file in the folder has its record, every file natcoord wrote is there
+        for line in evidence.unrecorded(Path(results), records):
+            v.worse(REGRESSION, line, fault=True)
+    except StoredFileError as e:
+        v.worse(BAD_INPUT, str(e), fault=True)
     if not any(r["status"] == "ok" for r in records):
         v.worse(NOT_RUN, "nothing ran: no case x engine finished with status ok")
         return v
