@@ -119,6 +119,53 @@ def test_a_results_folder_with_a_users_file_in_it_is_not_replaced(tmp_path):
     assert "my-analysis.ipynb" in p.stderr and _snapshot(out) == before
 
 
+def test_a_reported_results_folder_may_be_the_out_of_the_next_run(tmp_path):
+    """`report` lists index.html in the folder's marker (it used to leave it unlisted, and
+    the next run into the folder was refused for holding a file natcoord did not write);
+    the next run replaces the folder, index.html with it, and leaves nothing beside."""
+    home = _project(tmp_path, "pendulum")
+    out = tmp_path / "res"
+    _clean(_run(out, home), 0)
+    _clean(_cli("report", "--results", out, env={"NATCOORD_HOME": str(home)}), 0)
+    files = read_json(out / outdir.MARKER)["files"]
+    assert "index.html" in files and (out / "index.html").is_file()
+    assert "index.html.tmp" not in files and not (out / "index.html.tmp").exists()
+    _clean(_run(out, home), 0)
+    assert not (out / "index.html").exists() and (out / "summary.json").is_file()
+    assert sorted(q.name for q in tmp_path.iterdir()) == ["project", "res"]
+    # what a block adding files leaves, listed before it writes: a killed one's half file
+    # is natcoord's; after it, only those that exist
+    before = read_json(out / outdir.MARKER)["files"]
+    with pytest.raises(RuntimeError), outdir.recording(out, ["page.html", "page.tmp"]):
+        assert read_json(out / outdir.MARKER)["files"] == before + ["page.html", "page.tmp"]
+        (out / "page.tmp").write_text("half")
+        raise RuntimeError("the writer fails")
+    assert read_json(out / outdir.MARKER)["files"] == before + ["page.tmp"]
+    with outdir._locked(out), pytest.raises(outdir.FolderBusy, match="run this again"), \
+            outdir.recording(out, ["page.html"]):
+        pass  # another command writes the folder: refused, nothing listed
+    assert read_json(out / outdir.MARKER)["files"] == before + ["page.tmp"]
+    _clean(_run(out, home), 0)  # page.tmp is natcoord's: removed with the folder
+    assert not (out / "page.tmp").exists()
+
+
+def test_report_gives_no_marker_to_a_folder_natcoord_did_not_write(tmp_path):
+    """A folder with a summary and results but no marker (not written by a natcoord
+    command) gets index.html and no marker: with one, --out would take the folder for
+    natcoord's and remove the user's files it listed."""
+    home = _project(tmp_path, "pendulum")
+    mine = tmp_path / "mine"
+    shutil.copytree(_real_run(), mine)
+    (mine / outdir.MARKER).unlink()
+    before = _snapshot(mine)
+    _clean(_cli("report", "--results", mine, env={"NATCOORD_HOME": str(home)}), 0)
+    after = _snapshot(mine)
+    assert set(after) == set(before) | {"index.html"} and outdir.MARKER not in after
+    p = _run(mine, home)
+    _clean(p, 2)
+    assert "natcoord did not write" in p.stderr and _snapshot(mine) == after
+
+
 def test_an_empty_folder_may_be_the_target(tmp_path):
     home = _project(tmp_path, "pendulum")
     out = tmp_path / "empty"

@@ -765,11 +765,16 @@ def render(context: dict) -> str:
 def write_report(results_dir: Path, references: Path = Path("references"),
                  history: Path | None = None) -> Path:
     """Write ``results_dir/index.html`` from the run's results, the stored references and,
-    when given, the history database (trends)."""
+    when given, the history database (trends). In a natcoord results folder the page is
+    listed in the folder's marker (:func:`natcoord.suite.outdir.recording`), so the folder
+    stays one that ``--out`` may replace."""
+    from ..suite import outdir
+
     results_dir = Path(results_dir)
     html = render(build_context(results_dir, references, history))
     out = results_dir / "index.html"
     tmp = out.with_suffix(".html.tmp")
-    tmp.write_text(html, encoding="utf-8")
-    tmp.replace(out)
+    with outdir.recording(results_dir, [out.name, tmp.name]):
+        tmp.write_text(html, encoding="utf-8")
+        tmp.replace(out)
     return out

@@ -33,6 +33,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import NatcoordError
+from .io import write_atomic
 
 MARKER = ".natcoord-results"
 _STAGING = re.compile(r"^\.(?P<name>.+)\.(?P<kind>staging|replaced)-(?P<pid>\d+)$")
@@ -103,6 +104,12 @@ def _write_marker(folder: Path, kind: str, files: list[str], state: str) -> None
     data = {"natcoord": __version__, "command": kind, "state": state, "pid": os.getpid(),
             "created": dt.datetime.now(dt.UTC).isoformat(timespec="seconds"), "files": files}
     (Path(folder) / MARKER).write_text(json.dumps(data, indent=1) + "\n", encoding="utf-8")
+
+
+def _relist(folder: Path, data: dict, files: list[str]) -> None:
+    """Replace the file list of ``folder``'s marker (``data``, as read), atomically: a
+    reader sees the old marker or the new one, never part of one."""
+    write_atomic(Path(folder) / MARKER, json.dumps({**data, "files": files}, indent=1) + "\n")
 
 
 def _listing(folder: Path) -> tuple[list[str], list[str]]:
@@ -176,6 +183,41 @@ def check_target(target: Path) -> None:
                          f"write ({shown}); move them or give another --out")
 
 
+# ---- adding files to a published folder ---------------------------------------------------
+@contextlib.contextmanager
+def recording(folder: Path, names: list[str]) -> Iterator[None]:
+    """Write the files ``names`` (relative paths) into a folder after it was published
+    (``report`` adds index.html): the block writes them, the folder's marker lists them, so
+    that it stays a natcoord results folder that ``--out`` may replace. Under the folder's
+    lock (FolderBusy while another command writes it); the marker lists every name before
+    the block (a file a killed block leaves behind is natcoord's) and, after it, those
+    that exist (what it listed before stays). A folder without a valid marker is no
+    natcoord results folder: it gets none (with one, ``--out`` would take it for
+    natcoord's and remove what it lists); a staging folder's command lists its files
+    itself when it completes."""
+    folder = Path(os.path.realpath(folder))
+    data = read_marker(folder)
+    if data is None or data.get("state") == "staging":
+        yield
+        return
+    with contextlib.ExitStack() as held:
+        try:  # FolderBusy (not an OSError) goes up: another command writes the folder
+            held.enter_context(_locked(folder, "run this again when it has finished"))
+        except OSError:
+            pass  # no lock file beside it: no command can stage a replacement there either
+        data = read_marker(folder)  # again, under the lock
+        if data is None or data.get("state") == "staging":
+            yield
+            return
+        before = list(data["files"])
+        _relist(folder, data, before + [n for n in names if n not in before])
+        try:
+            yield
+        finally:
+            _relist(folder, data, before + [n for n in names if n not in before and
+                                            (folder / n).is_file()])
+
+
 def _pid_alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -188,9 +230,10 @@ def _pid_alive(pid: int) -> bool:
 
 # ---- the lock -----------------------------------------------------------------------------
 @contextlib.contextmanager
-def _locked(target: Path) -> Iterator[None]:
-    """Hold the lock of ``target`` (``.<name>.lock`` beside it), or raise FolderBusy. The
-    lock file is removed on release (a waiter that opened it retries on the new one)."""
+def _locked(target: Path, hint: str = "wait for it or give another --out") -> Iterator[None]:
+    """Hold the lock of ``target`` (``.<name>.lock`` beside it), or raise FolderBusy (its
+    message ends with ``hint``). The lock file is removed on release (a waiter that opened
+    it retries on the new one)."""
     lock_path = target.parent / f".{target.name}.lock"
     while True:
         lock = open(lock_path, "a+")  # noqa: SIM115 - held open for the whole block
@@ -201,7 +244,7 @@ def _locked(target: Path) -> Iterator[None]:
             who = lock.read().strip() or "?"
             lock.close()
             raise FolderBusy(f"{target}: another natcoord run (pid {who}) is writing this "
-                             "folder; wait for it or give another --out") from None
+                             f"folder; {hint}") from None
         try:
             same = os.stat(lock_path).st_ino == os.fstat(lock.fileno()).st_ino
         except FileNotFoundError:
