@@ -41,6 +41,8 @@ DEFAULT_TIMEOUT_S = 600.0
 NIGHT_BUDGET_S = 60.0  # `suite --bench-budget`: see natcoord.suite.policy
 RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
 ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
+# Upper bounds of the numeric options: past these no value means anything a user could want.
+MAX_JOBS = 1024  # accuracy runs at once (never more than there are runs)
 CasesDir = Annotated[Path | None, typer.Option(
     "--cases-dir", help="Folder of case files [default: <project>/cases].", show_default=False)]
 RefDir = Annotated[Path | None, typer.Option(
@@ -58,7 +60,8 @@ Timeout = Annotated[float, typer.Option(
                     "wins).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 Jobs = Annotated[int | None, typer.Option(
-    "--jobs", min=1, help="Accuracy runs at once [default: every core]; timing stays serial.",
+    "--jobs", min=1, max=MAX_JOBS,
+    help="Accuracy runs at once [default: every core]; timing stays serial.",
     show_default=False)]
 Scheduler = Annotated[str | None, typer.Option(
     help="Send the accuracy runs to a Dask cluster: tcp://HOST:PORT.")]

@@ -12,8 +12,10 @@ import signal
 import stat
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -116,6 +118,30 @@ def test_a_dimension_that_is_not_the_integer_2_or_3_is_refused(tmp_path, value):
 def test_an_engine_list_that_names_no_engine_is_refused():
     p = _cli("run", "pendulum", "--engines", ",")
     assert p.returncode == 2 and "no engine named" in p.stderr
+    _no_traceback(p)
+
+
+def test_more_jobs_than_runs_start_one_thread_per_run(tmp_path, monkeypatch):
+    """--jobs is runs at once: a value far past the number of runs starts no idle threads
+    (one per job ran a suite out of memory), and an absurd one is refused."""
+    from natcoord.suite import parallel, runner
+
+    made = []
+
+    class Counted(threading.Thread):
+        def __init__(self, *a, **k):
+            made.append(self)
+            super().__init__(*a, **k)
+
+    monkeypatch.setattr(parallel.threading, "Thread", Counted)
+    monkeypatch.setattr(runner, "run_subprocess", lambda job, engine, *a, **k: {
+        "case": job.case.name, "engine": engine, "status": "ok"})
+    jobs = [SimpleNamespace(case=load_case(CASES / "pendulum.toml"))]
+    got = dict(parallel.local(jobs, ["natcoord", "mujoco"], tmp_path, 1.0, workers=200))
+    assert sorted(got) == [0, 1] and len(made) == 2
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--jobs", "100000", "--cases-dir",
+             tmp_path)  # no case there: were --jobs taken, the run would stop at once
+    assert p.returncode == 2 and "--jobs" in p.stderr and "1024" in p.stderr, p.stderr
     _no_traceback(p)
 
 

@@ -57,7 +57,9 @@ class Cores:
 def local(jobs, engines, out: Path, timeout_s: float, workers: int,
           first: dict | None = None, warmup: tuple | None = None,
           started: Callable[[int], None] | None = None) -> Iterator[tuple]:
-    """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time;
+    """Yield ``(index, record)`` as runs finish, ``workers`` engine processes at a time
+    (never more threads than there is work for: one per run, and one for the preparing
+    chain);
     ``first``: ``{(case, engine): seconds}`` expected, the longest started first (so that
     no long run is left to the end while the other cores idle; among equals, the largest
     case). ``warmup``: ``(chain, waits)`` of :func:`natcoord.suite.warm.plan`, processes
@@ -68,13 +70,14 @@ def local(jobs, engines, out: Path, timeout_s: float, workers: int,
     from .runner import kill_all, run_subprocess
 
     todo = cells(jobs, engines)
+    chain, waits = warmup or ([], {})
+    workers = min(workers, len(todo) + bool(chain))  # an idle thread takes nothing
     if workers <= 1:
         for i, (job, engine) in enumerate(todo):
             if started:
                 started(i)
             yield i, run_subprocess(job, engine, out, timeout_s)
         return
-    chain, waits = warmup or ([], {})
     board = _Board(_order(todo, first), chain, waits)
     cores = Cores(workers)
     done: queue.SimpleQueue = queue.SimpleQueue()
