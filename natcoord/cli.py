@@ -23,7 +23,7 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .case.casefile import MAX_NAME, NAME_PATTERN, check_file_name, load_case
+from .case.casefile import MAX_DURATION_S, MAX_NAME, NAME_PATTERN, check_file_name, load_case
 from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
@@ -41,8 +41,14 @@ DEFAULT_TIMEOUT_S = 600.0
 NIGHT_BUDGET_S = 60.0  # `suite --bench-budget`: see natcoord.suite.policy
 RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
 ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
-# Upper bounds of the numeric options: past these no value means anything a user could want.
+# Upper bounds of the numeric options: past these no value means anything a user could want,
+# and an infinite or huge one overflowed a wait, an SQLite integer or the memory of threads.
+MAX_TIMEOUT_S = 7 * 24 * 3600.0  # a week per engine run
 MAX_JOBS = 1024  # accuracy runs at once (never more than there are runs)
+MAX_REPEATS = 1000  # timing samples per cell
+MAX_BUDGET_S = 7 * 24 * 3600.0  # a night's bench budget: a week of engine process time
+MAX_MARGIN = 1000.0  # proposed tolerance over the measured error
+MAX_LAST = 100_000  # runs read from the history (a run a night for 270 years)
 CasesDir = Annotated[Path | None, typer.Option(
     "--cases-dir", help="Folder of case files [default: <project>/cases].", show_default=False)]
 RefDir = Annotated[Path | None, typer.Option(
@@ -56,8 +62,8 @@ ResultsDir = Annotated[Path | None, typer.Option(
     "run or suite].",
     show_default=False)]
 Timeout = Annotated[float, typer.Option(
-    min=0.001, help="Seconds per engine run (a case file's own `timeout`, when stricter, "
-                    "wins).")]
+    min=0.001, max=MAX_TIMEOUT_S,
+    help="Seconds per engine run (a case file's own `timeout`, when stricter, wins).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 Jobs = Annotated[int | None, typer.Option(
     "--jobs", min=1, max=MAX_JOBS,
@@ -499,8 +505,10 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
     return result
 
 
-def _scaling(sizes: str, quiet: bool = False) -> dict:
-    from .suite import scaling
+def _scaling_sizes(sizes: str) -> list[int]:
+    """The N of ``--scaling``, checked before anything runs: positive integers the
+    N-four-bar family can generate."""
+    from .case.generate import n_four_bar
 
     try:
         ns = [int(x) for x in sizes.split(",") if x.strip()]
@@ -508,6 +516,17 @@ def _scaling(sizes: str, quiet: bool = False) -> dict:
         ns = []
     if not ns or min(ns) < 1:
         _fail(f"--scaling: expected positive integers N separated by commas, got {sizes!r}")
+    for n in ns:
+        try:
+            n_four_bar(n)
+        except ValueError as e:
+            _fail(f"--scaling: {e}")
+    return ns
+
+
+def _scaling(ns: list[int], quiet: bool = False) -> dict:
+    from .suite import scaling
+
     say = (lambda *a: None) if quiet else out.print
     say(f"scaling: natcoord on N-four-bars N = {', '.join(map(str, ns))}")
     result = scaling.scaling(ns)
@@ -566,7 +585,8 @@ def _score_table(rows: list[dict]) -> Table:
 @app.command("bench")
 def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
               repeats: Annotated[int, typer.Option(
-                  min=1, help="Timing samples per cell, each a calibrated batch (the run "
+                  min=1, max=MAX_REPEATS,
+                  help="Timing samples per cell, each a calibrated batch (the run "
                               "repeated for at least 0.1 s), every one kept.")] = 7,
               out_dir: OutDir = None,
               history: Annotated[Path | None, typer.Option(
@@ -590,13 +610,14 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
     from .suite.outdir import publishing
 
     names = _engines(engines)
+    sizes = _scaling_sizes(scaling) if scaling else None
     target = _out_dir(out_dir, "bench")
     with publishing(target, "bench") as staging:
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
                         resolve(references, "references"), timeout, quiet=as_json)
-        if scaling:
-            result["scaling"] = _scaling(scaling, quiet=as_json)
+        if sizes:
+            result["scaling"] = _scaling(sizes, quiet=as_json)
         bench.store(result, staging, resolve(history, "reports/bench"))
     if as_json:
         import json
@@ -609,14 +630,16 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
 @app.command("suite")
 def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               repeats: Annotated[int, typer.Option(
-                  min=0, help="Bench timing samples per cell, each a calibrated batch "
+                  min=0, max=MAX_REPEATS,
+                  help="Bench timing samples per cell, each a calibrated batch "
                               "(0: no bench).")] = 7,
               timeout: Timeout = DEFAULT_TIMEOUT_S, jobs: Jobs = None,
               scheduler: Scheduler = None, cases: CaseArgs = None,
               cases_dir: CasesDir = None, references: RefDir = None,
               history: HistoryDb = None,
               bench_budget: Annotated[float, typer.Option(
-                  min=0, help="Engine process time (s) a night's bench may spend on other "
+                  min=0, max=MAX_BUDGET_S,
+                  help="Engine process time (s) a night's bench may spend on other "
                   "engines' cells that need measuring (natcoord's are outside it); a cell "
                   "left over is timed by its accuracy run and measured on a later "
                   "night.")] = NIGHT_BUDGET_S,
@@ -902,7 +925,8 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
                 flaky_: Annotated[bool, typer.Option(
                     "--flaky", help="Cells whose verdict flips, with a score (flips per "
                     "run).")] = False,
-                last: Annotated[int, typer.Option(min=1, help="Runs to read.")] = 20,
+                last: Annotated[int, typer.Option(
+                    min=1, max=MAX_LAST, help="Runs to read.")] = 20,
                 as_json: Annotated[bool, typer.Option("--json", help="Print JSON.")] = False,
                 history: HistoryDb = None):
     """Ask the history database: the recent runs (commit, machine, gate verdict), one
@@ -1052,7 +1076,8 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
 def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file.")],
                 engines: Engines = None,
                 margin: Annotated[float, typer.Option(
-                    min=1.0, help="Tolerance = measured error x margin.")] = 3.0,
+                    min=1.0, max=MAX_MARGIN,
+                    help="Tolerance = measured error x margin.")] = 3.0,
                 out_file: Annotated[Path | None, typer.Option(
                     "--out", help="Write the proposed blocks here too.")] = None,
                 timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
@@ -1173,6 +1198,7 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                  out_file: Annotated[Path, typer.Option("--out", help="Case file to write; "
                                                         "its stem is the case name.")],
                  duration: Annotated[float | None, typer.Option(
+                     min=1e-3, max=MAX_DURATION_S,
                      help="s [default: the family's specification].")] = None,
                  force: Annotated[bool, typer.Option(
                      "--force", help="Replace an existing case file.")] = False):
@@ -1200,7 +1226,8 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
                    "folder to write <name>.toml in.")],
                name: Annotated[str | None, typer.Option(
                    help="Case name [default: the file's stem, or the model's].")] = None,
-               duration: Annotated[float, typer.Option(min=1e-3, help="s.")] = 2.0,
+               duration: Annotated[float, typer.Option(
+                   min=1e-3, max=MAX_DURATION_S, help="s.")] = 2.0,
                force: Annotated[bool, typer.Option(
                    "--force", help="Replace an existing case file.")] = False):
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,

@@ -421,6 +421,47 @@ def test_suite_and_bench_take_a_time_limit():
         assert "--timeout" in p.stdout
 
 
+@pytest.mark.parametrize("args", [
+    ["run", "pendulum", "--timeout", "inf"], ["run", "pendulum", "--timeout", "1e10"],
+    ["run", "pendulum", "--timeout", "nan"], ["bench", "pendulum", "--timeout", "inf"],
+    ["suite", "pendulum", "--timeout", "inf"], ["propose", "pendulum", "--timeout", "inf"],
+    ["bisect", "HEAD", "HEAD", "--timeout", "inf"], ["propose", "pendulum", "--margin", "inf"],
+    ["history", "--last", "99999999999999999999"], ["suite", "pendulum", "--bench-budget", "inf"],
+    ["suite", "pendulum", "--repeats", "100000"], ["bench", "pendulum", "--repeats", "100000"],
+    ["suite", "pendulum", "--jobs", "1000000000000"],
+    ["generate", "n_four_bar", "--n", "2", "--duration", "inf"],
+    ["import", "m.xml", "--duration", "1e300"],
+    ["bench", "pendulum", "--scaling", "64,3000"]], ids=" ".join)
+def test_infinite_or_huge_numbers_are_refused_naming_the_option(tmp_path, args):
+    """Each numeric option has a finite range: an infinite or huge value overflowed a wait,
+    an SQLite integer, a tolerance or the memory (exit 1 with a traceback)."""
+    from typer.testing import CliRunner
+
+    from natcoord.cli import app
+
+    option = next(a for a in args if a.startswith("--") and a != "--n")
+    # were the value taken, each command would stop at once: no case in --cases-dir, no
+    # repository, an empty history
+    where = {"run": ["--cases-dir", tmp_path, "--out", tmp_path / "o"],
+             "bench": ["--cases-dir", tmp_path, "--out", tmp_path / "o"],
+             "suite": ["--cases-dir", tmp_path, "--out", tmp_path / "o", "--history",
+                       tmp_path / "h.db"],
+             "propose": ["--cases-dir", tmp_path], "bisect": ["--repo", tmp_path],
+             "history": ["--history", tmp_path / "h.db"],
+             "generate": ["--out", tmp_path / "x.toml"],
+             "import": ["--out", tmp_path / "x.toml"]}[args[0]]
+    res = CliRunner().invoke(app, [*args, *map(str, where)])
+    assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
+    assert option in res.output + res.stderr, res.output + res.stderr
+
+
+def test_the_longest_time_limit_a_run_takes_does_not_overflow(tmp_path):
+    p = _cli("run", "pendulum", "--engines", "natcoord", "--timeout", 7 * 24 * 3600,
+             "--out", tmp_path / "r")
+    assert p.returncode == 0, p.stderr[-1500:]
+    _no_traceback(p)
+
+
 def test_project_root_is_where_the_tests_run():
     assert (ROOT / "cases").is_dir()
     assert json.loads((ROOT / "references" / "baseline.json").read_text())["errors"]
