@@ -323,6 +323,18 @@ def test_an_unreachable_scheduler_is_a_clear_error(tmp_path):
     assert p.returncode == 2 and "cannot reach the Dask scheduler" in p.stderr, p.stderr
 
 
+@pytest.mark.parametrize("command", [["run"], ["suite", "--quick", "--history", "h.db"]],
+                         ids=lambda c: c[0])
+def test_a_scheduler_that_is_no_address_is_bad_input(tmp_path, command):
+    """Dask's parser refused the address with a ValueError: exit 1 and a traceback."""
+    command = [tmp_path / a if a == "h.db" else a for a in command]
+    p = _cli(*command, "pendulum", "--engines", "natcoord", "--scheduler", "notaurl",
+             "--out", tmp_path / "r", timeout=300)
+    assert p.returncode == 2, p.stderr[-1500:]
+    assert "--scheduler 'notaurl': not a Dask scheduler address" in p.stderr, p.stderr
+    assert "Traceback" not in p.stdout + p.stderr and not (tmp_path / "r").exists()
+
+
 def test_a_lost_dask_task_fails_its_cell(tmp_path):
     """A task whose Dask worker dies with it: the cell is failed with the reason; the
     command does not hang."""

@@ -219,6 +219,9 @@ def distributed(jobs, engines, out: Path, timeout_s: float, scheduler: str,
     longest = max(time_limit(job.case, timeout_s) for job, _ in todo) if todo else timeout_s
     try:
         client = Client(scheduler, timeout=connect_s)
+    except ValueError as e:  # dask's address parsing: no port, an unknown scheme, ...
+        raise NatcoordError(f"--scheduler {scheduler!r}: not a Dask scheduler address "
+                            f"({e}); expected tcp://HOST:PORT") from None
     except (OSError, TimeoutError) as e:
         raise NatcoordError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
                             f"({type(e).__name__}: {e})") from None
