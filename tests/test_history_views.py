@@ -6,8 +6,11 @@ from __future__ import annotations
 
 import json
 import os
+import sqlite3
 import subprocess
 import sys
+
+import pytest
 
 from natcoord.suite import history
 
@@ -57,3 +60,32 @@ def test_runs_cell_series_and_flaky(tmp_path):
     p = _cli("--cell", "pendulum", "--history", db)
     assert p.returncode == 2 and "CASE/ENGINE expected" in p.stderr
     assert _cli("--since-green", "--history", tmp_path / "none.db").returncode == 0
+
+
+@pytest.mark.parametrize("damage, named", [
+    ("UPDATE results SET max_abs = 'abc'", "table results, row 1, column max_abs holds 'abc'"),
+    ("UPDATE results SET tolerance = X'00' WHERE rowid = 2",
+     "table results, row 2, column tolerance holds X'00'"),
+    ("UPDATE bench SET samples = 'fast'", "table bench, row 1, column samples holds 'fast'"),
+    ("UPDATE bench SET samples = NULL", "table bench, row 1, column samples holds NULL"),
+    ("""UPDATE bench SET samples = '["a", "b"]'""", "table bench, row 1, column samples"),
+    ("DELETE FROM runs WHERE id = 1", "table results, row 1, column run_id holds 1")],
+    ids=["number as text", "number as bytes", "samples not json", "samples null",
+         "samples of text", "deleted run"])
+def test_a_damaged_row_is_named_whichever_view_reads(tmp_path, damage, named):
+    """Rows are checked where the history is opened: every view (and the gate, the report)
+    names the database, the row and the column (exit 2), none crashes on the value."""
+    db = tmp_path / "h.db"
+    bench = {"machine": {"fingerprint": "m"}, "records": [
+        {"case": "pendulum", "engine": "mujoco", "samples_s": [0.1, 0.2]}]}
+    for err, v, code in ((1e-8, "pass", 0), (3e-6, "fail", 1)):
+        history.record(db, kind="suite", summary=_summary(err, v), bench=bench, gate=code)
+    with sqlite3.connect(db) as con:
+        con.execute(damage)
+    con.close()
+    for view in ([], ["--flaky"], ["--json"], ["--cell", "pendulum/mujoco"],
+                 ["--since-green"]):
+        p = _cli(*view, "--history", db)
+        assert p.returncode == 2, (view, p.returncode, p.stdout[-500:], p.stderr[-1500:])
+        assert f"{db}: damaged row: {named}" in p.stderr, (view, p.stderr)
+        assert "Traceback" not in p.stderr + p.stdout

@@ -370,11 +370,25 @@ def _damaged(kind: str, tmp_path: Path) -> Path:
         db.mkdir()
     elif kind == "text":
         db.write_text("SQLite format 3 but not really\n")
+    elif kind in ROW_DAMAGE:  # natcoord's history, one row damaged
+        _natcoord_history(db)
+        with sqlite3.connect(db) as con:  # one file (no WAL): unmodified means the same
+            con.execute("PRAGMA journal_mode=DELETE")
+            con.execute("UPDATE runs SET machine = 'm'")  # the gate folder's: it reads them
+            con.execute(ROW_DAMAGE[kind])
+        con.close()
     return db
 
 
+ROW_DAMAGE = {"samples not json": "UPDATE bench SET samples = 'fast'",
+              "samples null": "UPDATE bench SET samples = NULL",
+              "samples of text": """UPDATE bench SET samples = '["0.1", "0.1"]'""",
+              "a number as text": "UPDATE bench SET wall_time_s = 'abc'",
+              "a deleted run": "DELETE FROM runs"}
+
+
 @pytest.mark.parametrize("kind", ["foreign schema", "random bytes", "truncated", "a folder",
-                                  "text"])
+                                  "text", *ROW_DAMAGE])
 @pytest.mark.parametrize("command", ["gate", "report"])
 def test_a_damaged_or_foreign_history_exits_2_and_is_not_modified(tmp_path, kind, command):
     db = _damaged(kind, tmp_path)
@@ -385,7 +399,9 @@ def test_a_damaged_or_foreign_history_exits_2_and_is_not_modified(tmp_path, kind
         args += ["--references", REFERENCES]
     p = _cli(command, *args, timeout=60)
     _clean(p, 2)
-    assert str(db) in p.stderr, p.stderr
+    assert str(db) in p.stderr and "bench.json" not in p.stderr, p.stderr
+    if kind in ROW_DAMAGE:  # the row and column named
+        assert "damaged row: table bench, row 1, column " in p.stderr, p.stderr
     after = _snapshot(tmp_path)
     assert {k: v for k, v in after.items() if not k.startswith("g")} == before  # no -wal
 

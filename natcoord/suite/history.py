@@ -59,6 +59,22 @@ TABLES = {"meta": {"key", "value"},
           "bench": {"run_id", "case_name", "engine", "case_hash", "engine_version",
                     "settings", "samples", "wall_time_s", "us_per_step", "n_steps",
                     "counters"}}
+# What a row's columns may hold ("?": or NULL): checked for every row of a history before
+# anything reads it (a damaged row is named, exit 2, never a crash in whoever reads it).
+ROWS = {"runs": {"generated": "text?", "kind": "text?", "natcoord_version": "text?",
+                 "git_commit": "text?", "machine": "text?", "machine_info": "text?",
+                 "gate": "integer?", "results_dir": "text?"},
+        "results": {"run_id": "run", "case_name": "text", "engine": "text",
+                    "case_hash": "text?", "engine_version": "text?", "status": "text?",
+                    "verdict": "text?", "settings": "text?", "channel": "text?",
+                    "kind": "text?", "max_abs": "number?", "max_rel": "number?",
+                    "tolerance": "number?", "determined": "integer?"},
+        "bench": {"run_id": "run", "case_name": "text", "engine": "text",
+                  "case_hash": "text?", "engine_version": "text?", "settings": "text?",
+                  "samples": "samples", "wall_time_s": "number?", "us_per_step": "number?",
+                  "n_steps": "integer?", "counters": "json object"},
+        "bench_cpu": {"run_id": "run", "case_name": "text", "engine": "text",
+                      "case_hash": "text?", "samples": "samples"}}
 READ_WAIT_S = 5.0  # a reader waits this long for a writer, then says so
 WRITE_WAIT_S = 60.0
 
@@ -118,7 +134,84 @@ def _check_schema(path: Path, db: sqlite3.Connection) -> bool:
     check = db.execute("PRAGMA quick_check").fetchone()
     if not check or check[0] != "ok":
         raise HistoryError(f"{path}: damaged (integrity check: {check and check[0]})")
+    _check_rows(path, db, names)
     return True
+
+
+_STORAGE = {"text": "'text'", "integer": "'integer'", "number": "'integer', 'real'"}
+_NAMED = {"text": "text", "integer": "an integer", "number": "a number"}
+
+
+def _bad(column: str, kind: str) -> list[tuple[str, str]]:
+    """(SQL condition true when ``column`` does not hold ``kind`` (see ROWS), what it
+    should hold), in the order to test them: a later condition may assume the earlier
+    ones false (SQLite's CASE stops at the first true one)."""
+    c = f'"{column}"'
+    if kind.endswith("?"):
+        return [(f"{c} IS NOT NULL AND typeof({c}) NOT IN ({_STORAGE[kind[:-1]]})",
+                 f"{_NAMED[kind[:-1]]} or NULL")]
+    if kind == "run":
+        return [(f"typeof({c}) != 'integer'", "the id of a run"),
+                (f"{c} NOT IN (SELECT id FROM runs)", "the id of a run in table runs (a "
+                 "deleted run?)")]
+    if kind == "samples":
+        return [(f"typeof({c}) != 'text' OR NOT json_valid({c})", "a JSON list of times"),
+                (f"json_type({c}) != 'array' OR json_array_length({c}) = 0 OR EXISTS ("
+                 f"SELECT 1 FROM json_each({c}) WHERE type NOT IN ('integer', 'real'))",
+                 "a JSON list of times (numbers, at least one)")]
+    if kind == "json object":
+        return [(f"typeof({c}) != 'text' OR NOT json_valid({c})", "a JSON object"),
+                (f"json_type({c}) NOT IN ('object', 'null')", "a JSON object")]
+    return [(f"typeof({c}) NOT IN ({_STORAGE[kind]})", _NAMED[kind])]
+
+
+_ROWS_CHECKED: dict[str, tuple] = {}  # file -> its signature when its rows last passed
+
+
+def _signature(path: Path) -> tuple:
+    """What changes when the database changes: the file's and its write-ahead log's
+    identity, size and modification time."""
+    out = []
+    for p in (path, path.with_name(path.name + "-wal")):
+        try:
+            st = p.stat()
+        except OSError:
+            out.append(None)
+        else:
+            out.append((st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns))
+    return tuple(out)
+
+
+def _check_rows(path: Path, db: sqlite3.Connection, tables: set[str]) -> None:
+    """Raise HistoryError naming the table, row and column of the first row that does not
+    hold what its columns should (:data:`ROWS`): a number stored as text, samples that
+    are not a JSON list of times, a result or benchmark of a run no longer in ``runs``.
+    Once per state of the file in a process (a gate opens the history once a cell)."""
+    key, signature = str(Path(path).resolve()), _signature(Path(path))
+    if _ROWS_CHECKED.get(key) == signature:
+        return
+    _first_bad_row(path, db, tables)
+    _ROWS_CHECKED[key] = signature
+
+
+def _first_bad_row(path: Path, db: sqlite3.Connection, tables: set[str]) -> None:
+    for table, columns in ROWS.items():
+        if table not in tables:  # bench_cpu: a history written before CPU samples
+            continue
+        tests = [(column, cond, want) for column, kind in columns.items()
+                 for cond, want in _bad(column, kind)]
+        cases = " ".join(f"WHEN {cond} THEN {k}" for k, (_, cond, _) in enumerate(tests))
+        row = db.execute(f"SELECT rowid, bad FROM (SELECT rowid, CASE {cases} END AS bad "
+                         f"FROM {table}) WHERE bad IS NOT NULL LIMIT 1").fetchone()
+        if row is None:
+            continue
+        rowid, (column, _, want) = row[0], tests[row[1]]
+        (value,) = db.execute(f'SELECT quote("{column}") FROM {table} WHERE rowid = ?',
+                              (rowid,)).fetchone()
+        value = value if len(value) <= 60 else value[:57] + "..."
+        raise HistoryError(f"{path}: damaged row: table {table}, row {rowid}, column "
+                           f"{column} holds {value}, not {want}; delete or repair the row, "
+                           "or give another --history")
 
 
 @contextmanager
