@@ -12,6 +12,8 @@ line naming the problem, a fault of the environment (a full disk, a read-only fo
 
 from __future__ import annotations
 
+import errno
+import os
 import signal
 import sys
 from pathlib import Path
@@ -1251,6 +1253,25 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
               f"{len(imported.loops)} loop(s))", highlight=False)
 
 
+# OSErrors that a path the user gave causes, not the machine: bad input (exit 2)
+BAD_PATH = {errno.ENOTDIR: "a part of the path is a file, not a folder",
+            errno.ENAMETOOLONG: "a name in the path is over the file system's limit, "
+                                "255 bytes on most",
+            errno.ELOOP: "the path goes round a loop of symbolic links",
+            errno.EISDIR: "a folder where a file is expected"}
+
+
+def _bad_path(e: OSError) -> str | None:
+    """What is wrong with the path the user gave, when ``e`` comes from it (None: a fault
+    of the environment: a full disk, a read-only folder, permissions)."""
+    if e.errno in BAD_PATH:
+        return BAD_PATH[e.errno]
+    if e.errno == errno.EEXIST and e.filename is not None and os.path.lexists(e.filename) \
+            and not os.path.isdir(e.filename):  # a folder to make, a file in the way
+        return "a file where a folder is needed"
+    return None
+
+
 def _stop(signum, frame):
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the clean-up
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -1268,8 +1289,14 @@ def main():  # pragma: no cover - console entry
     except NatcoordError as e:
         err.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False)
         sys.exit(2)
-    except OSError as e:  # the machine, not the input: a full disk, a read-only folder
+    except OSError as e:
         where = f"{e.filename}: " if e.filename else ""
+        bad = _bad_path(e)
+        if bad:  # the input: a path that cannot name what it should
+            err.print(f"[bold red]error:[/] {escape(where + (e.strerror or str(e)))} "
+                      f"({escape(bad)})", highlight=False)
+            sys.exit(2)
+        # the machine, not the input: a full disk, a read-only folder
         err.print(f"[bold red]error:[/] {escape(where + (e.strerror or str(e)))} (a fault of "
                   "the environment: disk space, permissions or a read-only folder)",
                   highlight=False)

@@ -571,6 +571,31 @@ def test_a_full_disk_or_read_only_folder_exits_5_never_1(tmp_path, code):
     assert base.read_bytes() == before
 
 
+def test_a_path_that_cannot_name_a_folder_is_bad_input_not_the_machine(tmp_path):
+    """A file where --out needs a folder, a name longer than the file system allows: exit
+    2 naming the path (they were called a fault of the environment, exit 5)."""
+    home = _project(tmp_path, "pendulum")
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    long = tmp_path / ("x" * 300)
+    for args, said in (
+            (["run", "pendulum", "--engines", "natcoord", "--out", afile / "sub"],
+             f"{afile}: File exists (a file where a folder is needed)"),
+            (["bench", "pendulum", "--engines", "natcoord", "--out", afile / "sub" / "b"],
+             f"{afile / 'sub'}: Not a directory (a part of the path is a file, not a folder)"),
+            (["run", "pendulum", "--engines", "natcoord", "--out", long / "r"],
+             f"{long}/r: File name too long (a name in the path is over the file system's "
+             "limit"),
+            (["report", "--results", long], f"{long}/summary.json: File name too long"),
+            (["gate", "--results", long], f"{long}/summary.json: File name too long"),
+            (["generate", "n_four_bar", "--n", "2", "--out", afile / "x.toml"],
+             f"{afile / 'x.toml'}: cannot be written: {afile} is a file, not a folder")):
+        p = _cli(*args, env={"NATCOORD_HOME": str(home)})
+        _clean(p, 2)
+        assert said in p.stderr and "fault of the environment" not in p.stderr, p.stderr
+    assert afile.read_text() == "mine"
+
+
 def test_an_unwritable_step_summary_keeps_the_nightly_results(tmp_path):
     home = _project(tmp_path, "pendulum")
     step = tmp_path / "step-summary"

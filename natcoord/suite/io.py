@@ -62,6 +62,12 @@ def check_user_file(path: Path, *, force: bool = False) -> None:
     from ..errors import NatcoordError
 
     path = Path(path)
+    for parent in path.parents:  # the nearest that exists must be a folder
+        if parent.exists() or parent.is_symlink():
+            if not parent.is_dir():
+                raise NatcoordError(f"{path}: cannot be written: {parent} is a file, not "
+                                    "a folder")
+            break
     if path.is_symlink() or (path.exists() and not path.is_file()):
         raise NatcoordError(f"{path}: exists and is not a regular file; not replaced")
     if path.exists() and not force:
