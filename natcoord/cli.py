@@ -168,16 +168,18 @@ def _known_engines() -> tuple[str, ...]:
     return reg.names
 
 
-def _engines(spec: str | None) -> list[str]:
+def _engines(spec: str | None, option: str = "--engines") -> list[str]:
+    """The engines ``spec`` names (comma-separated; every engine when None); an empty or
+    unknown name exits 2 naming ``option``, the option or argument it was given as."""
     known = _known_engines()
     if spec is None:
         return list(known)
     names = [s.strip() for s in spec.split(",") if s.strip()]
     if not names:
-        _fail(f"--engines: no engine named in {spec!r}; engines are {', '.join(known)}")
+        _fail(f"{option}: no engine named in {spec!r}; engines are {', '.join(known)}")
     bad = [n for n in names if n not in known]
     if bad:
-        _fail(f"--engines: unknown engine {bad[0]!r}; engines are {', '.join(known)}")
+        _fail(f"{option}: unknown engine {bad[0]!r}; engines are {', '.join(known)}")
     return list(dict.fromkeys(names))
 
 
@@ -425,7 +427,7 @@ def gate_cmd(results: ResultsDir = None,
         base = gate.load_baseline(baseline)
     except ValueError as e:
         _fail(str(e))
-    required = set(_engines(require)) if require else None
+    required = set(_engines(require, "--require")) if require else None
     verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
                          references=resolve(references, "references"), required=required,
                          baseline=base)
@@ -1138,7 +1140,8 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     from .engines import adapter
     from .suite.conformance import check_engine
 
-    _engines(engine)  # an unknown name: exit 2, naming the engines
+    if _engines(engine, "check-engine NAME") != [engine]:  # unknown: exit 2, naming them
+        _fail(f"check-engine NAME: one engine name expected, got {engine!r}")
     mod = adapter(engine)
     try:
         with contextlib.redirect_stdout(sys.stderr):  # the adapter's code: never in --json

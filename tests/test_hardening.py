@@ -298,6 +298,24 @@ def _record(case="pendulum", engine="natcoord", **channels):
                              "pass": v is not None and v <= 1e-6} for k, v in channels.items()}}
 
 
+def test_an_unknown_engine_is_refused_naming_the_option_that_named_it(tmp_path):
+    """`gate --require` and `check-engine NAME` said "--engines: unknown engine", an option
+    neither command was given."""
+    d = _summary(tmp_path, [_record(x=1e-9)], cases=["pendulum"], engines=["natcoord"])
+    for args, given in ((["gate", "--results", d, "--require", "nosuch"], "--require"),
+                        (["check-engine", "nosuch"], "check-engine NAME"),
+                        (["run", "pendulum", "--engines", "nosuch"], "--engines")):
+        p = _cli(*args)
+        assert p.returncode == 2, p.stderr
+        assert f"error: {given}: unknown engine 'nosuch'; engines are natcoord" in p.stderr, \
+            p.stderr
+        _no_traceback(p)
+    p = _cli("check-engine", "natcoord,mujoco")  # was a KeyError with a traceback
+    assert p.returncode == 2 and "check-engine NAME: one engine name expected, got " \
+        "'natcoord,mujoco'" in p.stderr, p.stderr
+    _no_traceback(p)
+
+
 def test_a_required_engine_without_a_record_fails_the_gate(tmp_path):
     d = _summary(tmp_path, [_record(x=1e-9)], cases=["pendulum"], engines=["natcoord"])
     p = _cli("gate", "--results", d, "--require", "natcoord,mujoco")
