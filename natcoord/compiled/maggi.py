@@ -463,6 +463,31 @@ def _velocity_basis(part, y, qdp, Rc):
     return True
 
 
+REST = 0.5  # _rest_gen's bound below this fraction of the Newton tolerance: converged
+EPS = float(np.finfo(np.float64).eps)
+
+
+@njit(cache=True, _nrt=False, inline="always")
+def _rest_gen(gen, part, y, qdp, step, big, basis):
+    """A bound on max |Phi| after a Newton step of :func:`_step_gen` from the q the
+    kernels' work array is factored at (no dependent row): every row quadratic, Phi(q0 +
+    dq) = Phi(q0) + J dq + Phi_2(dq) exactly, and J dq = -Phi(q0) - J Rc d^i, so |Phi| <=
+    |J Rc| |d^i| + hq max|dq|^2 + gq EPS (max|q| + max|dq|)^2 (the rounding of storing q0 +
+    dq; hq, gq = gen[11], :func:`natcoord.compiled.sparse.newton_bound`; < 0: no bound).
+    Rc is R at q0 (J R = 0) or, ``basis``, the predicted qd over qd^i (f = 1,
+    :func:`_velocity_basis`), whose J Rc is max|J qdp| / |qd^i| by the ``jx`` kernel on
+    the stored J. ``step`` = max|dq| (q^i is held)."""
+    hq, gq = gen[11][0], gen[11][1]
+    if hq < 0.0:
+        return math.inf
+    r = hq * step * step + gq * EPS * (big + step) ** 2
+    if basis:
+        indep, d, w = part[2], gen[7], gen[6]
+        jq = _call3(types.float64, gen[0][4], _ptr(gen[1]), _ptr(qdp), _ptr(w))
+        r += jq * abs(d[indep[0]]) / abs(y[indep.shape[0]])
+    return r
+
+
 @njit(cache=True, _nrt=False, inline="always")
 def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
     """q (ws[3]) at y[:f] by Newton on Phi[rows] = 0 over q^d from the prediction qp (n,)
@@ -487,6 +512,7 @@ def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
     e = _residual_gen(gen, q, p)
     it = 0
     size = 0.0
+    big = 1.0
     while e >= tol or (it == 0 and e > 1e-3 * tol):
         if it >= NEWTON_ITER:
             return ERR_NEWTON
@@ -496,9 +522,11 @@ def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
                 lo = min(lo, q[a])
                 hi = max(hi, q[a])
             size = max(hi - lo, 1e-300)
-        _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # J, Y, L D L^T at q
+            big = max(1.0, abs(lo), abs(hi))
+        full = _call2(types.int64, gk[1], _ptr(q), _ptr(gws)) == 0  # J, Y, L D L^T at q
         cnt[C_FACT] += 1
-        if it == 0 and _velocity_basis(part, y, qdp, Rp):
+        basis = it == 0 and _velocity_basis(part, y, qdp, Rp)
+        if basis:
             step = _step_gen(gen, part, q, p, Rp)
         else:
             if _null_gen(gen, part, ws, R) < 0.0:
@@ -508,6 +536,8 @@ def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
         it += 1
         if step < tol * 10.0 * max(1.0, size):  # round-off reached
             break
+        if full and _rest_gen(gen, part, y, qdp, step, big, basis) < REST * tol:
+            break  # |Phi| is below tol: its evaluation would end the loop here
         e = _residual_gen(gen, q, p)
     _call2(types.int64, gk[1], _ptr(q), _ptr(gws))  # the factorization at q
     cnt[C_FACT] += 1
@@ -522,10 +552,11 @@ def _positions_gen(part, gen, tol, y, qp, qdp, ws, cnt):
 def _kin_gen(part, gen, tol, y, pr, ws, cnt):
     """:func:`_kinematics` on the generated path from the prediction pr = (q, qd) (n,) of
     the full coordinates at y (:func:`_stages`), ``gen`` = (gk, gws, prow (m,), prr (r,),
-    yl (2f,), qdd (n,), w (m,), d (n,), X, Rp (n, f), Z (f, f)): the model's generated
-    kernels (addresses, :mod:`natcoord.compiled.codegen`) and their work array, the
-    kernels' row of every constraint row and of the partition's, the y of the last
-    evaluation, the accelerations' array, scratch and R predicted (Rp). q by
+    yl (2f,), qdd (n,), w (m,), d (n,), X, Rp (n, f), Z (f, f), bound (2,)): the model's
+    generated kernels (addresses, :mod:`natcoord.compiled.codegen`) and their work array,
+    the kernels' row of every constraint row and of the partition's, the y of the last
+    evaluation, the accelerations' array, scratch, R predicted (Rp) and the plan's Newton
+    bound (:func:`_rest_gen`). q by
     :func:`_positions_gen`, R there, qd = R qd^i (S c is not formed: :func:`_acc_gen`
     gives qdd whole, with the factorization at q left in gws); at the y of the last
     evaluation nothing is redone. Compiled without reference counting: it allocates
@@ -943,9 +974,10 @@ class Steps(NamedTuple):
 
 def generated(con, M, frc, alpha: float = 1.0) -> tuple | None:
     """(kernel addresses, their plan's ``kernel_args``, prow (m,): the kernels' row of each
-    constraint row) of index-1's generated kernels for the Maggi loop's generated path
-    (:func:`_kin_gen`): the Schur plan of a regular M, a singular M's regularised dense
-    plan with ``alpha`` (:func:`natcoord.compiled.sparsity.dense_plan`); None where
+    constraint row, the plan's Newton bound (hq, gq) (2,) or (-1, -1): none) of index-1's
+    generated kernels for the Maggi loop's generated path (:func:`_kin_gen`): the Schur
+    plan of a regular M (with its bound, :func:`_rest_gen`), a singular M's regularised
+    dense plan with ``alpha`` (:func:`natcoord.compiled.sparsity.dense_plan`); None where
     :func:`natcoord.compiled.codegen.load` declines the model (model only)."""
     from . import codegen, sparsity
     regular = sparsity.is_spd(M)
@@ -953,7 +985,10 @@ def generated(con, M, frc, alpha: float = 1.0) -> tuple | None:
     gk = codegen.load(plan, frc, None if regular else M)
     if gk is None:
         return None
-    return gk, plan.kernel_args, np.argsort(plan.perm).astype(np.int64)
+    n = M.shape[0]
+    bound = np.array(kernels_sparse.newton_bound(plan.kernel_args, n) if regular
+                     else (-1.0, -1.0))
+    return gk, plan.kernel_args, np.argsort(plan.perm).astype(np.int64), bound
 
 
 def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None, gen=None):
@@ -972,11 +1007,11 @@ def run(packed, frc, times, y, q, part, method: str, steps: Steps, cnt=None, gen
     ctl = (float(rtol), float(atol), 0.0 if h is None else float(h), float(newton_tol),
            float(rank_tol), float(repartition_growth))
     if gen is not None:  # the kernels, their work array, rows, and scratch
-        gk, args, prow = gen
+        gk, args, prow, bound = gen
         f = len(part[2])
         gen = (gk, kernels_sparse.workspace(args), prow, prow[part[0]].copy(),
                np.zeros(len(y)), np.zeros(n), np.zeros(con[4]), np.zeros(n),
-               np.zeros((n, f)), np.zeros((n, f)), np.zeros((f, f)))
+               np.zeros((n, f)), np.zeros((n, f)), np.zeros((f, f)), bound)
     status = run_maggi(con, Msp, frc, part, ctl, _tab(method),
                        np.ascontiguousarray(times, float), np.array(y, float),
                        np.array(q, float), (Q, QD, QDD, c, tfail), gen)
