@@ -30,7 +30,7 @@ dense Jacobian or LU. ``MaggiLoop`` runs it on the coordinates index-1's elimina
 where that leaves M regular (:mod:`natcoord.compiled.elimination`: q = T q_r + b, the
 constant linear rows hold identically), with index-1's kernels of that model: four_bar 12
 -> 4 coordinates, slider_crank 10 -> 3, and the Schur complement of a regular M_r instead
-of the regularised dense factor of the model's singular M, 1.7-3.3x less time per step;
+of the regularised dense factor of the model's singular M, 1.7-1.9x less time per step;
 the partition, the state and the samples are then over the kept coordinates, written back
 to all of them after the run:
 
