@@ -396,6 +396,33 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     out.print(f"report: {path.resolve()}")
 
 
+READ_TRIES = 3  # judgings of a folder that a command publishing into it replaced meanwhile
+
+
+def _read_whole(folders, judge):
+    """``judge()`` over results folders that a command may publish into meanwhile (a folder
+    is replaced whole, by rename: files read before and after would mix two runs, and their
+    hashes fail as altered): judged again, up to READ_TRIES times, while a folder changed
+    under it (its device and inode, through any link such as reports/latest)."""
+    def which():
+        out = []
+        for f in folders:
+            try:
+                st = os.stat(f)
+                out.append((st.st_dev, st.st_ino))
+            except OSError:
+                out.append(None)
+        return out
+    for _ in range(READ_TRIES - 1):
+        before = which()
+        result = judge()
+        if which() == before:
+            return result
+        err.print("note: a results folder was replaced while it was read (a command "
+                  "published into it): judging it again", highlight=False)
+    return judge()
+
+
 @app.command("gate")
 def gate_cmd(results: ResultsDir = None,
              require: Annotated[str | None, typer.Option(
@@ -422,15 +449,18 @@ def gate_cmd(results: ResultsDir = None,
 
     results = _results_dir(results)
     baseline = resolve(baseline, "references/baseline.json")
-    try:
-        summary = gate.load_summary(results)
-        base = gate.load_baseline(baseline)
-    except ValueError as e:
-        _fail(str(e))
     required = set(_engines(require, "--require")) if require else None
-    verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
-                         references=resolve(references, "references"), required=required,
-                         baseline=base)
+
+    def judge():
+        try:
+            summary = gate.load_summary(results)
+            base = gate.load_baseline(baseline)
+        except ValueError as e:
+            _fail(str(e))
+        return summary, base, gate.judge(summary, results, cases=gate.CaseBook(resolve(
+            cases_dir, "cases")), references=resolve(references, "references"),
+            required=required, baseline=base)
+    summary, base, verdict = _read_whole([results], judge)
     history = resolve(history, "reports/history.db")
     try:
         bench_result = diff.read_bench(results)
@@ -1038,11 +1068,13 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
 
     from .suite import diff, gate
 
-    try:
-        c = diff.compare_runs(base, new, cases=gate.CaseBook(resolve(cases_dir, "cases")),
-                              references=resolve(references, "references"))
-    except ValueError as e:
-        _fail(str(e))
+    def judge():
+        try:
+            return diff.compare_runs(base, new, cases=gate.CaseBook(resolve(cases_dir, "cases")),
+                                     references=resolve(references, "references"))
+        except ValueError as e:
+            _fail(str(e))
+    c = _read_whole([base, new], judge)
     if as_json:
         print(_json.dumps(c.as_json(), indent=1, default=str))
         raise typer.Exit(c.code)

@@ -468,3 +468,39 @@ def test_propose_keeps_an_existing_out_file(tmp_path):
     p = _cli("propose", "pendulum", "--engines", "natcoord", "--out", tmp_path, "--force")
     _clean(p)
     assert p.returncode == 2 and "not a regular file" in p.stderr and tmp_path.is_dir()
+
+
+def test_a_folder_replaced_while_the_gate_reads_it_is_judged_again(run, tmp_path):
+    """A command publishing into the folder a gate is reading replaces it whole (by rename):
+    the summary read before and the result files read after belong to two runs, whose
+    hashes fail as altered (the first judging, asserted here, exits 1). The gate sees the
+    folder change under it and judges the new one again: it passes."""
+    folder, other = tmp_path / "r", tmp_path / "other"
+    shutil.copytree(run, folder)
+    shutil.copytree(run, other)  # another complete run: a column moved by 1e-12
+    _edit_csv(other, lambda t: t.__setitem__(t.columns[1], t[t.columns[1]] + 1e-12),
+              rehash=True)
+    prog = f"""
+import os, sys
+from natcoord.suite import gate
+real, calls = gate.judge, []
+def judge(summary, results, **kw):
+    if not calls:  # the summary is read; now a command publishes into the folder
+        os.rename({str(folder)!r}, {str(folder)!r} + ".old")
+        os.rename({str(other)!r}, {str(folder)!r})
+    verdict = real(summary, results, **kw)
+    calls.append(verdict.code)
+    print("judged", verdict.code, file=sys.stderr)
+    return verdict
+gate.judge = judge
+sys.argv = ["natcoord", *sys.argv[1:]]
+from natcoord.cli import main
+main()
+"""
+    p = subprocess.run([sys.executable, "-c", prog, "gate", "--results", str(folder),
+                        "--baseline", str(tmp_path / "none.json"), "--history",
+                        str(tmp_path / "none.db")], capture_output=True, text=True,
+                       timeout=300)
+    _clean(p)
+    assert "judged 1" in p.stderr and "judging it again" in p.stderr, p.stderr
+    assert p.returncode == 0, p.stderr
