@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engines.schema import shown
+from ..engines.schema import short, shown
 from ..errors import CaseError
 from .mechanism import (
     BODY_KINDS,
@@ -101,7 +101,7 @@ class _Reader:
 
     def get(self, table: dict, key: str, path: str, *, required=True, default=None):
         if not isinstance(table, dict):
-            self.fail(path, f"must be a table, got {_short(table)}")
+            self.fail(path, f"must be a table, got {short(table)}")
         if key not in table:
             if required:
                 self.fail(_join(path, key), "missing required field")
@@ -119,10 +119,10 @@ class _Reader:
             return default
         v = self.get(table, key, path)
         if not isinstance(v, str) or not v:
-            self.fail(_join(path, key), f"must be a non-empty string, got {_short(v)}")
+            self.fail(_join(path, key), f"must be a non-empty string, got {short(v)}")
         if choices and v not in choices:
             self.fail(_join(path, key),
-                      f"unknown value {_short(v)}; expected one of {', '.join(choices)}")
+                      f"unknown value {short(v)}; expected one of {', '.join(choices)}")
         if len(v) > MAX_TEXT or any(not (c.isprintable() or c in "\n\t") for c in v):
             self.fail(_join(path, key), f"must be printable text of at most {MAX_TEXT} "
                       "characters")
@@ -146,7 +146,7 @@ class _Reader:
 
     def identifier(self, v, field: str) -> str:
         if not isinstance(v, str) or len(v) > MAX_NAME or not NAME_PATTERN.fullmatch(v):
-            self.fail(field, f"{_short(v)} is not a name: use at most {MAX_NAME} letters, "
+            self.fail(field, f"{short(v)} is not a name: use at most {MAX_NAME} letters, "
                       "digits and _ . + - (not starting with . + or -)")
         return v
 
@@ -191,12 +191,6 @@ class _Reader:
 
 def _join(path: str, key) -> str:
     return f"{path}.{key}" if path else str(key)
-
-
-def _short(v, n: int = 60) -> str:
-    """repr of a value, cut to n characters (a 50 000-character name is not echoed)."""
-    s = repr(v)
-    return s if len(s) <= n else s[:n] + f"... ({len(s)} characters)"
 
 
 def _depth(x, limit: int) -> int:
@@ -278,10 +272,10 @@ def load_case(path: str | Path) -> Case:
 
     name = r.name(data, "name", "")
     if name != path.stem:
-        r.fail("name", f"{name!r} must equal the file name {_short(path.stem)}")
+        r.fail("name", f"{name!r} must equal the file name {short(path.stem)}")
     dim = r.get(data, "dimension", "")
     if type(dim) is not int or dim not in (2, 3):
-        r.fail("dimension", f"must be the integer 2 or 3, got {_short(dim)}")
+        r.fail("dimension", f"must be the integer 2 or 3, got {short(dim)}")
     init = r.table(data, "initial", "", required=False)
     r.known(init, INITIAL_KEYS, "initial")
     reference_frame = "pose" not in init
@@ -394,7 +388,7 @@ def load_case(path: str | Path) -> Case:
     tags = r.get(data, "tags", "", required=False, default=[])
     if not isinstance(tags, list) or not all(isinstance(t, str) and len(t) <= MAX_NAME
                                              for t in tags):
-        r.fail("tags", f"must be a list of short strings, got {_short(tags)}")
+        r.fail("tags", f"must be a list of short strings, got {short(tags)}")
     tags = tuple(tags)
     reactions = _reactions(r, r.table(data, "reactions", "", required=False), links, names)
     comparison = _comparison(r, r.table(data, "comparison", "", required=False), channels)
@@ -488,11 +482,11 @@ def _benchmark(r: _Reader, table: dict, channels) -> dict:
     if (not isinstance(names, list) or not names
             or not all(isinstance(n, str) for n in names)):
         r.fail("benchmark.channels", f"must be a non-empty list of channel names, got "
-               f"{_short(names)}")
+               f"{short(names)}")
     kinds = {c.name: c.kind for c in channels}
     for k, n in enumerate(names):
         if n not in kinds:
-            r.fail(f"benchmark.channels[{k}]", f"unknown channel {_short(n)}; channels are "
+            r.fail(f"benchmark.channels[{k}]", f"unknown channel {short(n)}; channels are "
                    f"{', '.join(kinds)}")
     dims = {_kind_dim(n, channels) for n in names}
     if len(dims) > 1:
@@ -637,7 +631,7 @@ def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
             ends = r.get(b, "ends", p, required=False, default=list(points)[:2])
             if not isinstance(ends, list) or len(ends) != 2 or any(
                     not isinstance(e, str) or e not in points for e in ends):
-                r.fail(f"{p}.ends", f"must name two of the body's points, got {_short(ends)}")
+                r.fail(f"{p}.ends", f"must name two of the body's points, got {short(ends)}")
             ends = tuple(ends)
             a, c = points[ends[0]], points[ends[1]]
             length = float(np.linalg.norm(c - a))
@@ -774,7 +768,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
             if (not isinstance(names, list) or not names
                     or not all(isinstance(n, str) and n in jnames for n in names)):
                 r.fail(f"{p}.joints", f"must be a non-empty list of joint names; joints are "
-                       f"{', '.join(jnames) or 'none'}, got {_short(names)}")
+                       f"{', '.join(jnames) or 'none'}, got {short(names)}")
             gap_joints = tuple(names)
         frame, about = "world", ()
         if kind in ("angular_velocity", "angular_acceleration", "angular_momentum", "momentum"):
@@ -795,7 +789,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                     and x[0] in points_of and x[1] in points_of[x[0]]
                     and x[2] in points_of[x[0]] and x[1] != x[2] for x in v)):
                 r.fail(f"{p}.vectors", "must be two [body, p, q] lists (r_q - r_p, two "
-                       f"different points of that body or of ground), got {_short(v)}")
+                       f"different points of that body or of ground), got {short(v)}")
             vectors = tuple(tuple(x) for x in v)
         if kind == "angular_momentum":
             about = r.get(c, "about", p, required=False, default=[0.0] * dim)
@@ -804,7 +798,7 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
         if kind == "energy":  # work = true: the energy balance (minus non-conservative work)
             work = r.get(c, "work", p, required=False, default=False)
             if not isinstance(work, bool):
-                r.fail(f"{p}.work", f"must be true or false, got {_short(work)}")
+                r.fail(f"{p}.work", f"must be true or false, got {short(work)}")
         if kind in ("angle", "position", "velocity", "acceleration"):
             body = r.string(c, "body", p)
             if body not in bodies:

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..case.mechanism import DRIVER_TYPES, GROUND, JOINT_TYPES, Case, Joint
+from .schema import short
 
 LOOPS = ("rigid", "soft", "none")
 
@@ -100,11 +101,6 @@ class RulesError(Exception):
     reasons: a fault of the engine, never a reason it cannot run a case."""
 
 
-def _short(x, n: int = 80) -> str:
-    s = repr(x)
-    return s if len(s) <= n else s[:n] + "..."
-
-
 def _rules(caps: Capabilities, case: Case, settings: dict) -> list[str]:
     """The reasons of ``caps.rules``; RulesError when they raise (SystemExit too) or return
     anything but a list (or tuple) of strings."""
@@ -114,7 +110,7 @@ def _rules(caps: Capabilities, case: Case, settings: dict) -> list[str]:
         raise RulesError(f"the engine's capability rules raised {type(e).__name__}: "
                          f"{e}") from e
     if not isinstance(got, (list, tuple)) or not all(isinstance(x, str) for x in got):
-        raise RulesError(f"the engine's capability rules returned {_short(got)}, not a "
+        raise RulesError(f"the engine's capability rules returned {short(got)}, not a "
                          "list of reasons (strings)")
     return list(got)
 

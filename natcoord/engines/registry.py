@@ -33,6 +33,8 @@ from functools import cache
 from pathlib import Path
 from types import ModuleType
 
+from .schema import short
+
 GROUP = "natcoord.engines"
 
 # name -> adapter module of natcoord's own engines, in the order tables list them
@@ -83,25 +85,20 @@ def _entries() -> list[tuple[str, str]]:
     return list(dict.fromkeys((ep.name, ep.value) for ep in md.entry_points(group=GROUP)))
 
 
-def _short(x, n: int = 60) -> str:
-    s = repr(x)
-    return s if len(s) <= n else s[:n] + "..."
-
-
 def _settings_error(schema, where: str = "SETTINGS") -> str:
     """Why ``schema`` is not a tuple of Setting (recursively, a table's ``fields`` too)."""
     from .schema import Setting
 
     if not isinstance(schema, tuple):
-        return (f"its {where} is {_short(schema)} ({type(schema).__name__}), not a tuple of "
+        return (f"its {where} is {short(schema)} ({type(schema).__name__}), not a tuple of "
                 "natcoord.engines.schema.Setting")
     names = set()
     for s in schema:
         if not isinstance(s, Setting):
-            return (f"its {where} holds {_short(s)} ({type(s).__name__}), not a "
+            return (f"its {where} holds {short(s)} ({type(s).__name__}), not a "
                     "natcoord.engines.schema.Setting")
         if not isinstance(s.name, str) or not s.name or s.name in names:
-            return f"its {where} names a setting {_short(s.name)}: not a new non-empty string"
+            return f"its {where} names a setting {short(s.name)}: not a new non-empty string"
         names.add(s.name)
         why = _settings_error(s.fields, f"setting {s.name!r}'s fields") if s.fields else ""
         if why:
@@ -119,20 +116,20 @@ def _contract_error(name: str, module: ModuleType) -> str:
     if missing:
         return f"the adapter module lacks {', '.join(missing)} (see natcoord.engines.base)"
     if module.NAME != name:
-        return f"its NAME is {_short(module.NAME)}, not the entry point's name {name!r}"
+        return f"its NAME is {short(module.NAME)}, not the entry point's name {name!r}"
     if not isinstance(module.PACKAGE, str) or not module.PACKAGE:
-        return f"its PACKAGE is {_short(module.PACKAGE)}, not a package name (a string)"
+        return f"its PACKAGE is {short(module.PACKAGE)}, not a package name (a string)"
     for fn in ("version", "run", "check_settings"):
         if hasattr(module, fn) and not callable(getattr(module, fn)):
-            return f"its {fn} is {_short(getattr(module, fn))}, not a function"
+            return f"its {fn} is {short(getattr(module, fn))}, not a function"
     caps = module.CAPABILITIES
     if not isinstance(caps, Capabilities):
-        return (f"its CAPABILITIES is {_short(caps)} ({type(caps).__name__}), not a "
+        return (f"its CAPABILITIES is {short(caps)} ({type(caps).__name__}), not a "
                 "natcoord.engines.capabilities.Capabilities")
     if caps.rules is not None and not callable(caps.rules):
-        return f"its CAPABILITIES.rules is {_short(caps.rules)}, not a function"
+        return f"its CAPABILITIES.rules is {short(caps.rules)}, not a function"
     if not isinstance(caps.step, str):
-        return f"its CAPABILITIES.step is {_short(caps.step)}, not a setting's name"
+        return f"its CAPABILITIES.step is {short(caps.step)}, not a setting's name"
     why = _settings_error(module.SETTINGS)
     if why:
         return why

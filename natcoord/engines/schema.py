@@ -86,14 +86,15 @@ class Setting:
         return out
 
 
-def _short(v, n: int = 60) -> str:
+def short(v, n: int = 60) -> str:
+    """repr of a value, cut to n characters (a 50 000-character name is not echoed)."""
     s = repr(v)
     return s if len(s) <= n else s[:n] + f"... ({len(s)} characters)"
 
 
 def shown(key) -> str:
     """A key as it may appear in a message: itself when short and printable, else cut."""
-    return key if len(str(key)) <= 60 and str(key).isprintable() else _short(key)
+    return key if len(str(key)) <= 60 and str(key).isprintable() else short(key)
 
 
 def _is_number(v) -> bool:
@@ -115,7 +116,7 @@ def _number(s: Setting, v, integer: bool = False) -> str | None:
     """Why ``v`` is not a valid value of the number setting ``s`` (None: it is)."""
     kind = "an integer" if integer else "a number"
     if not _is_number(v) or (integer and not isinstance(v, int)):
-        return f"must be {kind}{_unit(s)}, got {_short(v)}"
+        return f"must be {kind}{_unit(s)}, got {short(v)}"
     if not math.isfinite(v):
         return f"must be finite, got {v!r}"
     if not _in_range(s, v):
@@ -130,14 +131,14 @@ def _value(s: Setting, v, field: str) -> list[tuple[str, str]]:
         why = _number(s, v, s.type == "integer")
     elif s.type == "boolean":
         if not isinstance(v, bool):
-            why = f"must be true or false, got {_short(v)}"
+            why = f"must be true or false, got {short(v)}"
     elif s.type == "choice":
         if not isinstance(v, str) or v not in s.choices:
-            why = f"must be one of {', '.join(s.choices)}, got {_short(v)}"
+            why = f"must be one of {', '.join(s.choices)}, got {short(v)}"
     elif s.type == "numbers":
         if not isinstance(v, (list, tuple)) or (s.length is not None and len(v) != s.length):
             n = f"{s.length} " if s.length is not None else ""
-            why = f"must be a list of {n}numbers, got {_short(v)}"
+            why = f"must be a list of {n}numbers, got {short(v)}"
         else:
             for k, x in enumerate(v):
                 sub = _number(s, x)
@@ -145,7 +146,7 @@ def _value(s: Setting, v, field: str) -> list[tuple[str, str]]:
                     return [(f"{field}[{k}]", sub)]
     elif s.type == "table":
         if not isinstance(v, dict):
-            why = f"must be a table of settings, got {_short(v)}"
+            why = f"must be a table of settings, got {short(v)}"
         else:
             return check(v, s.fields, field)
     return [(field, why)] if why else []
@@ -156,7 +157,7 @@ def check(settings, schema: tuple[Setting, ...], prefix: str = "") -> list[tuple
     (field, reason), empty when every key is known and every value valid. ``field`` is
     the key (``prefix.key`` under a prefix); an unknown key names the known ones."""
     if not isinstance(settings, dict):  # the field is the table itself ("" at the top)
-        return [(prefix, f"must be a table of settings, got {_short(settings)}")]
+        return [(prefix, f"must be a table of settings, got {short(settings)}")]
     by_name = {s.name: s for s in schema}
     out = []
     for key, v in settings.items():
@@ -188,7 +189,7 @@ def problems(adapter, settings) -> list[tuple[str, str]]:
             return [("", f"the engine's check_settings raised {type(e).__name__}: {e}")]
         if not all(isinstance(x, (tuple, list)) and len(x) == 2
                    and all(isinstance(y, str) for y in x) for x in out):
-            return [("", f"the engine's check_settings returned {_short(got)}, not a list "
+            return [("", f"the engine's check_settings returned {short(got)}, not a list "
                      "of (field, reason) pairs")]
         out = [tuple(x) for x in out]
     return out

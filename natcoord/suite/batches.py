@@ -66,10 +66,12 @@ def _of_run(run) -> Samples | None:
 
 
 def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine: str,
-            samples: int, min_batch_s: float, budget_s: float):
+            samples: int, min_batch_s: float, budget_s: float,
+            check: Callable = lambda run, case: None):
     """Run ``case`` (and ``short_case``, the cost fit's shorter run, when given) in this
     process and time them: (last run, last short run or None, full Samples, short Samples
-    or None)."""
+    or None). ``check(run, case)`` sees the warm-up runs and the last ones (it may raise),
+    never a timed one: its cost stays out of the samples."""
     k = slowdown(engine)
     timing.configure(samples=samples, min_batch_s=min_batch_s, slowdown=k,
                      budget_s=budget_s)
@@ -81,6 +83,9 @@ def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine:
         costs = (t1 - t0, time.perf_counter() - t1)  # whole runs, build time included
     finally:
         timing.configure()
+    check(run, case)
+    if cut is not None:
+        check(cut, short_case)
     full, short = _of_run(run), (_of_run(cut) if cut is not None else None)
     if full is not None:
         return run, cut, full, short
@@ -109,6 +114,9 @@ def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine:
             cut, wall = _batch(run_fn, short_case, init, settings, m[1], k)
             short.wall_s.append(wall)
             short.runs.append(m[1])
+    check(run, case)
+    if cut is not None:
+        check(cut, short_case)
     return run, cut, full, short
 
 

@@ -35,6 +35,19 @@ def _durations(xs) -> bool:
                                         for s in xs)
 
 
+_KINDS = {"a string": lambda x: isinstance(x, str), "a number": _number,
+          "a table": lambda x: isinstance(x, dict), "true or false": lambda x: isinstance(x, bool)}
+
+
+def _optional(table: dict, keys, what: str, prefix: str) -> None:
+    """StoredFileError ``{prefix}{key}: not {what}`` for the first of ``keys`` that ``table``
+    holds (not null) and that is not ``what`` (one of :data:`_KINDS`)."""
+    ok = _KINDS[what]
+    for k in keys:
+        if table.get(k) is not None and not ok(table[k]):
+            raise StoredFileError(f"{prefix}{k}: not {what}")
+
+
 def carried(record: dict) -> bool:
     """True for a bench record (or work-precision point) that tonight's bench did not
     measure: reused from an earlier suite (``reused``) or taken from tonight's accuracy run
@@ -67,15 +80,10 @@ def check_bench(path: Path, data) -> dict:
                 raise StoredFileError(f"{where}.{k}: not a list of durations (s)")
         if "batch_runs" in r and not _durations(r["batch_runs"]):
             raise StoredFileError(f"{where}.batch_runs: not a list of run counts")
-        for k in ("status", "reason", "case_hash", "engine_version"):
-            if r.get(k) is not None and not isinstance(r[k], str):
-                raise StoredFileError(f"{where}.{k}: not a string")
-        for k in _NUMBERS:
-            if r.get(k) is not None and not _number(r[k]):
-                raise StoredFileError(f"{where}.{k}: not a number")
-        for k in ("counters", "settings"):
-            if r.get(k) is not None and not isinstance(r[k], dict):
-                raise StoredFileError(f"{where}.{k}: not a table")
+        _optional(r, ("status", "reason", "case_hash", "engine_version"), "a string",
+                  f"{where}.")
+        _optional(r, _NUMBERS, "a number", f"{where}.")
+        _optional(r, ("counters", "settings"), "a table", f"{where}.")
     return data
 
 
@@ -93,11 +101,8 @@ def check_summary(path: Path, data) -> dict:
         if k in data and not (isinstance(data[k], list)
                               and all(isinstance(x, str) for x in data[k])):
             raise StoredFileError(f"{path}: {k}: not a list of names")
-    for k in ("generated", "mode", "natcoord_version"):
-        if data.get(k) is not None and not isinstance(data[k], str):
-            raise StoredFileError(f"{path}: {k}: not a string")
-    if data.get("machine") is not None and not isinstance(data["machine"], dict):
-        raise StoredFileError(f"{path}: machine: not a table")
+    _optional(data, ("generated", "mode", "natcoord_version"), "a string", f"{path}: ")
+    _optional(data, ("machine",), "a table", f"{path}: ")
     for i, r in enumerate(records):
         _check_record(f"{path}: records[{i}]", r)
     return data
@@ -115,15 +120,9 @@ def _check_record(where: str, r) -> None:
     if r["status"] not in STATUSES:
         raise StoredFileError(f"{where}.status: {r['status'][:40]!r} is not one of "
                               f"{', '.join(STATUSES)}")
-    for k in _TEXTS:
-        if r.get(k) is not None and not isinstance(r[k], str):
-            raise StoredFileError(f"{where}.{k}: not a string")
-    for k in _RECORD_NUMBERS:
-        if r.get(k) is not None and not _number(r[k]):
-            raise StoredFileError(f"{where}.{k}: not a number")
-    for k in _TABLES:
-        if r.get(k) is not None and not isinstance(r[k], dict):
-            raise StoredFileError(f"{where}.{k}: not a table")
+    _optional(r, _TEXTS, "a string", f"{where}.")
+    _optional(r, _RECORD_NUMBERS, "a number", f"{where}.")
+    _optional(r, _TABLES, "a table", f"{where}.")
     if "samples_s" in r and not _durations(r["samples_s"]):
         raise StoredFileError(f"{where}.samples_s: not a list of durations (s)")
     if "notes" in r and not (isinstance(r["notes"], list)
@@ -139,12 +138,6 @@ def _check_record(where: str, r) -> None:
         at = f"{where}.channels.{name[:40]}"
         if not isinstance(c, dict):
             raise StoredFileError(f"{at}: not a table")
-        for k in _CHANNEL_NUMBERS:
-            if c.get(k) is not None and not _number(c[k]):
-                raise StoredFileError(f"{at}.{k}: not a number")
-        for k in _CHANNEL_FLAGS:
-            if c.get(k) is not None and not isinstance(c[k], bool):
-                raise StoredFileError(f"{at}.{k}: not true or false")
-        for k in _CHANNEL_TEXTS:
-            if c.get(k) is not None and not isinstance(c[k], str):
-                raise StoredFileError(f"{at}.{k}: not a string")
+        _optional(c, _CHANNEL_NUMBERS, "a number", f"{at}.")
+        _optional(c, _CHANNEL_FLAGS, "true or false", f"{at}.")
+        _optional(c, _CHANNEL_TEXTS, "a string", f"{at}.")

@@ -46,6 +46,7 @@ from ..case.mechanism import FORCE_KINDS, Case  # noqa: E402
 from ..engines import adapter  # noqa: E402
 from ..engines.base import EngineRun, InitialState  # noqa: E402
 from ..engines.capabilities import RulesError, why_not  # noqa: E402
+from ..engines.schema import short  # noqa: E402
 from ..errors import Unsupported  # noqa: E402
 from ..outputs.result import Motion, Result, Status, evaluate_channels, methods_table  # noqa: E402
 from . import batches  # noqa: E402
@@ -108,11 +109,6 @@ class BadReturn(Exception):
     contract promises (the message says what): its cell fails, nothing of it is kept."""
 
 
-def _short(x, n: int = 80) -> str:
-    s = repr(x)
-    return s if len(s) <= n else s[:n] + "..."
-
-
 def _json_default(x):
     if isinstance(x, np.generic):
         return x.item()
@@ -125,10 +121,10 @@ def _table_problem(what: str, x) -> str:
     """Why ``x`` cannot be a record's table ``what`` (settings, counters): a dict with
     string keys whose values JSON can hold; "" when it can."""
     if not isinstance(x, dict):
-        return f"{what} {_short(x)} ({type(x).__name__}), not a dict"
+        return f"{what} {short(x)} ({type(x).__name__}), not a dict"
     bad = [k for k in x if not isinstance(k, str)]
     if bad:
-        return f"{what} with the key {_short(bad[0])}, not a string"
+        return f"{what} with the key {short(bad[0])}, not a string"
     try:
         json.dumps(x, default=_json_default)
     except (TypeError, ValueError, RecursionError, OverflowError) as e:
@@ -144,15 +140,15 @@ def _number(x) -> bool:
 def _motion_problem(what: str, m, case: Case) -> str:
     """Why ``m`` is not a Motion at ``case``'s sample times; "" when it is."""
     if not isinstance(m, Motion):
-        return f"{what} {_short(m)} ({type(m).__name__}), not a natcoord Motion"
+        return f"{what} {short(m)} ({type(m).__name__}), not a natcoord Motion"
     try:
         t = np.asarray(m.t, dtype=float)
     except (TypeError, ValueError):
-        return f"{what} with sample times {_short(m.t)}, not numbers"
+        return f"{what} with sample times {short(m.t)}, not numbers"
     want = case.times
     if t.shape != want.shape or not np.allclose(t, want, atol=1e-9):  # as the gate reads
         return (f"{what} with {t.size} samples at other times than the case's "
-                f"{want.size} (t = {_short(t.tolist(), 60)}; the case's start at "
+                f"{want.size} (t = {short(t.tolist(), 60)}; the case's start at "
                 f"{want[0]:g} s, every {case.output_dt:g} s to {want[-1]:g} s)")
     return ""
 
@@ -161,47 +157,42 @@ def run_problem(run, case: Case) -> str:
     """Why ``run`` is not a valid :class:`EngineRun` of ``case``: what every later reader
     (the record, its CSV, the report, the gate) trusts of it; "" when it is valid."""
     if not isinstance(run, EngineRun):
-        return f"{_short(run)} ({type(run).__name__}), not a natcoord EngineRun"
+        return f"{short(run)} ({type(run).__name__}), not a natcoord EngineRun"
     why = _motion_problem("a motion", run.motion, case)
     if why:
         return why
     for name in ("build_time_s", "wall_time_s"):
         x = getattr(run, name)
         if not _number(x) or not math.isfinite(x) or x < 0:
-            return f"{name} = {_short(x)}, not a finite number of seconds >= 0"
+            return f"{name} = {short(x)}, not a finite number of seconds >= 0"
     if not isinstance(run.n_steps, (int, np.integer)) or isinstance(run.n_steps, bool) \
             or run.n_steps < 0:
-        return f"n_steps = {_short(run.n_steps)}, not a whole number >= 0"
+        return f"n_steps = {short(run.n_steps)}, not a whole number >= 0"
     for name in ("settings", "counters"):
         why = _table_problem(name, getattr(run, name))
         if why:
             return why
     if not isinstance(run.notes, list) or not all(isinstance(n, str) for n in run.notes):
-        return f"notes {_short(run.notes)}, not a list of strings"
+        return f"notes {short(run.notes)}, not a list of strings"
     if not isinstance(run.methods, dict):
-        return f"methods {_short(run.methods)}, not a dict"
+        return f"methods {short(run.methods)}, not a dict"
     for k, m in run.methods.items():
-        why = ((f"methods with the key {_short(k)}, not a string" if not isinstance(k, str)
+        why = ((f"methods with the key {short(k)}, not a string" if not isinstance(k, str)
                 else "") or _motion_problem(f"method {k!r}'s motion", m, case))
         if why:
             return why
     return ""
 
 
-def checked(run_fn):
-    """``run_fn`` (an adapter's run) whose every return is checked (:func:`run_problem`):
-    BadReturn saying what is wrong instead of a run later code would trust."""
-
-    def run(case, init, settings):
-        out = run_fn(case, init, settings)
-        why = run_problem(out, case)
-        if why:
-            raise BadReturn(f"the engine's run returned {why}")
-        if not isinstance(out.n_steps, int):
-            out.n_steps = int(out.n_steps)
-        return out
-
-    return run
+def check_run(out, case: Case) -> None:
+    """BadReturn saying what is wrong when ``out`` is not a valid run of ``case``
+    (:func:`run_problem`), instead of a run later code would trust; its step count made an
+    int."""
+    why = run_problem(out, case)
+    if why:
+        raise BadReturn(f"the engine's run returned {why}")
+    if not isinstance(out.n_steps, int):
+        out.n_steps = int(out.n_steps)
 
 
 def cannot_run(case: Case, engine: str, settings: dict | None = None) -> str:
@@ -268,7 +259,7 @@ def run_job(job: Job) -> tuple[Result, dict]:
         return res, {}
     if not isinstance(version, str):
         res.status = Status.FAILED
-        res.reason = f"the engine's version() returned {_short(version)}, not a string"
+        res.reason = f"the engine's version() returned {short(version)}, not a string"
         return res, {}
     res.engine_version = version
     if job.init is None:
@@ -277,12 +268,12 @@ def run_job(job: Job) -> tuple[Result, dict]:
     settings = {**spec.settings, **job.settings}
     short_case = truncated(case, job.truncate) if 0 < job.truncate < 1 else None
     extra: dict = {}
-    run_fn = checked(mod.run)
     try:
-        if job.batch_s > 0:
+        if job.batch_s > 0:  # the runs checked outside the timed batches (~50 us each)
             run, cut, full, part = batches.measure(
-                run_fn, case, short_case, job.init, settings, engine=engine,
-                samples=max(1, job.repeat), min_batch_s=job.batch_s, budget_s=job.budget_s)
+                mod.run, case, short_case, job.init, settings, engine=engine,
+                samples=max(1, job.repeat), min_batch_s=job.batch_s, budget_s=job.budget_s,
+                check=check_run)
             res.samples_s = full.wall_s
             extra = {"cpu_samples_s": full.cpu_s, "batch_runs": full.runs}
             if cut is not None:
@@ -290,7 +281,8 @@ def run_job(job: Job) -> tuple[Result, dict]:
                                   "counters": cut.counters} | part.record()
         else:
             for _ in range(max(1, job.repeat)):  # every repeat a whole run
-                run = run_fn(case, job.init, settings)
+                run = mod.run(case, job.init, settings)
+                check_run(run, case)
                 res.samples_s.append(run.wall_time_s)
     except Unsupported as e:
         res.status, res.reason = Status.UNSUPPORTED, str(e)
