@@ -442,6 +442,31 @@ def test_the_gate_reads_a_locked_history_without_waiting_long_or_writing(tmp_pat
     assert _snapshot(tmp_path) == before
 
 
+@pytest.mark.parametrize("command", ["gate", "report"])
+def test_reading_a_wal_history_creates_nothing_beside_it(tmp_path, command):
+    """The history natcoord writes is in WAL mode; a plain read-only SQLite open of it
+    leaves -wal and -shm files beside it. The commands that only read it leave the folder
+    as it was (and a file recorded into while read is refused, not half-read)."""
+    hist = tmp_path / "h"
+    hist.mkdir()
+    db = _natcoord_history(hist / "history.db")
+    assert db.read_bytes()[18:20] == b"\x02\x02"  # WAL mode
+    d = _gate_folder(tmp_path)
+    before = _snapshot(hist)
+    args = ["--results", d, "--history", db]
+    if command == "report":
+        args += ["--references", REFERENCES]
+    p = _cli(command, *args, timeout=120)
+    _clean(p, 0)
+    assert _snapshot(hist) == before
+    with pytest.raises(history.HistoryError, match="recorded into it while it was read"):
+        with history.reading(db) as con:
+            con.execute("SELECT COUNT(*) FROM runs").fetchone()
+            _natcoord_history(db)
+    with history.reading(db) as con:
+        assert con.execute("SELECT COUNT(*) FROM runs").fetchone()[0] == 2
+
+
 @pytest.mark.parametrize("text, problem", [
     ("not json", "not valid JSON"), ('{"records": 3}', "records"),
     ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": "fast"}]}',

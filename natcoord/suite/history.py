@@ -214,17 +214,47 @@ def _first_bad_row(path: Path, db: sqlite3.Connection, tables: set[str]) -> None
                            "or give another --history")
 
 
+def _stamp(path: Path) -> tuple:
+    """What a writer changes: the file's identity, size and time, and whether a
+    write-ahead log is beside it."""
+    st = path.stat()
+    return st.st_ino, st.st_size, st.st_mtime_ns, Path(f"{path}-wal").exists()
+
+
+def _idle_wal(path: Path) -> bool:
+    """Whether ``path`` is an SQLite database in WAL mode (header bytes 18-19 = 2) with no
+    write-ahead log beside it: no connection is open on it, so no writer either (a
+    database in rollback-journal mode is written in place, under locks only a locking
+    open sees)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(20)
+    except OSError:
+        return False
+    return head[:16] == b"SQLite format 3\x00" and head[18:20] == b"\x02\x02" \
+        and not Path(f"{path}-wal").exists()
+
+
 @contextmanager
 def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connection | None]:
-    """Open the history database read-only (SQLite ``mode=ro``: no write lock, no change
-    to the file), after checking it is natcoord's; yields None when there is none yet.
-    Raises HistoryError naming the file and the problem."""
+    """Open the history database read-only, after checking it is natcoord's; yields None
+    when there is none yet. Raises HistoryError naming the file and the problem.
+
+    A database in WAL mode with no write-ahead log beside it (no writer at work: the
+    last connection's close folds the log in and removes it) is opened ``immutable``:
+    nothing is created beside it (a plain read-only open of a WAL database leaves
+    ``-wal`` and ``-shm`` files), and a file that changed while it was read is an error
+    that says to run again. Otherwise it is opened ``mode=ro``, which reads the log and
+    waits for a writer's lock."""
     path = Path(path)
     if not path.exists():
         yield None
         return
     _check_file(path)
-    uri = f"file:{quote(str(path.resolve()))}?mode=ro"
+    idle = _idle_wal(path)
+    before = _stamp(path)
+    mode = "immutable=1" if idle else "mode=ro"
+    uri = f"file:{quote(str(path.resolve()))}?{mode}"
     try:
         db = sqlite3.connect(uri, uri=True, timeout=wait_s, isolation_level=None)
     except sqlite3.Error as e:
@@ -242,6 +272,9 @@ def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connect
             yield db
         except sqlite3.Error as e:
             raise _problem(path, e, wait_s) from None
+        if idle and _stamp(path) != before:
+            raise HistoryError(f"{path}: a run recorded into it while it was read; run the "
+                               "command again")
 
 
 def check(path: Path, write: bool = False) -> None:
