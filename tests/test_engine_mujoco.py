@@ -447,11 +447,12 @@ def test_loop_of_prismatic_joints_is_unsupported():
 
 
 def test_instability_raises_instead_of_resetting(monkeypatch, tmp_path):
-    monkeypatch.chdir(tmp_path)  # MuJoCo writes MUJOCO_LOG.TXT to the working directory
+    monkeypatch.chdir(tmp_path)  # MuJoCo's own handler writes MUJOCO_LOG.TXT here
     case = ec.case("four_bar")
     case = dataclasses.replace(case, duration=0.1, velocity={"theta": 1e6})
     with pytest.raises(RuntimeError, match="MuJoCo warned .*unstable"):
         _run(case, {"dt": 0.01})
+    assert list(tmp_path.iterdir()) == []  # the warning went to the run, not a file
 
 
 def test_open_loop_is_a_failure_not_a_result():

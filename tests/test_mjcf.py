@@ -128,6 +128,27 @@ def test_bad_mjcf_exit_2_names_element(tmp_path, extra_body, extra, named):
     assert "Traceback" not in r.output and not (tmp_path / "bad.toml").exists()
 
 
+@pytest.mark.parametrize(("extra_body", "extra", "named"), [
+    ('<body name="b" pos="0 0 nan"><geom size="0.1"/></body>', "", "NaN"),
+    ('<body name="b" pos="0 0 inf"><geom size="0.1"/></body>', "", "body b: body_pos"),
+    ('<body name="b"><joint name="jb" axis="0 inf 1"/><geom size="0.1"/></body>', "",
+     "joint jb: jnt_axis"),
+    ("", '<option gravity="0 0 -inf"/>', "option: gravity"),
+])
+def test_mjcf_with_nan_or_inf_exit_2_and_no_mujoco_log(tmp_path, monkeypatch, extra_body,
+                                                        extra, named):
+    """MuJoCo only warns about a NaN (on stdout and into MUJOCO_LOG.TXT in the current
+    folder) and compiles an infinity silently: both are refused, naming the element."""
+    monkeypatch.chdir(tmp_path)
+    xml = tmp_path / "bad.xml"
+    xml.write_text(MODEL.format(extra_body=extra_body, extra=extra))
+    r = _invoke(["import", str(xml), "--out", str(tmp_path / "bad.toml")])
+    assert r.exit_code == 2, r.output
+    assert str(xml) in r.output and named in r.output, r.output
+    assert "Traceback" not in r.output and "Warning" not in r.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.xml"]
+
+
 def test_malformed_xml_exit_2(tmp_path):
     xml = tmp_path / "broken.xml"
     xml.write_text("<mujoco><worldbody><body name='a'></worldbody>")

@@ -31,6 +31,8 @@ and the element.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -84,21 +86,67 @@ def _q(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+@contextmanager
+def caught_warnings(mujoco) -> Iterator[list[str]]:
+    """MuJoCo's warnings during the block, into the list yielded: its own handler prints
+    them to stdout and appends them to MUJOCO_LOG.TXT in the current folder."""
+    caught: list[str] = []
+    old = mujoco.get_mju_user_warning()
+    mujoco.set_mju_user_warning(caught.append)
+    try:
+        yield caught
+    finally:
+        mujoco.set_mju_user_warning(old)
+
+
 def load_model(path: Path):
-    """(spec, compiled model) of an MJCF file; CaseError naming the file otherwise."""
+    """(spec, compiled model, MuJoCo's warnings) of an MJCF file; CaseError naming the
+    file otherwise, and for a model holding a NaN or an infinity (MuJoCo only warns)."""
     mujoco = _mujoco()
     path = Path(path)
     if not path.is_file():
         raise CaseError(str(path), "", "no such MJCF file")
-    try:
-        spec = mujoco.MjSpec.from_file(str(path))
-    except ValueError as e:
-        raise CaseError(str(path), "", f"not a valid MJCF model: {_one_line(e)}") from None
-    try:
-        model = spec.compile()
-    except ValueError as e:
-        raise CaseError(str(path), _element(e), f"does not compile: {_one_line(e)}") from None
-    return spec, model
+    with caught_warnings(mujoco) as warned:
+        try:
+            spec = mujoco.MjSpec.from_file(str(path))
+        except ValueError as e:
+            raise CaseError(str(path), "", f"not a valid MJCF model: {_one_line(e)}") from None
+        try:
+            model = spec.compile()
+        except ValueError as e:
+            raise CaseError(str(path), _element(e),
+                            f"does not compile: {_one_line(e)}") from None
+    for w in warned:
+        if re.search(r"\bnan\b|\binf", w, re.IGNORECASE):
+            raise CaseError(str(path), "", f"not a valid MJCF model: {_one_line(w)}")
+    _finite(str(path), model, mujoco)
+    return spec, model, [f"MuJoCo warned: {_one_line(w)}" for w in warned]
+
+
+# compiled arrays a case is read from, by the object they belong to (None: the model's)
+_READ = {"mjOBJ_BODY": ("body_pos", "body_quat", "body_ipos", "body_iquat", "body_mass",
+                        "body_inertia"),
+         "mjOBJ_JOINT": ("jnt_pos", "jnt_axis"), "mjOBJ_EQUALITY": ("eq_data",),
+         "mjOBJ_KEY": ("key_qpos", "key_qvel"), None: ("qpos0",)}
+
+
+def _finite(file: str, m, mujoco) -> None:
+    """CaseError naming the element of the first non-finite number the model holds
+    (MuJoCo compiles an infinity without a word)."""
+    if not np.all(np.isfinite(m.opt.gravity)):
+        raise CaseError(file, "option", "gravity is not finite")
+    for obj, fields in _READ.items():
+        for f in fields:
+            rows = np.asarray(getattr(m, f), float)
+            bad = np.flatnonzero(~np.isfinite(rows.reshape(len(rows), -1)).all(axis=1)) \
+                if rows.size else ()
+            if not len(bad):
+                continue
+            what = "the model"
+            if obj is not None:
+                name = mujoco.mj_id2name(m, getattr(mujoco.mjtObj, obj), int(bad[0]))
+                what = f"{obj[6:].lower()} {name or int(bad[0])}"
+            raise CaseError(file, what, f"{f} holds a NaN or an infinity")
 
 
 def _one_line(e: Exception) -> str:
@@ -316,8 +364,8 @@ def import_mjcf(path: str | Path, name: str, *, duration: float = 2.0,
     mujoco = _mujoco()
     path = Path(path)
     file = str(path)
-    _, m = load_model(path)
-    notes = _check(file, m, mujoco)
+    _, m, warned = load_model(path)
+    notes = warned + _check(file, m, mujoco)
     d = mujoco.MjData(m)
     if m.nkey:
         d.qpos[:], d.qvel[:] = m.key_qpos[0], m.key_qvel[0]

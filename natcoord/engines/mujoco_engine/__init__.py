@@ -150,9 +150,18 @@ def _refuse(case: Case) -> None:
 
 
 def run(case: Case, init, settings: dict) -> EngineRun:
-    """Simulate ``case`` from ``init`` at the case's sample times (see the module)."""
+    """Simulate ``case`` from ``init`` at the case's sample times (see the module).
+    MuJoCo's warnings are kept from its own handler, which writes MUJOCO_LOG.TXT into the
+    current folder: the run fails on them through the warning counters it checks."""
     import mujoco
 
+    from ...case.mjcf import caught_warnings
+
+    with caught_warnings(mujoco):
+        return _run(mujoco, case, init, settings)
+
+
+def _run(mujoco, case: Case, init, settings: dict) -> EngineRun:
     from ..planar import check_start, drop, lift_case, lift_init
     from . import mjcf, stepping
 
