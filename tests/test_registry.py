@@ -3,7 +3,10 @@ the fallback for the built-ins, and what is refused with a reason."""
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
+import threading
 
 import pytest
 
@@ -140,8 +143,18 @@ def test_a_plugin_that_exits_on_import_is_listed_not_obeyed(modules):
 
 
 def test_an_interrupt_while_a_plugin_imports_is_not_swallowed(modules):
-    with pytest.raises(KeyboardInterrupt):
-        modules({"ctrlc": "!raise KeyboardInterrupt\n"})
+    """A user's Ctrl-C while the plug-ins are imported (in the child process) interrupts
+    the command; a plug-in raising KeyboardInterrupt itself is only its own failure."""
+    timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
+    timer.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            modules({"slow": "!import time\ntime.sleep(60)\n"})
+    finally:
+        timer.cancel()
+    r = modules({"ctrlc": "!raise KeyboardInterrupt\n", "good": ""})
+    assert r.names == (*reg.BUILTIN, "good")
+    assert [p.error for p in r.problems] == ["import failed: KeyboardInterrupt"]
 
 
 def test_what_a_plugin_prints_on_import_goes_to_stderr(modules, capsys):
@@ -168,3 +181,21 @@ def test_a_broken_check_settings_is_one_problem_not_a_crash(modules, capsys, bod
     modules({"cs": body})
     assert problems(reg.adapter("cs"), {"dt": 1e-3}) == [("", why)]
     assert "chatter" not in capsys.readouterr().out
+
+
+def test_a_plugin_that_ends_or_hangs_its_process_on_import_is_listed(modules, monkeypatch):
+    """os._exit or a crash in a plug-in's import ended every command (the import ran in the
+    command's process); a hang held it. Each is imported in a child process first and
+    listed with what happened; the plug-ins after it still load."""
+    monkeypatch.setattr(reg, "PROBE_TIMEOUT_S", 10.0)
+    r = modules({"aexit": "!import os\nos._exit(3)\n",
+                 "bkill": "!import os, signal\nos.kill(os.getpid(), signal.SIGKILL)\n",
+                 "chang": "!import sys, time\nprint('waiting', file=sys.stderr)\n"
+                          "time.sleep(600)\n",
+                 "good": ""})
+    assert r.names == (*reg.BUILTIN, "good")
+    why = {p.name: p.error for p in r.problems}
+    assert why == {"aexit": "importing it ended the process (exit status 3)",
+                   "bkill": "importing it ended the process (signal SIGKILL)",
+                   "chang": "importing it did not finish within 10 s"}
+    assert "aexit" not in sys.modules and "p_aexit" not in sys.modules

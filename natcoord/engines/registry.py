@@ -16,7 +16,9 @@ contract (no ``NAME``, ``PACKAGE``, ``SETTINGS``, ``CAPABILITIES``, ``version`` 
 JSON) is left out and listed in :attr:`Registry.problems` with the reason, and so is one
 that takes a built-in's name: one broken plug-in never takes the suite down. What a
 plug-in prints while it is imported goes to standard error, never into a command's output
-(``cases --json``).
+(``cases --json``). Plug-ins are imported in a child process first (all in one, once per
+command), so that one whose import ends its process (``os._exit``, a crash) or hangs is
+listed with that, not obeyed by the command.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ import importlib
 import importlib.metadata as md
 import importlib.util
 import json
+import os
+import signal
+import subprocess
 import sys
 from dataclasses import dataclass, field
 from functools import cache
@@ -157,6 +162,77 @@ def _load(name: str, value: str) -> str:
             return f"its declarations could not be read: {type(e).__name__}: {e}"
 
 
+PROBE_TIMEOUT_S = 120.0  # for the imports of all plug-ins in the child process
+_MARK = "natcoord-plugin-probe"
+
+
+def _probe_child() -> None:
+    """In the child process: :func:`_load` each (name, value) of argv[1] (JSON), marking on
+    standard error where each plug-in's own output starts and writing a marked line with
+    its answer to the real standard output as soon as it is known."""
+    for name, value in json.loads(sys.argv[1]):
+        print(f"{_MARK}\t{name}", file=sys.__stderr__, flush=True)
+        try:
+            why = _load(name, value)
+        except KeyboardInterrupt:  # the plug-in's own: a user's reaches the command too
+            why = "import failed: KeyboardInterrupt"
+        print(f"{_MARK}\t{json.dumps([name, why])}", file=sys.__stdout__, flush=True)
+    os._exit(0)  # what a plug-in left to run at exit is not the probe's business
+
+
+def _ended(code: int, err: str) -> str:
+    how = (f"signal {signal.Signals(-code).name}" if code < 0 and -code in
+           signal.valid_signals() else f"exit status {code}")
+    last = [ln for ln in err.splitlines() if ln.strip()]
+    return f"importing it ended the process ({how})" + (f": {short(last[-1])}" if last else "")
+
+
+def _by_plugin(err: str) -> dict[str, str]:
+    """The child's standard error cut at its markers: name -> what followed it."""
+    parts: dict[str, str] = {}
+    name = ""
+    for line in err.splitlines(keepends=True):
+        if line.startswith(_MARK + "\t"):
+            name = line.rstrip("\n").split("\t", 1)[1]
+        elif name:
+            parts[name] = parts.get(name, "") + line
+    return parts
+
+
+def _probe(pairs: list[tuple[str, str]]) -> dict[str, str]:
+    """name -> :func:`_load`'s answer for every plug-in, each imported in a child process
+    (one for all, another after one that ends it): what their import does cannot end,
+    hang or crash this process. What a plug-in that does not load printed there is passed
+    on to standard error (one that loads prints again when imported here)."""
+    found: dict[str, str] = {}
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    while len(found) < len(pairs):
+        todo = [(n, v) for n, v in pairs if n not in found]
+        code = [sys.executable, "-c",
+                "from natcoord.engines.registry import _probe_child; _probe_child()",
+                json.dumps(todo)]
+        try:
+            p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
+                               timeout=PROBE_TIMEOUT_S)
+            out, err, status = p.stdout, p.stderr, p.returncode
+        except subprocess.TimeoutExpired as e:
+            out, err, status = e.stdout or b"", e.stderr or b"", None
+        for line in out.decode(errors="replace").splitlines():
+            if line.startswith(_MARK + "\t"):
+                name, why = json.loads(line.split("\t", 1)[1])
+                found[name] = why
+        said = _by_plugin(err.decode(errors="replace"))
+        culprit = next((n for n, _ in todo if n not in found), None)
+        if culprit is not None:
+            found[culprit] = (
+                f"importing it did not finish within {PROBE_TIMEOUT_S:g} s" if status is None
+                else _ended(status, said.get(culprit, "")))
+        for name, _ in todo:
+            if found.get(name) and said.get(name):
+                sys.stderr.write(said[name])
+    return found
+
+
 @cache
 def discover() -> Registry:
     """Discover the engines once per process (importing an adapter module does not import
@@ -173,8 +249,9 @@ def discover() -> Registry:
         elif name not in BUILTIN:
             found[name] = value
     plugins = {}
+    probed = _probe([(n, found[n]) for n in sorted(found)]) if found else {}
     for name in sorted(found):
-        why = _load(name, found[name])
+        why = probed[name] or _load(name, found[name])
         if why:
             problems.append(Problem(name, found[name], why))
         else:
