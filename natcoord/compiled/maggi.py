@@ -720,6 +720,32 @@ def _rk_sum(x0, h, A, s, K, out):
         out[a] = x0[a] + h * out[a]
 
 
+@njit(cache=True, _nrt=False, inline="always")
+def _rk_sum3(y, qn, qdn, h, A, s, K, Kq, Kqd, ys, qp, qdp):
+    """:func:`_rk_sum` of y (N,), qn and qdn (n,) with the stages K, Kq and Kqd in one pass
+    over the weights (the same operations per component): three passes took a fifth of
+    a stage on a small model."""
+    N, n = y.shape[0], qn.shape[0]
+    for a in range(N):
+        ys[a] = 0.0
+    for a in range(n):
+        qp[a] = 0.0
+        qdp[a] = 0.0
+    for p in range(s):
+        w = A[s, p]
+        if w != 0.0:
+            for a in range(N):
+                ys[a] += w * K[p, a]
+            for a in range(n):
+                qp[a] += w * Kq[p, a]
+                qdp[a] += w * Kqd[p, a]
+    for a in range(N):
+        ys[a] = y[a] + h * ys[a]
+    for a in range(n):
+        qp[a] = qn[a] + h * qp[a]
+        qdp[a] = qdn[a] + h * qdp[a]
+
+
 @njit(cache=True, _nrt=False)
 def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt, qk):
     """K[s] = f(y + h sum_{p < s} A[s, p] K[p]) for s in lo..hi-1, ``mdl`` = (con, Msp,
@@ -734,10 +760,10 @@ def _stages(mdl, gen, y, h, A, lo, hi, K, ys, ws, cnt, qk):
     con, Msp, frc, part, tol = mdl
     qn, qdn, Kq, Kqd, pr = qk
     for s in range(lo, hi):
-        _rk_sum(y, h, A, s, K, ys)
-        if gen is not None:
-            _rk_sum(qn, h, A, s, Kq, pr[0])
-            _rk_sum(qdn, h, A, s, Kqd, pr[1])
+        if gen is None:
+            _rk_sum(y, h, A, s, K, ys)
+        else:
+            _rk_sum3(y, qn, qdn, h, A, s, K, Kq, Kqd, ys, pr[0], pr[1])
         st = _rhs(con, Msp, frc, part, tol, ys, pr, K[s], ws, cnt, gen)
         if st != OK:
             return st
