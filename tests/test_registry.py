@@ -145,6 +145,9 @@ def test_a_plugin_that_exits_on_import_is_listed_not_obeyed(modules):
 def test_an_interrupt_while_a_plugin_imports_is_not_swallowed(modules):
     """A user's Ctrl-C while the plug-ins are imported (in the child process) interrupts
     the command; a plug-in raising KeyboardInterrupt itself is only its own failure."""
+    # Python's own Ctrl-C handler: a process started in the background by a shell without
+    # job control (a CI script's `cmd &`) inherits SIGINT ignored, and Python keeps that
+    old = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer = threading.Timer(2.0, os.kill, (os.getpid(), signal.SIGINT))
     timer.start()
     try:
@@ -152,6 +155,7 @@ def test_an_interrupt_while_a_plugin_imports_is_not_swallowed(modules):
             modules({"slow": "!import time\ntime.sleep(60)\n"})
     finally:
         timer.cancel()
+        signal.signal(signal.SIGINT, old)
     r = modules({"ctrlc": "!raise KeyboardInterrupt\n", "good": ""})
     assert r.names == (*reg.BUILTIN, "good")
     assert [p.error for p in r.problems] == ["import failed: KeyboardInterrupt"]
