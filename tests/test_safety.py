@@ -342,6 +342,14 @@ def _gate_folder(tmp_path: Path) -> Path:
     return d
 
 
+def _read_history(command: str, results: Path, db: Path, timeout: float):
+    """``gate`` or ``report`` of the results folder with ``db`` as the history."""
+    args = ["--results", results, "--history", db]
+    if command == "report":
+        args += ["--references", REFERENCES]
+    return _cli(command, *args, timeout=timeout)
+
+
 def _natcoord_history(path: Path) -> Path:
     history.record(path, kind="suite", summary={"generated": "then", "records": []},
                    bench={"machine": {"fingerprint": "m"}, "records": [
@@ -393,11 +401,7 @@ ROW_DAMAGE = {"samples not json": "UPDATE bench SET samples = 'fast'",
 def test_a_damaged_or_foreign_history_exits_2_and_is_not_modified(tmp_path, kind, command):
     db = _damaged(kind, tmp_path)
     before = _snapshot(tmp_path)
-    d = _gate_folder(tmp_path)
-    args = ["--results", d, "--history", db]
-    if command == "report":
-        args += ["--references", REFERENCES]
-    p = _cli(command, *args, timeout=60)
+    p = _read_history(command, _gate_folder(tmp_path), db, timeout=60)
     _clean(p, 2)
     assert str(db) in p.stderr and "bench.json" not in p.stderr, p.stderr
     if kind in ROW_DAMAGE:  # the row and column named
@@ -453,10 +457,7 @@ def test_reading_a_wal_history_creates_nothing_beside_it(tmp_path, command):
     assert db.read_bytes()[18:20] == b"\x02\x02"  # WAL mode
     d = _gate_folder(tmp_path)
     before = _snapshot(hist)
-    args = ["--results", d, "--history", db]
-    if command == "report":
-        args += ["--references", REFERENCES]
-    p = _cli(command, *args, timeout=120)
+    p = _read_history(command, d, db, timeout=120)
     _clean(p, 0)
     assert _snapshot(hist) == before
     with pytest.raises(history.HistoryError, match="recorded into it while it was read"):
