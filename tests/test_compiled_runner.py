@@ -55,3 +55,22 @@ def test_a_repeated_run_is_the_first_again(path, method, rtol, h):
                               rtol * 1e-2, h)
     for a, b in zip(fresh, first, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("settings", [
+    {"method": "rk4", "h": 1e-25},                                      # compiled index-1
+    {"method": "rk4", "h": 1e-300, "compiled": False},                  # the Python loop
+    {"formulation": "maggi", "method": "rk4", "h": 1e-25},
+    {"formulation": "index3", "method": "trapezoidal", "h": 1e-25}])
+def test_a_fixed_step_past_the_step_budget_is_refused_not_run(settings):
+    """A step whose count over the run passes the budget fails the run, before it runs:
+    past int64 the compiled loops' count of steps per sample wrapped to one step a sample
+    (the run took h = 1e-25 as h = output_dt and reported ok), and the Python loop never
+    stopped."""
+    from natcoord.dynamics.forward import integrate
+    from natcoord.dynamics.solver import Solver
+    case = casefile.load_case(CASES / "pendulum.toml")
+    cm = casemodel.build(case, "joints")
+    solver = Solver.from_settings(settings)
+    with pytest.raises(RuntimeError, match="too many steps"):
+        integrate(cm.model, casemodel.initial_state(cm), case.times[:11], solver)

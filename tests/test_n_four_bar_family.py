@@ -95,3 +95,21 @@ def test_scaling_measures_whole_generated_runs():
         assert rec["us_per_step"] == pytest.approx(1e6 * rec["wall_time_s"] / 1500)
         assert rec["s_per_simulated_s"] == pytest.approx(rec["wall_time_s"] / 1.5)
     assert out["step_cost_ratio"] > 0
+
+
+def test_scaling_times_the_sizes_in_interleaved_rounds(monkeypatch):
+    """Every N gets the same number of whole runs, taken in rounds (N = 4, then 8, then 4
+    again ...), so that a change in the machine's load falls on every size alike; at least
+    two rounds even when the first one spends the budget."""
+    order = []
+    real = scaling._Member.run
+
+    def run(self):
+        order.append(self.N)
+        return real(self)
+    monkeypatch.setattr(scaling._Member, "run", run)
+    monkeypatch.setattr(scaling, "BUDGET_S", 0.0)  # every round is over budget
+    out = scaling.scaling([4, 8], duration=0.2, repeats=3)
+    assert order == [4, 8, 4, 8]
+    for rec in out["records"]:
+        assert len(rec["samples_s"]) == 2 and rec["wall_time_s"] == min(rec["samples_s"])

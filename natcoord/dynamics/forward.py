@@ -50,6 +50,9 @@ class Solution:
     # row on the sparse Schur path), the same for every reaction method
 
 
+MAX_FIXED_STEPS = kernels.Steps().max_steps  # a fixed-step run's budget, as an adaptive one's
+
+
 def integrate(model, state: State, times: np.ndarray, solver: Solver | None = None, *,
               check: bool = True) -> Solution:
     """Integrate from ``state`` at times[0] and sample at ``times`` (T,).
@@ -68,6 +71,12 @@ def integrate(model, state: State, times: np.ndarray, solver: Solver | None = No
     rtol, atol = (solver.step.rtol, solver.step.atol) if h is None else (0.0, 0.0)
     times = np.asarray(times, dtype=float)
     t0 = float(times[0])
+    if h is not None:  # refused before it runs: a count past int64 took one step a sample
+        steps = (float(times[-1]) - t0) / h  # in the compiled loops, and none stops the
+        if not steps <= MAX_FIXED_STEPS:     # Python loop
+            raise RuntimeError(f"{method}: h = {h:.3g} s takes {steps:.3g} fixed steps over "
+                               f"{float(times[-1]) - t0:.6g} s, more than {MAX_FIXED_STEPS:,}"
+                               ": too many steps")
     if check:
         check_existence(model, state.q, t0)
     cnt = Counters()
