@@ -373,8 +373,9 @@ def run_cmd(cases: CaseArgs = None, engines: Engines = None, out_dir: OutDir = N
 
 @app.command("report")
 def report_cmd(results: ResultsDir = None, references: RefDir = None,
-               history: HistoryDb = None):
-    """Write RESULTS/index.html from a results folder (trends from the history database)."""
+               history: HistoryDb = None, cases_dir: CasesDir = None):
+    """Write RESULTS/index.html from a results folder (trends from the history database),
+    every cell's verdict judged from its result files as the gate judges them."""
     from .report.html import write_report
     from .suite import diff, gate
 
@@ -392,7 +393,9 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     except ValueError as e:
         _fail(str(e))
     _check_references(sorted({r["case"] for r in summary["records"]}), references)
-    path = write_report(results, references, history)
+    verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
+                         references=references)
+    path = write_report(results, references, history, verdict)
     out.print(f"report: {path.resolve()}")
 
 
@@ -798,7 +801,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             verdict.lines.append("quick suite: speed not judged (one sample per cell, from "
                                  "its accuracy run); "
                                  "not recorded in the history")
-        write_report(staging, references, history)
+        write_report(staging, references, history, verdict)
         phases["speed gate, report"] = clock.clock()
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
                                         target / "index.html", verdict.lines)

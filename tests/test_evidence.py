@@ -20,7 +20,7 @@ import pytest
 
 from natcoord import CaseError, load_case
 from natcoord.errors import StoredFileError
-from natcoord.suite import gate, references
+from natcoord.suite import evidence, gate, outdir, references
 from natcoord.suite.evidence import BadReference, sha256_of
 from natcoord.suite.io import read_json, write_csv, write_json
 
@@ -360,9 +360,70 @@ def test_a_record_relabelled_unsupported_cannot_hide_a_cell_the_baseline_holds(t
     _clean(p)
     assert p.returncode == gate.NOT_RUN and "slider_crank/natcoord: unsupported " \
         "(relabelled), but the baseline holds its errors" in p.stderr, p.stderr
-    write_json(base, {"errors": {CELL: {"x": 1.0}}})
+    write_json(base, {"errors": {CELL: {"x": 1.0}}})  # without the baseline's entry: the
+    p = _cli("gate", "--results", out, "--baseline", base)  # results on disk contradict it
+    _clean(p)
+    csv = out / "results" / "slider_crank" / "natcoord.csv"
+    assert p.returncode == gate.REGRESSION and f"{csv} holds a run's results, but its record " \
+        "in summary.json says 'unsupported'" in p.stderr, p.stderr
+    report = _cli("report", "--results", out)  # the page shows the gate's verdict
+    assert report.returncode == 0, report.stderr
+    html = (out / "index.html").read_text()
+    assert 'class="verdict v-fail"' in html and "holds a run&#39;s results" in html
+    csv.unlink()  # its results deleted too: the folder's marker lists them
     p = _cli("gate", "--results", out, "--baseline", base)
+    assert p.returncode == gate.REGRESSION and f"{csv}: missing" in p.stderr, p.stderr
+
+
+def test_the_report_shows_the_verdict_the_files_give_not_the_summarys(folder, tmp_path):
+    """`natcoord report` judges every cell from its files as the gate does: a deleted
+    result fails the page (the summary still says pass), an intact folder passes it."""
+    p = _cli("report", "--results", folder)
     assert p.returncode == 0, p.stderr
+    assert 'class="verdict v-pass"' in (folder / "index.html").read_text()
+    _csv(folder).unlink()
+    p = _cli("report", "--results", folder)
+    _clean(p)
+    assert p.returncode == 0, p.stderr
+    html = (folder / "index.html").read_text()
+    assert 'class="verdict v-fail"' in html and "missing (deleted since the run)" in html
+
+
+def test_a_result_that_is_not_a_regular_file_fails_its_cell_without_reading_it(folder,
+                                                                               tmp_path):
+    """A FIFO in place of the CSV hung the gate on its read; a link to a device would
+    never end it."""
+    _csv(folder).unlink()
+    os.mkfifo(_csv(folder))
+    p = _cli("gate", "--results", folder, "--baseline", tmp_path / "none.json", timeout=120)
+    _clean(p)
+    assert p.returncode == 1 and f"{_csv(folder)}: not a regular file" in p.stderr, p.stderr
+    _csv(folder).unlink()
+    _csv(folder).symlink_to("/dev/zero")
+    p = _cli("gate", "--results", folder, "--baseline", tmp_path / "none.json", timeout=120)
+    assert p.returncode == 1 and f"{_csv(folder)}: not a regular file" in p.stderr, p.stderr
+
+
+def test_a_marker_nested_too_deeply_is_a_damaged_marker(folder, tmp_path):
+    (folder / outdir.MARKER).write_text("[" * 200000)
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 2 and "damaged results marker" in p.stderr, p.stderr
+
+
+def test_a_result_in_a_folder_that_cannot_be_looked_into_is_unreadable_not_missing(
+        folder, monkeypatch):
+    """A cell folder without read permission: its files are there (the gate fails the
+    cell on reading them, exit 1), not missing from the folder, and no PermissionError
+    escapes as a fault of the environment (exit 5)."""
+    real = Path.stat
+
+    def stat(self, *a, **k):
+        if self.parent.name == "pendulum":
+            raise PermissionError(13, "Permission denied", str(self))
+        return real(self, *a, **k)
+    monkeypatch.setattr(Path, "stat", stat)
+    monkeypatch.setattr(evidence, "_files_on_disk", lambda results: [])  # as os.walk skips it
+    assert evidence.unrecorded(folder, read_json(folder / "summary.json")["records"]) == []
 
 
 @pytest.fixture(scope="module")

@@ -74,6 +74,26 @@ def test_a_users_folder_given_as_out_survives_two_runs(tmp_path):
     assert sorted(q.name for q in tmp_path.iterdir()) == ["mine", "project"]  # nothing aside
 
 
+def test_an_empty_folder_of_the_users_in_a_results_folder_is_kept(tmp_path):
+    """A results folder natcoord wrote, with the user's empty folders added (at the top
+    and in a case's folder): the next run into it is refused, naming them, and they stay
+    (the replaced folder's clean-up removed every empty folder before)."""
+    home = _project(tmp_path, "pendulum")
+    out = tmp_path / "out"
+    _clean(_run(out, home), 0)
+    (out / "my_notes").mkdir()
+    (out / "results" / "pendulum" / "keep").mkdir()
+    before = _snapshot(out)
+    p = _run(out, home)
+    _clean(p, 2)
+    assert "natcoord did not write" in p.stderr and "my_notes" in p.stderr \
+        and "results/pendulum/keep" in p.stderr, p.stderr
+    assert _snapshot(out) == before
+    (out / "my_notes").rmdir()
+    (out / "results" / "pendulum" / "keep").rmdir()
+    _clean(_run(out, home), 0)  # natcoord's own folders alone: replaced as before
+
+
 def test_an_existing_file_given_as_out_is_refused_not_unlinked(tmp_path):
     home = _project(tmp_path, "pendulum")
     f = tmp_path / "results.txt"

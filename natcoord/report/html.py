@@ -234,7 +234,36 @@ def cell_for(rec: dict | None) -> dict:
     return {"key": key, "label": label, "css": css, "reason": reason, "note": None}
 
 
-def overall_verdict(records: list[dict]) -> dict:
+def as_judged(records: list[dict], verdict) -> tuple[list[dict], list[str]]:
+    """The records as the gate judged them from the result files
+    (:func:`natcoord.suite.gate.judge`'s ``verdict``; the summary's own verdicts and
+    errors are never shown then): a cell judged gets the gate's verdict and recomputed
+    channels, a cell whose files cannot be trusted fails with the gate's reason. Also
+    returns the gate's lines about the folder as a whole (a result file without its
+    record, a file natcoord wrote that is gone ...)."""
+    faults = list(verdict.faults)
+    out = []
+    for r in records:
+        key = f"{r.get('case')}/{r.get('engine')}"
+        mine = [line for line in faults if line.startswith(f"{key}: ")]
+        faults = [line for line in faults if line not in mine]
+        outcome = verdict.outcome.get(key) if r.get("status") == "ok" else None
+        if outcome in ("pass", "fail"):
+            r = {**r, "verdict": outcome, "channels": verdict.channels.get(key, {})}
+        elif outcome == "bad evidence":
+            r = {**r, "verdict": "fail", "channels": {},
+                 "reason": "; ".join(line.removeprefix(f"{key}: ") for line in mine)}
+        elif outcome is not None:  # cannot judge (no reference, no tolerance ...)
+            r = {**r, "verdict": "no-reference" if r.get("verdict") == "no-reference"
+                 else "n/a", "channels": {}, "reason": "; ".join(
+                     line.removeprefix(f"{key}: ") for line in mine) or r.get("reason")}
+        out.append(r)
+    return out, faults
+
+
+def overall_verdict(records: list[dict], faults: list[str] = ()) -> dict:
+    """The page's verdict over the cells; ``faults``: lines about the folder's evidence
+    as a whole (:func:`as_judged`), each of which fails it."""
     cells = [cell_for(r) for r in records]
     counts: dict[str, int] = {}
     for c in cells:
@@ -244,7 +273,7 @@ def overall_verdict(records: list[dict]) -> dict:
         f"{r.get('case')} / {r.get('engine')}"
         for r, c in zip(records, cells, strict=True)
         if c["key"] in ("fail", "failed")
-    ]
+    ] + list(faults)
     if not n:
         state, word = "empty", "NO RESULTS"
     elif bad:
@@ -545,8 +574,10 @@ def _speed_context(bench: dict | None, bench_error: str, by_key: dict, case_name
 
 
 def build_context(results_dir: Path, references: Path = Path("references"),
-                  history: Path | None = None) -> dict:
-    """Everything the template needs, as plain values (no file access in the template)."""
+                  history: Path | None = None, verdict=None) -> dict:
+    """Everything the template needs, as plain values (no file access in the template);
+    ``verdict``: the gate's on this folder (:func:`as_judged`), else the summary's
+    records are shown as they are."""
     results_dir = Path(results_dir)
     references = Path(references)
     summary_path = results_dir / "summary.json"
@@ -554,6 +585,7 @@ def build_context(results_dir: Path, references: Path = Path("references"),
         raise FileNotFoundError(f"{summary_path} not found: run `natcoord run` first")
     summary = _read_json(summary_path)
     records = [r for r in summary.get("records") or [] if isinstance(r, dict)]
+    records, faults = as_judged(records, verdict) if verdict is not None else (records, [])
 
     case_names = list(dict.fromkeys(str(r.get("case", "")) for r in records))
     engines = _engine_order(str(r.get("engine", "")) for r in records)
@@ -708,7 +740,7 @@ def build_context(results_dir: Path, references: Path = Path("references"),
         "machine": [(k.replace("_", " "), fmt_value(v)) for k, v in machine.items()],
         "engine_versions": engine_versions,
         "engines": [{"name": e, "color": colors[e]} for e in engines],
-        "overall": overall_verdict(records),
+        "overall": overall_verdict(records, faults),
         "matrix": matrix,
         "footnotes": footnotes,
         "cases": cases,
@@ -763,15 +795,16 @@ def render(context: dict) -> str:
 
 
 def write_report(results_dir: Path, references: Path = Path("references"),
-                 history: Path | None = None) -> Path:
+                 history: Path | None = None, verdict=None) -> Path:
     """Write ``results_dir/index.html`` from the run's results, the stored references and,
-    when given, the history database (trends). In a natcoord results folder the page is
+    when given, the history database (trends) and the gate's verdict on the folder (what
+    the page shows as each cell's verdict and the whole's). In a natcoord results folder the page is
     listed in the folder's marker (:func:`natcoord.suite.outdir.recording`), so the folder
     stays one that ``--out`` may replace."""
     from ..suite import outdir
 
     results_dir = Path(results_dir)
-    html = render(build_context(results_dir, references, history))
+    html = render(build_context(results_dir, references, history, verdict))
     out = results_dir / "index.html"
     tmp = out.with_suffix(".html.tmp")
     with outdir.recording(results_dir, [out.name, tmp.name]):

@@ -20,6 +20,7 @@ import hashlib
 import io
 import json
 import os
+import stat
 from pathlib import Path, PurePosixPath
 
 import numpy as np
@@ -31,6 +32,7 @@ from . import outdir
 from .compare import channel_errors
 
 SUFFIXES = (".csv", ".methods.csv", ".json")  # a cell's result files: <engine><suffix>
+NOT_RUN = ("unsupported", "skipped")  # statuses of a cell whose engine never ran it
 
 
 class BadEvidence(NatcoordError):
@@ -69,10 +71,22 @@ def _files_on_disk(results: Path) -> list[str]:
     return sorted(out)
 
 
+def _there(path: Path) -> bool:
+    """Whether ``path`` is a regular file, or is there but cannot be looked at (an
+    unreadable folder: judging its cell says so)."""
+    try:
+        return stat.S_ISREG(path.stat().st_mode)
+    except (FileNotFoundError, NotADirectoryError):
+        return False
+    except OSError:
+        return True
+
+
 def unrecorded(results: Path, records: list[dict]) -> list[str]:
     """What the folder holds (or its marker says natcoord wrote in it) that the summary's
     records do not account for, one line each: a result file (``results/<case>/<engine>``
-    ``.csv``, ``.methods.csv``, ``.json``) whose cell has no record; a result file or
+    ``.csv``, ``.methods.csv``, ``.json``) whose cell has no record; a table of results
+    whose record says its engine never ran (:data:`NOT_RUN`); a result file or
     ``bench.json`` the marker lists that is gone. A folder without a marker (written by
     :func:`natcoord.suite.runner.run_suite` itself) is checked against its CSVs alone; a
     run of some cases holds no result files of the others, so it passes. Raises
@@ -99,9 +113,13 @@ def unrecorded(results: Path, records: list[dict]) -> list[str]:
             lines.append(f"{results / rel} has no record in summary.json (a result of a cell "
                          "the summary does not list: a record was removed, or the file "
                          "added, since the run)")
+        elif rel.endswith(".csv") and mine[rel]["status"] in NOT_RUN:
+            lines.append(f"{results / rel} holds a run's results, but its record in "
+                         f"summary.json says {mine[rel]['status']!r} (a cell that did not "
+                         "run writes none: the record was edited since the run)")
     for rel in listed:
         if not (rel.startswith("results/") or rel == "bench.json") or rel in on_disk \
-                or (results / rel).is_file():
+                or _there(results / rel):
             continue
         r = mine.get(rel)
         if r is not None and r["status"] == "ok" and PurePosixPath(rel).name in \
@@ -126,6 +144,8 @@ def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) 
             continue
         path = folder / name
         try:
+            if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would hang the read, a
+                raise BadEvidence(f"{path}: not a regular file")  # device never end it
             blob = path.read_bytes()
         except FileNotFoundError:
             raise BadEvidence(f"{path}: missing (deleted since the run)") from None

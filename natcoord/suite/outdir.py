@@ -91,7 +91,7 @@ def read_marker(folder: Path) -> dict | None:
     try:
         with open(path, encoding="utf-8") as f:
             data = json.loads(f.read(1 << 22))
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):  # RecursionError: nested too deeply
         return None
     if not (isinstance(data, dict) and data.get("natcoord") and isinstance(data.get("files"),
                                                                             list)
@@ -128,17 +128,33 @@ def _listing(folder: Path) -> tuple[list[str], list[str]]:
     return sorted(files), sorted(other)
 
 
+def _ours(files: list[str]) -> set[str]:
+    """The sub-folders natcoord makes for ``files`` (relative paths): their parents, and
+    ``results`` with a folder per case."""
+    out = {"results"}
+    for f in files:
+        parts = Path(f).parts[:-1]
+        out |= {os.path.join(*parts[:k]) for k in range(1, len(parts) + 1)}
+    return out
+
+
 def _foreign(folder: Path) -> list[str]:
-    """Entries of a natcoord results folder that its marker does not list (a user's)."""
+    """Entries of a natcoord results folder that its marker does not list (a user's),
+    empty folders included."""
     marker = read_marker(folder) or {"files": []}
     files, other = _listing(folder)
     listed = set(marker["files"]) | {MARKER}
-    return sorted([f for f in files if f not in listed] + other)
+    ours = _ours(marker["files"])
+    folders = [os.path.relpath(os.path.join(r, d), folder) for r, ds, _ in os.walk(folder)
+               for d in ds if not os.path.islink(os.path.join(r, d))]
+    return sorted([f for f in files if f not in listed] + other
+                  + [d for d in folders if d not in ours and Path(d).parent != Path("results")])
 
 
 def _remove_written(folder: Path) -> bool:
-    """Remove the files ``folder``'s marker lists, then the folders left empty; True when
-    nothing is left (the folder itself is gone)."""
+    """Remove the files ``folder``'s marker lists, then the folders natcoord made for
+    them (:func:`_ours`) left empty; True when nothing is left (the folder itself is
+    gone)."""
     marker = read_marker(folder)
     if marker is None:
         return False
@@ -150,9 +166,11 @@ def _remove_written(folder: Path) -> bool:
         if p.is_file() and not p.is_symlink():
             p.unlink()
     (root / MARKER).unlink(missing_ok=True)
-    for dirpath, _, _ in sorted(os.walk(root), key=lambda w: -len(w[0])):
+    ours = _ours(marker["files"]) | {os.path.relpath(p, root) for p in root.glob("results/*")
+                                      if p.is_dir() and not p.is_symlink()}
+    for rel in sorted(ours, key=lambda d: -len(Path(d).parts)) + ["."]:
         with contextlib.suppress(OSError):
-            os.rmdir(dirpath)  # only empty folders go
+            os.rmdir(root / rel)  # only empty folders go
     return not root.exists()
 
 
