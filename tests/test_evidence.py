@@ -404,6 +404,18 @@ def test_a_result_that_is_not_a_regular_file_fails_its_cell_without_reading_it(f
     assert p.returncode == 1 and f"{_csv(folder)}: not a regular file" in p.stderr, p.stderr
 
 
+def test_a_result_with_a_column_twice_fails_its_cell(folder, tmp_path):
+    """A second column of a channel's name (its hash forged) was dropped by the reader,
+    which judged the first."""
+    head, *rows = _csv(folder).read_text().splitlines()
+    _csv(folder).write_text("\n".join([head + ",theta"] + [r + ",1e3" for r in rows]) + "\n")
+    _edit_summary(folder, lambda r: r["files"].__setitem__(
+        "natcoord.csv", sha256_of(_csv(folder).read_bytes())))
+    p = _gate(folder, tmp_path)
+    assert p.returncode == 1 and f"{_csv(folder)}: duplicate columns (theta)" in p.stderr, \
+        p.stderr
+
+
 def test_a_marker_nested_too_deeply_is_a_damaged_marker(folder, tmp_path):
     (folder / outdir.MARKER).write_text("[" * 200000)
     p = _gate(folder, tmp_path)

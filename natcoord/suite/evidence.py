@@ -16,6 +16,7 @@ marker lists that is gone means one was deleted. Either damages the folder's evi
 
 from __future__ import annotations
 
+import csv
 import hashlib
 import io
 import json
@@ -160,7 +161,12 @@ def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) 
 
 
 def read_table(data: bytes, path: Path, case: Case) -> pd.DataFrame:
-    """A result CSV's table: numbers only, at the case's sample times."""
+    """A result CSV's table: numbers only, one column per name, at the case's sample
+    times."""
+    header = next(csv.reader([data.split(b"\n", 1)[0].decode("utf-8", "replace")]), [])
+    twice = sorted({c for c in header if header.count(c) > 1})
+    if twice:  # pandas would rename the second one and judge the first
+        raise BadEvidence(f"{path}: duplicate columns ({', '.join(twice)[:200]})")
     try:
         table = pd.read_csv(io.BytesIO(data))
         table = table.apply(pd.to_numeric, errors="raise").astype(float)
