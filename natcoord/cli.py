@@ -1003,6 +1003,8 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
         out.print(f"newest suite #{n['id']} ({n['generated']}, {n['commit'][:10] or '?'}, "
                   f"gate {n['gate']}) against the last green #{g['id']} ({g['generated']}, "
                   f"{g['commit'][:10] or '?'})")
+        if data.get("speed"):
+            out.print(f"  {escape(data['speed'])}")
         for r in data["regressed"]:
             out.print(f"  {escape(r['cell'])}: {escape('; '.join(r['why']))}")
         if not data["regressed"]:

@@ -47,6 +47,26 @@ def test_since_green_names_the_cell_and_the_commits(tmp_path):
     assert data["green"]["commit"] == "bbb222" and data["latest"]["commit"] == "ccc333"
 
 
+def test_since_green_compares_times_on_one_machine_only(tmp_path):
+    """Twice the time on another machine is not a slowdown of the code (exit 0, saying
+    why the times were not compared); on the same machine it is (exit 1)."""
+    def suite(machine: str, s: float, gate: int = 0):
+        summary = {**_summary(1e-8, "pass"), "machine": {"fingerprint": machine}}
+        bench = {"machine": {"fingerprint": machine}, "records": [
+            {"case": "pendulum", "engine": "mujoco", "samples_s": [s, s, s]}]}
+        history.record(db, kind="suite", summary=summary, bench=bench, gate=gate)
+    db = tmp_path / "h.db"
+    suite("fast", 0.1)
+    suite("slow", 0.2)
+    p = _cli("--since-green", "--history", db)
+    assert p.returncode == 0 and "times not compared: the green suite ran on another " \
+        "machine" in " ".join(p.stdout.split()), p.stdout
+    suite("slow", 0.4)
+    p = _cli("--since-green", "--history", db)
+    assert p.returncode == 1 and "pendulum/mujoco: median time 0.2 s -> 0.4 s (2.00x)" in \
+        " ".join(p.stdout.split()), p.stdout
+
+
 def test_runs_cell_series_and_flaky(tmp_path):
     db = tmp_path / "h.db"
     for err, v, code in ((1e-8, "pass", 0), (3e-6, "fail", 1), (1e-8, "pass", 0)):

@@ -86,11 +86,12 @@ def since_green(path: Path) -> dict:
     """The newest suite against the last suite whose gate passed before it: ``{"green",
     "latest"}`` (run summaries, None when there is none) and ``regressed``: the cells that
     failed, whose worst figure grew past :data:`GROWTH` x (and 0.1), or whose median time
-    grew past :data:`SLOWER` x, each with what changed."""
+    grew past :data:`SLOWER` x (on the same machine: else ``speed`` says why not), each
+    with what changed."""
     with reading(path) as db:
         if db is None:
             return {"green": None, "latest": None, "regressed": []}
-        head = "SELECT id, generated, git_commit, gate FROM runs WHERE kind = 'suite'"
+        head = "SELECT id, generated, git_commit, gate, machine FROM runs WHERE kind = 'suite'"
         latest = db.execute(head + " ORDER BY id DESC LIMIT 1").fetchone()
         green = latest and db.execute(head + " AND gate = 0 AND id < ? ORDER BY id DESC "
                                       "LIMIT 1", (latest[0],)).fetchone()
@@ -99,6 +100,10 @@ def since_green(path: Path) -> dict:
             return out
         now, then = _worst(db, latest[0]), _worst(db, green[0])
         t_now, t_then = _median_s(db, latest[0]), _median_s(db, green[0])
+    if latest[4] != green[4]:  # times of two machines say nothing of the code
+        out["speed"] = (f"times not compared: the green suite ran on another machine "
+                        f"({green[4] or '?'}, the newest on {latest[4] or '?'})")
+        t_then = {}
     for key in sorted(set(now) | set(t_now)):
         c, was = now.get(key, {}), then.get(key, {})
         why = []
