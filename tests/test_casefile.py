@@ -161,3 +161,29 @@ def test_a_misspelt_pose_key_exits_2_before_anything_runs(case_variant):
     assert "Traceback" not in r.stderr + r.stdout
     assert f"{path}: initial.pose.rocker.angel: unknown field" in r.stderr
     assert not (path.parent / "out").exists()
+
+
+@pytest.mark.parametrize("name, sub, field, got", [
+    ("five_bar", (r"of = \{ N34 = 1.0", "of = { N34 = nan"), "channels.N34_2N56.of.N34", "nan"),
+    ("five_bar", (r"N56 = 2.0 \}", "N56 = -inf }"), "channels.N34_2N56.of.N56", "-inf"),
+    ("a04_bricard", (r"J3_x = -1.0", "J3_x = " + "9" * 400), "channels.J1mJ3_x.of.J3_x",
+     "9999"),
+])
+def test_a_combination_coefficient_must_be_finite(case_variant, name, sub, field, got):
+    """A nan or inf coefficient used to load and run "ok" with a NaN column (and an integer
+    past a float raised OverflowError)."""
+    path = case_variant(name, [sub])
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    assert info.value.field == field, str(info.value)
+    assert info.value.reason.startswith(f"must be finite, got {got}"), str(info.value)
+
+
+def test_a_nan_combination_coefficient_exits_2(case_variant):
+    path = case_variant("five_bar", [(r"of = \{ N34 = 1.0", "of = { N34 = nan")])
+    r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", str(path), "--engines",
+                        "natcoord", "--out", str(path.parent / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+    assert f"{path}: channels.N34_2N56.of.N34: must be finite, got nan" in r.stderr

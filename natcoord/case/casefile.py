@@ -20,6 +20,7 @@ import math
 import os
 import re
 import stat
+import sys
 import tomllib
 from pathlib import Path
 
@@ -854,6 +855,9 @@ def _channels(r, table: dict, bodies, points_of, joints, drivers=(), dim: int = 
                            "above this one")
                 if isinstance(coef, bool) or not isinstance(coef, (int, float)):
                     r.fail(f"{p}.of.{t}", f"must be a number, got {coef!r}")
+                # TOML has nan, inf and integers past a float: a NaN column ran "ok"
+                if not abs(coef) <= sys.float_info.max:
+                    r.fail(f"{p}.of.{t}", f"must be finite, got {short(coef)}")
             if not terms:
                 r.fail(f"{p}.of", "must not be empty")
             of = tuple((t, float(v)) for t, v in terms.items())
