@@ -187,3 +187,43 @@ def test_a_nan_combination_coefficient_exits_2(case_variant):
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr + r.stdout
     assert f"{path}: channels.N34_2N56.of.N34: must be finite, got nan" in r.stderr
+
+
+@pytest.mark.parametrize("sub, field, reason", [
+    ((r"^\[reactions.unit_invariant\]", "[reactions.unit_invariantt]"),
+     "reactions.unit_invariantt", "unknown method; expected min_norm, unit_invariant, weighted "
+     "(did you mean unit_invariant?)"),
+    ((r"^\[reactions.weighted\]", "[reactions.zzweighted]"), "reactions.zzweighted",
+     "unknown method"),
+    ((r"^\[reactions.weighted\]", r'[reactions."x,y\\nz"]'), "reactions.'x,y\\nz'",
+     "unknown method"),
+    ((r"^\[reactions.weighted\]", '[reactions."weighted_a,b"]'), "reactions.weighted_a,b",
+     "is not a name"),
+    ((r"^\[reactions.min_norm\]", '[reactions.min_norm]\nstiffness = { A1 = "1 N/m" }'),
+     "reactions.min_norm.stiffness", "only a weighted method"),
+])
+def test_an_unknown_reaction_method_is_refused(case_variant, sub, field, reason):
+    """Any [reactions.<name>] used to run: a typo as a weighted minimum norm under its own
+    name, and a name with a comma or newline broke the CSV header."""
+    path = case_variant("parallelogram_3d", [sub])
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    assert info.value.field == field, str(info.value)
+    assert reason in info.value.reason, str(info.value)
+
+
+def test_labelled_weighted_methods_still_load():
+    assert list(load_case(CASES / "five_bar.toml").reactions) == [
+        "min_norm", "unit_invariant", "weighted_KL1_KT1000", "weighted_KL1000_KT1"]
+
+
+def test_a_misspelt_reaction_method_exits_2(case_variant):
+    path = case_variant("parallelogram_3d", [(r"^\[reactions.unit_invariant\]",
+                                              "[reactions.unit_invariantt]")])
+    r = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", str(path), "--engines",
+                        "natcoord", "--out", str(path.parent / "out")],
+                       capture_output=True, text=True)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr + r.stdout
+    assert (f"{path}: reactions.unit_invariantt: unknown method; expected min_norm, "
+            "unit_invariant, weighted (did you mean unit_invariant?)") in r.stderr

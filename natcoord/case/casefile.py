@@ -37,6 +37,7 @@ from .mechanism import (
     LOAD_FRAMES,
     PLANAR_JOINTS,
     PLANES,
+    REACTION_METHODS,
     Body,
     Case,
     Channel,
@@ -47,6 +48,7 @@ from .mechanism import (
     Pose,
     Rod,
     Spring,
+    reaction_method,
 )
 
 # unit -> (factor to SI, dimension)
@@ -136,10 +138,8 @@ class _Reader:
         unknown = sorted(set(table) - set(allowed)) if isinstance(table, dict) else []
         if unknown:
             key, expected = unknown[0], sorted(allowed)
-            close = difflib.get_close_matches(str(key), expected, n=1)
             self.fail(_join(path, shown(key)), f"unknown field; expected some of "
-                      f"{', '.join(expected)}" + (f" (did you mean {close[0]}?)" if close
-                                                  else ""))
+                      f"{', '.join(expected)}{_did_you_mean(key, expected)}")
 
     def name(self, table, key, path) -> str:
         """A name: a short safe identifier (it becomes a file name or a CSV column)."""
@@ -188,6 +188,12 @@ class _Reader:
         if not isinstance(value, list) or len(value) != dim:
             self.fail(field, f"must be a list of {dim} numbers ({dimension}), got {value!r}")
         return np.array([self.quantity(v, f"{field}[{i}]", dimension) for i, v in enumerate(value)])
+
+
+def _did_you_mean(key, expected) -> str:
+    """`` (did you mean X?)`` with the closest of ``expected`` to a typo, or nothing."""
+    close = difflib.get_close_matches(str(key), list(expected), n=1)
+    return f" (did you mean {close[0]}?)" if close else ""
 
 
 def _join(path: str, key) -> str:
@@ -568,10 +574,17 @@ def _reactions(r: _Reader, table: dict, links: dict, bodies) -> dict[str, dict]:
     """``[reactions.<method>]``: natcoord's reaction methods; ``stiffness`` weights rows."""
     out = {}
     for method, spec in table.items():
-        p = f"reactions.{method}"
+        p = f"reactions.{shown(method)}"
+        if reaction_method(method) is None:  # a typo used to run as a weighted method
+            r.fail(p, f"unknown method; expected {', '.join(REACTION_METHODS)}"
+                   f"{_did_you_mean(method, REACTION_METHODS)}")
+        r.identifier(method, p)  # weighted_<label> becomes part of a CSV column's name
         if not isinstance(spec, dict):
             r.fail(p, "must be a table")
         r.known(spec, {"stiffness"}, p)
+        if "stiffness" in spec and reaction_method(method) != "weighted":
+            r.fail(f"{p}.stiffness", "only a weighted method (weighted or weighted_<label>) "
+                   "takes stiffness")
         stiffness = {}
         for name, value in r.table(spec, "stiffness", p, required=False).items():
             f = f"{p}.stiffness.{name}"

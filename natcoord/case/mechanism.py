@@ -39,6 +39,16 @@ CHANNEL_KINDS = ("angle", "position", "velocity", "reaction", "energy", "acceler
 PLANES = {"xy": (0, 1), "yz": (1, 2), "xz": (0, 2)}
 DRIVER_TYPES = ("angle", "coordinate")
 FORCE_KINDS = ("reaction", "axial", "combination")  # channels that are forces
+# natcoord's reaction methods ([reactions.<method>]); a weighted one may carry a label,
+# weighted_<label>, so that a case compares several stiffness sets
+REACTION_METHODS = ("min_norm", "unit_invariant", "weighted")
+
+
+def reaction_method(name: str) -> str | None:
+    """The method of REACTION_METHODS a ``[reactions.<name>]`` table runs, or None."""
+    if name in REACTION_METHODS:
+        return name
+    return "weighted" if name.startswith("weighted_") else None
 
 
 @dataclass(frozen=True)

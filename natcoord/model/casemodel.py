@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..case.mechanism import GROUND, PLANES, Case
+from ..case.mechanism import GROUND, PLANES, REACTION_METHODS, Case, reaction_method
 from ..errors import AssemblyError, ModelError
 from ..outputs import reactions
 from . import sparserank
@@ -308,10 +308,14 @@ def methods(cm: CaseModel) -> dict[str, np.ndarray | None]:
     m = cm.model
     out: dict[str, np.ndarray | None] = {}
     for name, spec in (cm.case.reactions or {"min_norm": {}}).items():
-        if name == "min_norm":
+        method = reaction_method(name)  # the loader refused any other name
+        if method == "min_norm":
             out[name] = None
-        elif name == "unit_invariant":
+        elif method == "unit_invariant":
             out[name] = row_lengths(cm) ** -np.asarray(m.constraints.length_dim, float)
+        elif method != "weighted":
+            raise ValueError(f"unknown reaction method {name!r}; expected one of "
+                             f"{', '.join(REACTION_METHODS)}")
         else:
             w = np.ones(m.m)
             for key, k in spec.get("stiffness", {}).items():
