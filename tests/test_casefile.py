@@ -227,3 +227,11 @@ def test_a_misspelt_reaction_method_exits_2(case_variant):
     assert "Traceback" not in r.stderr + r.stdout
     assert (f"{path}: reactions.unit_invariantt: unknown method; expected min_norm, "
             "unit_invariant, weighted (did you mean unit_invariant?)") in r.stderr
+
+
+def test_a_long_name_is_counted_without_its_quotes(case_variant):
+    """A 65-character body name was said to be of 67 characters (the repr's quotes)."""
+    path = case_variant("slider_crank", [(r'name = "rod"', f'name = "{"b" * 65}"')])
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    assert "(65 characters) is not a name" in info.value.reason, str(info.value)

@@ -87,9 +87,10 @@ class Setting:
 
 
 def short(v, n: int = 60) -> str:
-    """repr of a value, cut to n characters (a 50 000-character name is not echoed)."""
+    """repr of a value, cut to n characters (a 50 000-character name is not echoed); the
+    count given is the string's own length (its repr's quotes and escapes not counted)."""
     s = repr(v)
-    return s if len(s) <= n else s[:n] + f"... ({len(s)} characters)"
+    return s if len(s) <= n else f"{s[:n]}... ({len(v if isinstance(v, str) else s)} characters)"
 
 
 def shown(key) -> str:
