@@ -1237,8 +1237,8 @@ def reference_update(cases: CaseArgs = None, cases_dir: CasesDir = None,
 @app.command("generate")
 def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four_bar.")],
                  n: Annotated[int, typer.Option("--n", help="The family's size parameter.")],
-                 out_file: Annotated[Path, typer.Option("--out", help="Case file to write; "
-                                                        "its stem is the case name.")],
+                 out_arg: Annotated[str, typer.Option("--out", help="Case file to write "
+                                                      "(NAME.toml); its stem is the case name.")],
                  duration: Annotated[float | None, typer.Option(
                      min=1e-3, max=MAX_DURATION_S,
                      help="s [default: the family's specification].")] = None,
@@ -1246,28 +1246,26 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                      "--force", help="Replace an existing case file.")] = False):
     """Write one member of a parametric case family as a case file (loaded back to check
     before it is written; an existing file is kept unless --force)."""
-    from .case.generate import FAMILIES, write_case
+    from .case.generate import FAMILIES, case_file_path, write_case
 
     if family not in FAMILIES:
         _fail(f"unknown family {family!r}; families are {', '.join(FAMILIES)}")
     try:
+        out_file = case_file_path(out_arg)
         text = FAMILIES[family](n, name=out_file.stem, duration=duration)
-    except ValueError as e:
-        _fail(str(e))
-    try:
         write_case(out_file, text, force=force)
-    except NatcoordError as e:
+    except (ValueError, NatcoordError) as e:
         _fail(str(e))
     out.print(f"{family} N = {n}: {out_file}")
 
 
 @app.command("import")
 def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .xml).")],
-               out_file: Annotated[Path, typer.Option(
-                   "--out", help="Case file to write (its stem is the case name), or a "
-                   "folder to write <name>.toml in.")],
+               out_arg: Annotated[str, typer.Option(
+                   "--out", help="Case file to write (NAME.toml); its stem is the case "
+                   "name.")],
                name: Annotated[str | None, typer.Option(
-                   help="Case name [default: the file's stem, or the model's].")] = None,
+                   help="Case name, if given the --out file's stem.")] = None,
                duration: Annotated[float, typer.Option(
                    min=1e-3, max=MAX_DURATION_S, help="s.")] = 2.0,
                force: Annotated[bool, typer.Option(
@@ -1275,11 +1273,13 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,
     slide and ball joints, connect (and weld) equalities closing loops, gravity and the
     initial state; what it does not carry is listed in the file and here."""
-    from .case.generate import write_case
+    from .case.generate import case_file_path, write_case
     from .case.mjcf import import_mjcf
 
-    if out_file.is_dir():
-        out_file = out_file / f"{name or model.stem}.toml"
+    try:  # README: --out CASE.toml (a folder is refused, as by generate)
+        out_file = case_file_path(out_arg)
+    except NatcoordError as e:
+        _fail(str(e))
     if name is not None and name != out_file.stem:
         _fail(f"--name {name!r} must equal the case file's stem {out_file.stem!r}")
     try:

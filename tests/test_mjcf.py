@@ -197,3 +197,16 @@ def test_weld_closes_a_loop_and_velocity_is_carried(tmp_path):
     run = adapter("natcoord").run(case, initial_body_states(case), {})
     assert abs(abs(run.motion.omega["l"][0]) - 1.0) < 1e-9
     assert abs(run.motion.omega["c1"][0]) < 1e-9  # the coupler translates
+
+
+@pytest.mark.parametrize("out, said", [
+    ("some/dir/", "names a folder; give the case file to write"),
+    ("g/x.txt", "a case file ends in .toml"),
+])
+def test_import_refuses_an_out_that_is_not_a_case_file(tmp_path, out, said):
+    """README: --out CASE.toml. --out some/dir/ used to write a file named dir."""
+    r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out", f"{tmp_path}/{out}"])
+    assert r.exit_code == 2, r.output
+    assert f"--out '{tmp_path}/{out}': {said}" in r.output, r.output
+    assert list(tmp_path.iterdir()) == []
+

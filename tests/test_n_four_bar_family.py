@@ -113,3 +113,23 @@ def test_scaling_times_the_sizes_in_interleaved_rounds(monkeypatch):
     assert order == [4, 8, 4, 8]
     for rec in out["records"]:
         assert len(rec["samples_s"]) == 2 and rec["wall_time_s"] == min(rec["samples_s"])
+
+
+@pytest.mark.parametrize("out, said", [
+    ("newdir/", "names a folder; give the case file to write"),
+    ("g/x.txt", "a case file ends in .toml"),
+    ('a"b.toml', "its stem is the case name"),
+])
+def test_generate_refuses_an_out_that_is_not_a_case_file(tmp_path, out, said):
+    """--out newdir/ (a folder that does not exist) used to write a file named newdir, and
+    --out x.txt a case no command finds."""
+    from typer.testing import CliRunner
+
+    from natcoord.cli import app
+
+    res = CliRunner().invoke(app, ["generate", "n_four_bar", "--n", "2", "--out",
+                                   f"{tmp_path}/{out}"])
+    assert res.exit_code == 2, res.output
+    assert f"--out '{tmp_path}/{out}': {said}" in res.output, res.output
+    assert list(tmp_path.iterdir()) == []
+

@@ -10,6 +10,7 @@ Families:
 
 from __future__ import annotations
 
+import os
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -322,6 +323,27 @@ def n_four_bar(n: int, *, name: str | None = None, duration: float | None = None
 
 
 FAMILIES: dict[str, Callable[..., str]] = {"n_four_bar": n_four_bar}
+
+
+def case_file_path(out: str) -> Path:
+    """The case file that ``--out`` of ``generate`` and ``import`` names, as typed: NatcoordError
+    unless it ends in ``.toml`` with a case name as its stem (a trailing separator, a folder
+    that need not exist, used to become a file of the folder's name, and a file without
+    .toml one that no command finds)."""
+    from .casefile import MAX_NAME, NAME_PATTERN
+
+    if not out or out.endswith(("/", os.sep)):
+        raise NatcoordError(f"--out {out!r}: names a folder; give the case file to write, "
+                            "FOLDER/NAME.toml")
+    path = Path(out)
+    if path.suffix != ".toml":
+        raise NatcoordError(f"--out {out!r}: a case file ends in .toml (run finds cases "
+                            "by it)")
+    if not NAME_PATTERN.fullmatch(path.stem):
+        raise NatcoordError(f"--out {out!r}: its stem is the case name: use at most "
+                            f"{MAX_NAME} letters, digits and _ . + - (not starting with . + "
+                            "or -)")
+    return path
 
 
 def write_case(path: Path, text: str, *, force: bool = False) -> None:
