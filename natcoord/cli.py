@@ -1246,12 +1246,14 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                      "--force", help="Replace an existing case file.")] = False):
     """Write one member of a parametric case family as a case file (loaded back to check
     before it is written; an existing file is kept unless --force)."""
-    from .case.generate import FAMILIES, case_file_path, write_case
+    from .case.generate import FAMILIES, case_file_path, check_duration, write_case
 
     if family not in FAMILIES:
         _fail(f"unknown family {family!r}; families are {', '.join(FAMILIES)}")
     try:
         out_file = case_file_path(out_arg)
+        if duration is not None:
+            check_duration(duration)
         text = FAMILIES[family](n, name=out_file.stem, duration=duration)
         write_case(out_file, text, force=force)
     except (ValueError, NatcoordError) as e:
@@ -1273,11 +1275,12 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,
     slide and ball joints, connect (and weld) equalities closing loops, gravity and the
     initial state; what it does not carry is listed in the file and here."""
-    from .case.generate import case_file_path, write_case
+    from .case.generate import case_file_path, check_duration, write_case
     from .case.mjcf import import_mjcf
 
     try:  # README: --out CASE.toml (a folder is refused, as by generate)
         out_file = case_file_path(out_arg)
+        check_duration(duration)
     except NatcoordError as e:
         _fail(str(e))
     if name is not None and name != out_file.stem:

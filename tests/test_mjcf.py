@@ -210,3 +210,23 @@ def test_import_refuses_an_out_that_is_not_a_case_file(tmp_path, out, said):
     assert f"--out '{tmp_path}/{out}': {said}" in r.output, r.output
     assert list(tmp_path.iterdir()) == []
 
+
+def test_import_names_the_duration_option_it_cannot_take(tmp_path):
+    """It used to say: generated file does not load: /tmp/natcoord-generate-XXXX/new4.toml:
+    output_dt: must divide duration 0.005 s, got 0.01 s."""
+    r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out",
+                 str(tmp_path / "new4.toml"), "--duration", "0.005"])
+    assert r.exit_code == 2, r.output
+    assert "--duration 0.005: must be a multiple of the output step 0.01 s" in r.output
+    assert "natcoord-generate" not in r.output and list(tmp_path.iterdir()) == []
+
+
+def test_a_model_file_name_with_a_newline_is_escaped_in_the_case_file(tmp_path):
+    """The name went raw into # comment lines: the case file did not load."""
+    xml = tmp_path / "four\nbar.xml"
+    xml.write_text((CASES / "mjcf_four_bar.xml").read_text())
+    out = tmp_path / "fb.toml"
+    r = _invoke(["import", str(xml), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    assert out.read_text().startswith("# Imported by `natcoord import four\\nbar.xml --out")
+    assert "four\\nbar.xml" in load_case(out).description

@@ -133,3 +133,32 @@ def test_generate_refuses_an_out_that_is_not_a_case_file(tmp_path, out, said):
     assert f"--out '{tmp_path}/{out}': {said}" in res.output, res.output
     assert list(tmp_path.iterdir()) == []
 
+
+@pytest.mark.parametrize("duration, said", [
+    ("0.005", "--duration 0.005: must be a multiple of the output step 0.01 s"),
+    ("20000", "--duration 20000: 2e+06 output samples (every 0.01 s) are beyond the budget"),
+])
+def test_generate_names_the_duration_option_it_cannot_take(tmp_path, duration, said):
+    """The loader's complaint about a temporary file's output_dt used to stand for it."""
+    from typer.testing import CliRunner
+
+    from natcoord.cli import app
+
+    res = CliRunner().invoke(app, ["generate", "n_four_bar", "--n", "2", "--out",
+                                   str(tmp_path / "x.toml"), "--duration", duration])
+    assert res.exit_code == 2, res.output
+    assert said in res.output and "natcoord-generate" not in res.output, res.output
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_generated_file_that_does_not_load_is_named_by_its_path(tmp_path):
+    from natcoord.case.generate import write_case
+    from natcoord.errors import NatcoordError
+
+    out = tmp_path / "x.toml"
+    text = n_four_bar(2, name="x").replace("output_dt = 0.01", "output_dt = 0.03")
+    with pytest.raises(NatcoordError) as e:
+        write_case(out, text)
+    assert str(e.value).startswith(f"generated file does not load: {out}: output_dt: must "
+                                   "divide duration"), str(e.value)
+    assert not out.exists()

@@ -15,7 +15,9 @@ import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
-from ..errors import NatcoordError
+from ..errors import CaseError, NatcoordError
+
+OUTPUT_DT = 0.01  # s: the output step of every generated or imported case
 
 # Engine settings and tolerances measured for the specification's members (N = 2 for 10 s,
 # N = 40 for 20 s), by `natcoord run` against the stored reference (which equals the exact
@@ -251,7 +253,7 @@ def n_four_bar(n: int, *, name: str | None = None, duration: float | None = None
         "dimension = 2",
         "gravity = [0.0, -9.81]",
         f"duration = {_f(duration)}",
-        "output_dt = 0.01",
+        f"output_dt = {_f(OUTPUT_DT)}",
         'tags = ["closed-loop", "2d", "singular", "iftomm", "analytic", "parametric"]',
         "",
         "# IFToMM multibody benchmark library, problem A02 (N-four-bar): N + 1 vertical cranks",
@@ -346,10 +348,24 @@ def case_file_path(out: str) -> Path:
     return path
 
 
+def check_duration(duration: float, output_dt: float = OUTPUT_DT) -> None:
+    """NatcoordError naming ``--duration`` when a case of that length, sampled every
+    ``output_dt`` s, would not load (the loader's rules on duration and output_dt)."""
+    from .casefile import MAX_SAMPLES
+
+    k = duration / output_dt
+    if k > MAX_SAMPLES:
+        raise NatcoordError(f"--duration {duration:g}: {k:.3g} output samples (every "
+                            f"{output_dt:g} s) are beyond the budget of {MAX_SAMPLES}")
+    if round(k) < 1 or abs(k - round(k)) > 1e-9:
+        raise NatcoordError(f"--duration {duration:g}: must be a multiple of the output "
+                            f"step {output_dt:g} s")
+
+
 def write_case(path: Path, text: str, *, force: bool = False) -> None:
-    """Write a generated case file to ``path`` once it loads back (CaseError otherwise). An
-    existing file is kept (NatcoordError) unless ``force``; a folder or a special file in
-    its place is never replaced."""
+    """Write a generated case file to ``path`` once it loads back (NatcoordError otherwise,
+    naming ``path``, not the trial copy). An existing file is kept (NatcoordError) unless
+    ``force``; a folder or a special file in its place is never replaced."""
     from ..suite.io import check_user_file, write_user_file
     from .casefile import load_case
 
@@ -360,6 +376,7 @@ def write_case(path: Path, text: str, *, force: bool = False) -> None:
         trial.write_text(text, encoding="utf-8")
         try:
             load_case(trial)
-        except NatcoordError as e:
-            raise NatcoordError(f"generated file does not load: {e}") from None
+        except CaseError as e:
+            raise NatcoordError("generated file does not load: "
+                                f"{CaseError(str(path), e.field, e.reason)}") from None
     write_user_file(path, text, force=force)

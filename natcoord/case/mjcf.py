@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CaseError
+from .generate import OUTPUT_DT
 
 PLANAR_TOL = 1e-9  # |sin| of the angle between a hinge axis and n, m/s^2 of gravity along n
 CLOSE_TOL = 1e-12  # m: loop closure reached by assembly
@@ -84,6 +85,12 @@ def _vec(v) -> str:
 
 def _q(s: str) -> str:
     return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def _shown(s: str) -> str:
+    """Text from outside (a file name) as one printable line: a newline in a comment would
+    end it, and a control character is not allowed in a TOML string."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in s)
 
 
 @contextmanager
@@ -350,7 +357,7 @@ def _plane(m, d, mujoco, g: np.ndarray) -> np.ndarray | None:
 
 
 def import_mjcf(path: str | Path, name: str, *, duration: float = 2.0,
-                output_dt: float = 0.01) -> Imported:
+                output_dt: float = OUTPUT_DT) -> Imported:
     """The case text of an MJCF model (see the module docstring).
 
     Parameters
@@ -553,16 +560,17 @@ def _velocity_channels(m, d, mujoco, members, body_name, points, loops_eq, welds
 def _text(path, name, m, d, mujoco, dim, P, frame, g, duration, output_dt, bodies, joints,
           points, loops, vel, notes, start) -> str:
     ax = "xyz"[:dim]
-    L = [f"# Imported by `natcoord import {path.name} --out {name}.toml` from the MuJoCo model",
-         f"# {path.name} ({start}); masses, centres of mass and inertias as MuJoCo compiled them.",
+    file = _shown(path.name)
+    L = [f"# Imported by `natcoord import {file} --out {name}.toml` from the MuJoCo model",
+         f"# {file} ({start}); masses, centres of mass and inertias as MuJoCo compiled them.",
          "# Re-import rather than editing the mechanism; add engine tolerances from",
          f"# `natcoord reference update {name}` and `natcoord propose {name}`."]
     if frame is not None:
         L.append(f"# 2-D: x = world {_vec(frame[0])}, y = world {_vec(frame[1])}; every "
                  f"hinge turns about {_vec(frame[2])}.")
     L.append("# Not carried from the MJCF:")
-    L += [f"#   {n}" for n in notes]
-    desc = (f"Imported from MuJoCo model {path.name}: {len(bodies)} bodies, {len(joints)} "
+    L += [f"#   {_shown(n)}" for n in notes]
+    desc = (f"Imported from MuJoCo model {file}: {len(bodies)} bodies, {len(joints)} "
             f"joints, {len(loops)} loop(s) ({dim}-D, {duration:g} s)")
     tags = ["mjcf", f"{dim}d"] + (["closed-loop"] if loops else [])
     L += [f"name = {_q(name)}", f"description = {_q(desc)}", f"dimension = {dim}",
