@@ -235,3 +235,22 @@ def test_a_long_name_is_counted_without_its_quotes(case_variant):
     with pytest.raises(CaseError) as info:
         load_case(path)
     assert "(65 characters) is not a name" in info.value.reason, str(info.value)
+
+
+@pytest.mark.parametrize("sub, field, reason", [
+    ((r"^mass = 1.0", "mass = 1e308"), "bodies[0] (crank).mass",
+     "1e+308 is beyond 1e+150 in size (its square would overflow)"),
+    ((r"^gravity = .*", "gravity = [0.0, -1e200]"), "gravity[1]", "-1e+200 is beyond 1e+150"),
+    ((r"^mass = 1.0", "mass = " + "9" * 400), "bodies[0] (crank).mass",
+     "(400 characters) is beyond 1e+150"),
+    ((r"^mass = 1.0", 'mass = "1e400 kg"'), "bodies[0] (crank).mass",
+     "must be finite, got '1e400 kg'"),
+])
+def test_a_quantity_whose_square_overflows_is_refused(case_variant, sub, field, reason):
+    """mass 1e308 and gravity 1e200 loaded and then failed at run time with numpy's
+    RuntimeWarnings; an integer past a float raised OverflowError."""
+    path = case_variant("slider_crank", [sub])
+    with pytest.raises(CaseError) as info:
+        load_case(path)
+    assert info.value.field == field, str(info.value)
+    assert reason in info.value.reason, str(info.value)

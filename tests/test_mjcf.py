@@ -230,3 +230,19 @@ def test_a_model_file_name_with_a_newline_is_escaped_in_the_case_file(tmp_path):
     assert r.exit_code == 0, r.output
     assert out.read_text().startswith("# Imported by `natcoord import four\\nbar.xml --out")
     assert "four\\nbar.xml" in load_case(out).description
+
+
+@pytest.mark.parametrize(("extra_body", "extra", "named"), [
+    ('<body name="b"><joint name="jb"/><geom size="0.1" mass="1e300"/></body>', "",
+     "body b: body_mass holds a value beyond 1e+150"),
+    ("", '<option gravity="0 0 -1e200"/>', "option: gravity is beyond 1e+150"),
+])
+def test_mjcf_with_absurd_magnitudes_exit_2(tmp_path, extra_body, extra, named):
+    """mass 1e300 imported with a numpy overflow warning, gravity 1e200 failed at run time
+    with raw RuntimeWarnings: a value whose square overflows is refused, naming the element."""
+    xml = tmp_path / "big.xml"
+    xml.write_text(MODEL.format(extra_body=extra_body, extra=extra))
+    r = _invoke(["import", str(xml), "--out", str(tmp_path / "big.toml")])
+    assert r.exit_code == 2, r.output
+    assert f"{xml}: {named}" in r.output, r.output
+    assert "Warning" not in r.output and not (tmp_path / "big.toml").exists()

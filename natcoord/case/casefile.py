@@ -86,6 +86,7 @@ MAX_DEPTH = 8
 MAX_SAMPLES = 1_000_000
 MAX_DURATION_S = 1e5
 MAX_NAME = 64
+MAX_MAGNITUDE = 1e150  # a quantity's size: its square (energies, norms) must not overflow
 MAX_TEXT = 10_000
 RESERVED_CHANNELS = ("t", "time")  # result and reference CSVs' time column
 # a name, at most MAX_NAME characters: the pattern bounds the length, so every check of a
@@ -155,7 +156,7 @@ class _Reader:
         if isinstance(value, bool):
             self.fail(field, f"must be a number ({dimension}), got {value!r}")
         if isinstance(value, (int, float)):
-            x = float(value)
+            x = value  # an integer past a float is compared below, never converted
         elif isinstance(value, str):
             parts = value.strip().split(maxsplit=1)
             try:
@@ -171,11 +172,14 @@ class _Reader:
             x = number * factor
         else:
             self.fail(field, f"must be a number ({dimension}), got {type(value).__name__}")
-        if not math.isfinite(x):
-            self.fail(field, f"must be finite, got {value!r}")
+        if isinstance(x, float) and not math.isfinite(x):
+            self.fail(field, f"must be finite, got {short(value)}")
+        if abs(x) > MAX_MAGNITUDE:  # gravity 1e200 loaded, then overflowed at run time
+            self.fail(field, f"{short(value)} is beyond {MAX_MAGNITUDE:g} in size (its "
+                      "square would overflow)")
         if positive and x <= 0:
             self.fail(field, f"must be positive, got {value!r}")
-        return x
+        return float(x)
 
     def number(self, table, key, path, dimension, *, required=True, default=None,
                positive=False) -> float:

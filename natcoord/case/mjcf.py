@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import CaseError
+from .casefile import MAX_MAGNITUDE
 from .generate import OUTPUT_DT
 
 PLANAR_TOL = 1e-9  # |sin| of the angle between a hinge axis and n, m/s^2 of gravity along n
@@ -139,20 +140,29 @@ _READ = {"mjOBJ_BODY": ("body_pos", "body_quat", "body_ipos", "body_iquat", "bod
 
 def _finite(file: str, m, mujoco) -> None:
     """CaseError naming the element of the first non-finite number the model holds
-    (MuJoCo compiles an infinity without a word)."""
+    (MuJoCo compiles an infinity without a word), or of one past the loader's
+    MAX_MAGNITUDE (its square overflows: mass 1e300 warned of an overflow here)."""
     if not np.all(np.isfinite(m.opt.gravity)):
         raise CaseError(file, "option", "gravity is not finite")
+    if np.abs(m.opt.gravity).max() > MAX_MAGNITUDE:
+        raise CaseError(file, "option", f"gravity is beyond {MAX_MAGNITUDE:g} in size (its "
+                        "square would overflow)")
     for obj, fields in _READ.items():
         for f in fields:
             rows = np.asarray(getattr(m, f), float)
-            bad = np.flatnonzero(~np.isfinite(rows.reshape(len(rows), -1)).all(axis=1)) \
-                if rows.size else ()
+            if not rows.size:
+                continue
+            rows = rows.reshape(len(rows), -1)
+            bad = np.flatnonzero(~(np.abs(rows) <= MAX_MAGNITUDE).all(axis=1))  # NaN too
             if not len(bad):
                 continue
             what = "the model"
             if obj is not None:
                 name = mujoco.mj_id2name(m, getattr(mujoco.mjtObj, obj), int(bad[0]))
                 what = f"{obj[6:].lower()} {name or int(bad[0])}"
+            if np.isfinite(rows[bad[0]]).all():
+                raise CaseError(file, what, f"{f} holds a value beyond {MAX_MAGNITUDE:g} in "
+                                "size (its square would overflow)")
             raise CaseError(file, what, f"{f} holds a NaN or an infinity")
 
 
