@@ -1264,10 +1264,10 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
 @app.command("import")
 def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .xml).")],
                out_arg: Annotated[str, typer.Option(
-                   "--out", help="Case file to write (NAME.toml); its stem is the case "
-                   "name.")],
+                   "--out", help="Case file to write (NAME.toml; its stem is the case "
+                   "name), or an existing folder to write <name>.toml in.")],
                name: Annotated[str | None, typer.Option(
-                   help="Case name, if given the --out file's stem.")] = None,
+                   help="Case name [default: the file's stem, or the model's].")] = None,
                duration: Annotated[float, typer.Option(
                    min=1e-3, max=MAX_DURATION_S, help="s.")] = 2.0,
                force: Annotated[bool, typer.Option(
@@ -1278,7 +1278,9 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
     from .case.generate import case_file_path, check_duration, write_case
     from .case.mjcf import import_mjcf
 
-    try:  # README: --out CASE.toml (a folder is refused, as by generate)
+    if out_arg and Path(out_arg).is_dir():  # an existing folder: the case file in it
+        out_arg = os.path.join(out_arg, f"{name or model.stem}.toml")
+    try:  # else a case file, as for generate (a folder yet to be made is refused)
         out_file = case_file_path(out_arg)
         check_duration(duration)
     except NatcoordError as e:

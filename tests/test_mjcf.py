@@ -211,6 +211,13 @@ def test_import_refuses_an_out_that_is_not_a_case_file(tmp_path, out, said):
     assert list(tmp_path.iterdir()) == []
 
 
+def test_import_into_an_existing_folder_writes_the_models_case_file_there(tmp_path):
+    r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out", str(tmp_path)])
+    assert r.exit_code == 0, r.output
+    assert [p.name for p in tmp_path.iterdir()] == ["mjcf_four_bar.toml"]
+    assert load_case(tmp_path / "mjcf_four_bar.toml").name == "mjcf_four_bar"
+
+
 def test_import_names_the_duration_option_it_cannot_take(tmp_path):
     """It used to say: generated file does not load: /tmp/natcoord-generate-XXXX/new4.toml:
     output_dt: must divide duration 0.005 s, got 0.01 s."""
