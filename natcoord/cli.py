@@ -36,8 +36,11 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 reference_app = typer.Typer(no_args_is_help=True, rich_markup_mode=None,
                             help="Stored reference solutions.")
 app.add_typer(reference_app, name="reference")
-out = Console(soft_wrap=True)
-err = Console(stderr=True, soft_wrap=True)
+# piped (a CI log), rich draws tables 80 columns wide and cuts the figures to "0.00…":
+# as wide as they need there, unless COLUMNS says otherwise
+PIPED_WIDTH = None if sys.stdout.isatty() or os.environ.get("COLUMNS") else 240
+out = Console(soft_wrap=True, width=PIPED_WIDTH)
+err = Console(stderr=True, soft_wrap=True, width=PIPED_WIDTH)
 
 DEFAULT_TIMEOUT_S = 600.0
 NIGHT_BUDGET_S = 60.0  # `suite --bench-budget`: see natcoord.suite.policy

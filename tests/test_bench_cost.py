@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import re
 import subprocess
 import sys
 
@@ -285,3 +287,16 @@ def test_time_to_accuracy_leaves_out_cases_swept_for_their_benchmark_only():
             "wall_time_s": 2.0}]
     rows = bench.time_to_accuracy(pts)
     assert [(r["case"], r["time_to_1e-06"]) for r in rows] == [("c", 2.0)]
+
+
+def test_a_piped_bench_prints_its_figures_whole(tmp_path):
+    """Piped (a CI log), rich drew the cost table 80 columns wide and cut every figure to
+    '0.00…'; the table is as wide as its figures need unless COLUMNS says otherwise."""
+    env = {k: v for k, v in os.environ.items() if k != "COLUMNS"}
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bench", "pendulum", "--engines",
+                        "natcoord", "--repeats", "1", "--out", tmp_path / "b", "--history",
+                        tmp_path / "h"], capture_output=True, text=True, timeout=600, env=env)
+    assert p.returncode == 0, p.stderr[-2000:]
+    (row,) = [line for line in p.stdout.splitlines() if "│ pendulum" in line]
+    assert "…" not in row and len(row) > 80, row
+    assert re.search(r"│ +\d+\.\d+e-\d+ │|│ +0\.\d{4,} │", row), row
