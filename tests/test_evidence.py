@@ -504,9 +504,12 @@ def test_a_record_taken_out_of_the_summary_fails_gate_and_compare(two, run, tmp_
     p = _gate(folder, tmp_path)
     assert p.returncode == 1 and f"{_csv(folder)}: missing (the folder's .natcoord-results " \
         "lists it" in p.stderr, p.stderr
-    c = _cli("compare", two, run)  # pendulum alone: a run of fewer cases
-    _clean(c)
+    c = _cli("compare", two, run)  # pendulum alone: a run of fewer cases, which passes
+    _clean(c)  # and lists what it did not run
     assert c.returncode == 0, c.stderr
+    rows = json.loads(_cli("compare", two, run, "--json").stdout)["rows"]
+    assert {(r["case"], r["status"]) for r in rows} == {("pendulum", "ok"),
+                                                        ("four_bar", "absent")}, rows
 
 
 def test_a_result_file_put_in_a_folder_without_a_marker_has_no_record(folder, tmp_path):

@@ -137,6 +137,13 @@ def compare_runs(base: Path, new: Path, *, cases: gate.CaseBook,
                          "speed_p": None if s is None else s.p,
                          "speed_judged": None if s is None else s.judged,
                          "slower": bool(s and s.slower)})
+    gone = sorted(set(old) - {(r["case"], r["engine"]) for r in n["records"]})
+    for key in gone:  # listed, not judged: a run of fewer cases is a fair thing to compare
+        out.rows.append({"case": key[0], "engine": key[1], "status": "absent",
+                         "verdict": f"not in {new}",
+                         "worst_of_tolerance_base": _worst(before.channels.get("/".join(key))),
+                         "worst_of_tolerance_new": None, "speed_ratio": None,
+                         "speed_p": None, "speed_judged": None, "slower": False})
     if out.code == 0 and out.slower:
         out.code = SLOWER
     return out
