@@ -1015,7 +1015,11 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
         raise typer.Exit(code)
     rows = data if isinstance(data, list) else []
     if not rows:
-        out.print(f"nothing recorded in {escape(str(db))}")
+        what = (f"no run of cell {cell!r} recorded" if cell is not None else
+                "no cell's verdict flipped between pass and fail" if flaky_ else
+                "nothing recorded")
+        out.print(f"{escape(what)} in {escape(str(db))}" + (
+            "" if db.is_file() else " (no such file)"))
         raise typer.Exit(0)
     table = Table()
     for col in rows[0]:

@@ -80,6 +80,10 @@ def test_runs_cell_series_and_flaky(tmp_path):
     p = _cli("--cell", "pendulum", "--history", db)
     assert p.returncode == 2 and "CASE/ENGINE expected" in p.stderr
     assert _cli("--since-green", "--history", tmp_path / "none.db").returncode == 0
+    said = " ".join(_cli("--cell", "nosuch/x", "--history", db).stdout.split())
+    assert f"no run of cell 'nosuch/x' recorded in {db}" in said, said  # not "nothing"
+    said = " ".join(_cli("--history", tmp_path / "typo.db").stdout.split())
+    assert f"nothing recorded in {tmp_path / 'typo.db'} (no such file)" in said, said
 
 
 @pytest.mark.parametrize("damage, named", [
