@@ -113,3 +113,24 @@ def test_a_damaged_row_is_named_whichever_view_reads(tmp_path, damage, named):
         assert p.returncode == 2, (view, p.returncode, p.stdout[-500:], p.stderr[-1500:])
         assert f"{db}: damaged row: {named}" in p.stderr, (view, p.stderr)
         assert "Traceback" not in p.stderr + p.stdout
+
+
+def test_an_empty_wal_beside_the_history_is_read_as_none(tmp_path):
+    """A stale empty -wal (no frames: a copy, a killed process) beside a WAL history: the
+    readers still open it as an unchanging file, creating no -shm beside it (which a
+    read-only folder would refuse), and a run recorded into it while read is refused."""
+    folder = tmp_path / "w"
+    folder.mkdir()
+    db = folder / "history.db"
+    for err, v, code in ((1e-8, "pass", 0), (3e-6, "fail", 1)):
+        history.record(db, kind="suite", summary=_summary(err, v), gate=code)
+    assert db.read_bytes()[18:20] == b"\x02\x02"  # WAL mode
+    (folder / "history.db-wal").write_bytes(b"")
+    p = _cli("--json", "--history", db)
+    assert p.returncode == 0, p.stderr
+    assert [r["gate"] for r in json.loads(p.stdout)] == [1, 0]  # newest first
+    assert sorted(f.name for f in folder.iterdir()) == ["history.db", "history.db-wal"]
+    with pytest.raises(history.HistoryError, match="recorded into it while it was read"):
+        with history.reading(db) as con:
+            con.execute("SELECT COUNT(*) FROM runs").fetchone()
+            history.record(db, kind="suite", summary=_summary(1e-8, "pass"), gate=0)

@@ -214,25 +214,34 @@ def _first_bad_row(path: Path, db: sqlite3.Connection, tables: set[str]) -> None
                            "or give another --history")
 
 
+def _wal_size(path: Path) -> int | None:
+    """The size of the write-ahead log beside ``path`` (None when there is none)."""
+    try:
+        return Path(f"{path}-wal").stat().st_size
+    except OSError:
+        return None
+
+
 def _stamp(path: Path) -> tuple:
     """What a writer changes: the file's identity, size and time, and whether a
-    write-ahead log is beside it."""
+    write-ahead log is beside it and its size."""
     st = path.stat()
-    return st.st_ino, st.st_size, st.st_mtime_ns, Path(f"{path}-wal").exists()
+    return st.st_ino, st.st_size, st.st_mtime_ns, _wal_size(path)
 
 
 def _idle_wal(path: Path) -> bool:
     """Whether ``path`` is an SQLite database in WAL mode (header bytes 18-19 = 2) with no
-    write-ahead log beside it: no connection is open on it, so no writer either (a
-    database in rollback-journal mode is written in place, under locks only a locking
-    open sees)."""
+    write-ahead log beside it, or an empty one (no frames: a stale log a killed process or
+    a copy left): nothing in a log to read, and a writer that starts meanwhile changes
+    the stamp (a database in rollback-journal mode is written in place, under locks only
+    a locking open sees)."""
     try:
         with open(path, "rb") as f:
             head = f.read(20)
     except OSError:
         return False
     return head[:16] == b"SQLite format 3\x00" and head[18:20] == b"\x02\x02" \
-        and not Path(f"{path}-wal").exists()
+        and not _wal_size(path)
 
 
 @contextmanager
@@ -240,8 +249,9 @@ def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connect
     """Open the history database read-only, after checking it is natcoord's; yields None
     when there is none yet. Raises HistoryError naming the file and the problem.
 
-    A database in WAL mode with no write-ahead log beside it (no writer at work: the
-    last connection's close folds the log in and removes it) is opened ``immutable``:
+    A database in WAL mode with no write-ahead log beside it, or an empty one (no writer
+    at work: the last connection's close folds the log in and removes it) is opened
+    ``immutable``:
     nothing is created beside it (a plain read-only open of a WAL database leaves
     ``-wal`` and ``-shm`` files), and a file that changed while it was read is an error
     that says to run again. Otherwise it is opened ``mode=ro``, which reads the log and
