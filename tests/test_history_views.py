@@ -93,9 +93,13 @@ def test_runs_cell_series_and_flaky(tmp_path):
     ("UPDATE bench SET samples = 'fast'", "table bench, row 1, column samples holds 'fast'"),
     ("UPDATE bench SET samples = NULL", "table bench, row 1, column samples holds NULL"),
     ("""UPDATE bench SET samples = '["a", "b"]'""", "table bench, row 1, column samples"),
-    ("DELETE FROM runs WHERE id = 1", "table results, row 1, column run_id holds 1")],
+    ("DELETE FROM runs WHERE id = 1", "table results, row 1, column run_id holds 1"),
+    ("UPDATE bench SET samples = '[-1, 1e309]'",
+     "table bench, row 1, column samples holds '[-1, 1e309]', not a JSON list of times "
+     "(finite and positive)"),
+    ("UPDATE bench SET samples = '[0.1, -0.1]'", "table bench, row 1, column samples")],
     ids=["number as text", "number as bytes", "samples not json", "samples null",
-         "samples of text", "deleted run"])
+         "samples of text", "deleted run", "samples infinite", "samples negative"])
 def test_a_damaged_row_is_named_whichever_view_reads(tmp_path, damage, named):
     """Rows are checked where the history is opened: every view (and the gate, the report)
     names the database, the row and the column (exit 2), none crashes on the value."""

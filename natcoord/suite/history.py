@@ -158,7 +158,11 @@ def _bad(column: str, kind: str) -> list[tuple[str, str]]:
         return [(f"typeof({c}) != 'text' OR NOT json_valid({c})", "a JSON list of times"),
                 (f"json_type({c}) != 'array' OR json_array_length({c}) = 0 OR EXISTS ("
                  f"SELECT 1 FROM json_each({c}) WHERE type NOT IN ('integer', 'real'))",
-                 "a JSON list of times (numbers, at least one)")]
+                 "a JSON list of times (numbers, at least one)"),
+                # 1e309 is read as infinity (and a view would print it as Infinity)
+                (f"EXISTS (SELECT 1 FROM json_each({c}) WHERE NOT IFNULL(value > 0 AND "
+                 "value <= 1.7976931348623157e308, 0))",
+                 "a JSON list of times (finite and positive)")]
     if kind == "json object":
         return [(f"typeof({c}) != 'text' OR NOT json_valid({c})", "a JSON object"),
                 (f"json_type({c}) NOT IN ('object', 'null')", "a JSON object")]
