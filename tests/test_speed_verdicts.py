@@ -183,6 +183,7 @@ def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
 
 @pytest.mark.parametrize("field, value", [("cpu_samples_s", 5), ("cpu_samples_s", ["x"]),
                                           ("samples_s", [float("nan")]),
+                                          ("samples_s", []),  # was NaN in --json
                                           ("batch_runs", {})])
 def test_two_benchmarks_with_a_malformed_sample_list_are_bad_input(tmp_path, field, value):
     """Two benchmark folders (speed only) whose bench.json holds a sample list of another

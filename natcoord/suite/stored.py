@@ -78,6 +78,9 @@ def check_bench(path: Path, data) -> dict:
         for k in _SAMPLES:
             if k in r and not _durations(r[k]):
                 raise StoredFileError(f"{where}.{k}: not a list of durations (s)")
+        if r.get("status", "ok") == "ok" and r.get("samples_s") == []:  # NaN speed ratios
+            raise StoredFileError(f"{where}.samples_s: not a list of durations (s): "
+                                  "empty, in a record with status ok")
         if "batch_runs" in r and not _durations(r["batch_runs"]):
             raise StoredFileError(f"{where}.batch_runs: not a list of run counts")
         _optional(r, ("status", "reason", "case_hash", "engine_version"), "a string",
