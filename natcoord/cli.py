@@ -647,18 +647,21 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
     cost, cost per step and per right-hand side, natcoord's cold start; with --scaling,
     how natcoord's cost per step grows with the size of a mechanism."""
     from .suite import bench
+    from .suite.io import check_folder
     from .suite.outdir import publishing
 
     names = _engines(engines)
     sizes = _scaling_sizes(scaling) if scaling else None
     target = _out_dir(out_dir, "bench")
+    copies = resolve(history, "reports/bench")
+    check_folder(copies, "--history")  # before measuring: the measurements are not lost
     with publishing(target, "bench") as staging:
         selected = _cases(cases, cases_dir)
         result = _bench(selected, names, repeats, work_precision,
                         resolve(references, "references"), timeout, quiet=as_json)
         if sizes:
             result["scaling"] = _scaling(sizes, quiet=as_json)
-        bench.store(result, staging, resolve(history, "reports/bench"))
+        bench.store(result, staging, copies)
     if as_json:
         import json
 

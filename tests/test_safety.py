@@ -642,6 +642,29 @@ def test_a_path_that_cannot_name_a_folder_is_bad_input_not_the_machine(tmp_path)
     assert afile.read_text() == "mine"
 
 
+def test_bench_checks_its_history_folder_before_measuring(tmp_path, monkeypatch):
+    """bench --history names the folder of its dated copies: one that cannot be a folder
+    (a file in the path) was found only after the whole bench (its measurements lost);
+    now it is refused first (exit 2, nothing measured), an unwritable one is exit 5."""
+    from natcoord.errors import EnvironmentFault
+    from natcoord.suite.io import check_folder
+
+    home = _project(tmp_path, "pendulum")
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    p = _cli("bench", "pendulum", "--engines", "natcoord", "--repeats", "1", "--out",
+             tmp_path / "b", "--history", afile / "sub", env={"NATCOORD_HOME": str(home)})
+    _clean(p, 2)
+    assert f"--history {afile / 'sub'}: cannot be a folder: {afile} is a file" in p.stderr
+    assert "cold start" not in p.stdout and not (tmp_path / "b").exists(), p.stdout
+    assert afile.read_text() == "mine"
+    check_folder(tmp_path / "new" / "sub", "--history")  # creatable: fine, nothing made
+    assert not (tmp_path / "new").exists()
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)  # a read-only folder (root
+    with pytest.raises(EnvironmentFault, match="cannot be written"):  # writes any)
+        check_folder(tmp_path / "new" / "sub", "--history")
+
+
 def test_an_unwritable_step_summary_keeps_the_nightly_results(tmp_path):
     home = _project(tmp_path, "pendulum")
     step = tmp_path / "step-summary"

@@ -74,6 +74,25 @@ def check_user_file(path: Path, *, force: bool = False) -> None:
         raise NatcoordError(f"{path}: exists; give --force to replace it")
 
 
+def check_folder(path: Path, option: str) -> None:
+    """Check, before the work, that files can be written in the folder ``path`` (given as
+    ``option``), making nothing: it, or the nearest part of it that exists, must be a
+    folder (else NatcoordError, exit 2) that this process may write (else
+    EnvironmentFault, exit 5)."""
+    from ..errors import EnvironmentFault, NatcoordError
+
+    path = Path(path)
+    for part in (path, *path.parents):
+        if part.exists() or part.is_symlink():
+            if not part.is_dir():
+                raise NatcoordError(f"{option} {path}: cannot be a folder: {part} is a file, "
+                                    "not a folder")
+            if not os.access(part, os.W_OK | os.X_OK):
+                raise EnvironmentFault(f"{option} {path}: {part} cannot be written "
+                                       "(permission denied or a read-only folder)")
+            return
+
+
 def write_user_file(path: Path, text: str, *, force: bool = False) -> None:
     """Write a file a user named on the command line (a case file, a proposal): an existing
     file is kept unless ``force``, and a folder, symlink or special file in its place is
