@@ -69,6 +69,22 @@ def test_bisect_names_the_commit_that_changed_the_mass(repo):
     assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
 
 
+def test_a_repo_that_is_not_a_git_repository_is_bad_input(tmp_path):
+    """--repo is a path the user typed: one that does not exist (was exit 5, "a fault of
+    the environment"), a file or a folder outside any repository is exit 2, named."""
+    (tmp_path / "afile").write_text("x")
+    (tmp_path / "plain").mkdir()
+    for repo, why in (("nonexist", "does not exist"), ("afile", "not a folder"),
+                      ("plain", "not a git repository")):
+        p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bisect", "--repo",
+                            str(tmp_path / repo), "HEAD~1", "HEAD", "pendulum"],
+                           capture_output=True, text=True, timeout=120,
+                           env=dict(os.environ), cwd=tmp_path)
+        assert p.returncode == 2, (repo, p.returncode, p.stderr)
+        assert f"{tmp_path / repo}: not a git repository" in p.stderr, p.stderr
+        assert why in p.stderr and "Traceback" not in p.stderr, p.stderr
+
+
 def _suite(r: Path, db: Path) -> subprocess.CompletedProcess:
     """The suite of the checkout at ``r`` (its own case files and references; the pendulum
     in natcoord, no bench), recorded in the history ``db``."""

@@ -53,7 +53,14 @@ def bisect(repo: Path, good: str, bad: str, cases: list[str], engines: list[str]
     """``{"first_bad": sha or None, "subject": ..., "log": git bisect's output}``;
     NatcoordError when ``repo`` is not a git repository or a revision is unknown."""
     repo = Path(repo)
-    top = _git(repo, "rev-parse", "--show-toplevel").stdout.strip()
+    if not repo.is_dir():  # a path the user typed: bad input, not the machine
+        raise NatcoordError(f"{repo}: not a git repository ("
+                            f"{'not a folder' if repo.exists() else 'does not exist'})")
+    top = _git(repo, "rev-parse", "--show-toplevel", check=False)
+    if top.returncode != 0:
+        raise NatcoordError(f"{repo}: not a git repository "
+                            f"({(top.stderr or top.stdout).strip()[-300:]})")
+    top = top.stdout.strip()
     revs = {r: _git(repo, "rev-parse", "--verify", f"{r}^{{commit}}").stdout.strip()
             for r in (good, bad)}
     with tempfile.TemporaryDirectory(prefix="natcoord-bisect-") as tmp:
