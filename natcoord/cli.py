@@ -1327,6 +1327,21 @@ def _bad_path(e: OSError) -> str | None:
     return None
 
 
+def _not_utf8(e: UnicodeError) -> str:
+    """What to say for a name or text that is not valid UTF-8 (a path in Latin-1, say,
+    that Python carries with surrogate escapes) when nothing nearer said it."""
+    if isinstance(e, UnicodeEncodeError) and isinstance(e.object, str):
+        try:
+            shown = e.object.encode("utf-8", "surrogateescape").decode("utf-8",
+                                                                       "backslashreplace")
+        except UnicodeError:
+            shown = ascii(e.object)
+        return (f"{shown[:300]}: not valid UTF-8 (a file name in another encoding?); "
+                "rename it or give another path")
+    return (f"text that is not valid UTF-8 ({e.reason}): a file name or a file in another "
+            "encoding?")
+
+
 def _stop(signum, frame):
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # a second Ctrl-C does not cut the clean-up
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -1343,6 +1358,9 @@ def main():  # pragma: no cover - console entry
         sys.exit(ENVIRONMENT)
     except NatcoordError as e:
         err.print(f"[bold red]error:[/] {escape(str(e))}", highlight=False)
+        sys.exit(2)
+    except (UnicodeEncodeError, UnicodeDecodeError) as e:  # bad input, not a traceback
+        err.print(f"[bold red]error:[/] {escape(_not_utf8(e))}", highlight=False)
         sys.exit(2)
     except OSError as e:
         where = f"{e.filename}: " if e.filename else ""

@@ -665,6 +665,46 @@ def test_bench_checks_its_history_folder_before_measuring(tmp_path, monkeypatch)
         check_folder(tmp_path / "new" / "sub", "--history")
 
 
+def test_paths_that_are_not_utf8_are_read_written_or_refused_without_a_traceback(
+        tmp_path, monkeypatch, capfd):
+    """A name in Latin-1 (b'\\xe9', which Python carries as a surrogate escape): the
+    history is read (its SQLite address was built from text, a traceback), a run writes
+    its results under it (the worker's process title failed), a case name that cannot be
+    is refused naming the file (exit 2), and any other such error at the command line's
+    top level is exit 2 with the name, not a traceback."""
+    from natcoord import cli
+
+    home = _project(tmp_path, "pendulum")
+    lat = Path(os.fsdecode(bytes(tmp_path) + b"/lat\xe9"))
+    lat.mkdir()
+    db = _natcoord_history(lat / "history.db")
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "history", "--json",
+                        "--history", os.fsencode(db)], capture_output=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-1500:]
+    assert len(json.loads(p.stdout)) == 1
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "run", "pendulum", "--engines",
+                        "natcoord", "--out", os.fsencode(lat / "r")], capture_output=True,
+                       timeout=300, env={**os.environ, "NATCOORD_HOME": str(home)})
+    assert p.returncode == 0, p.stderr[-1500:]
+    assert read_json(lat / "r" / "summary.json")["records"][0]["status"] == "ok"
+    out = lat / "g\udce9.toml"
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "generate", "n_four_bar",
+                        "--n", "2", "--out", os.fsencode(out)], capture_output=True,
+                       timeout=120)
+    assert p.returncode == 2 and b"Traceback" not in p.stderr, p.stderr[-1500:]
+    assert b"the file name is not valid UTF-8" in p.stderr and not out.exists()
+
+    def app():
+        str(lat).encode("utf-8")
+
+    monkeypatch.setattr(cli, "app", app)
+    monkeypatch.setattr(cli.signal, "signal", lambda *a: None)  # pytest's handlers kept
+    with pytest.raises(SystemExit) as e:
+        cli.main()
+    assert e.value.code == 2
+    assert "lat\\xe9: not valid UTF-8" in capfd.readouterr().err
+
+
 def test_an_unwritable_step_summary_keeps_the_nightly_results(tmp_path):
     home = _project(tmp_path, "pendulum")
     step = tmp_path / "step-summary"

@@ -371,6 +371,11 @@ def write_case(path: Path, text: str, *, force: bool = False) -> None:
 
     path = Path(path)
     check_user_file(path, force=force)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:  # the stem, the case name: bytes of another encoding
+        raise NatcoordError(f"{path}: the file name is not valid UTF-8; its stem is the "
+                            "case name: use at most 64 letters, digits and _ . + -") from None
     with tempfile.TemporaryDirectory(prefix="natcoord-generate-") as tmp:
         trial = Path(tmp) / path.name
         trial.write_text(text, encoding="utf-8")

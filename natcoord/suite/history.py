@@ -24,7 +24,7 @@ import time
 from collections.abc import Iterator
 from contextlib import closing, contextmanager
 from pathlib import Path
-from urllib.parse import quote
+from urllib.parse import quote_from_bytes
 
 from ..errors import EnvironmentFault, NatcoordError, StoredFileError
 
@@ -268,7 +268,8 @@ def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connect
     idle = _idle_wal(path)
     before = _stamp(path)
     mode = "immutable=1" if idle else "mode=ro"
-    uri = f"file:{quote(str(path.resolve()))}?{mode}"
+    # bytes: a name that is not valid UTF-8 (Latin-1 bytes) reaches SQLite as it is
+    uri = f"file:{quote_from_bytes(os.fsencode(path.resolve()))}?{mode}"
     try:
         db = sqlite3.connect(uri, uri=True, timeout=wait_s, isolation_level=None)
     except sqlite3.Error as e:

@@ -118,7 +118,9 @@ def _child(argv: list[str], err_path: str, cpu: int | None,
     null = os.open(os.devnull, os.O_WRONLY)
     os.dup2(null, 1)
     os.close(null)
-    setproctitle.setproctitle(" ".join([sys.executable, "-m", "natcoord.suite.worker", *argv]))
+    title = " ".join([sys.executable, "-m", "natcoord.suite.worker", *argv])
+    # a path that is not valid UTF-8 (surrogate escapes) is shown with its bytes replaced
+    setproctitle.setproctitle(os.fsencode(title).decode("utf-8", "replace"))
     from . import worker
 
     sys.exit(worker.main(argv))
