@@ -520,7 +520,9 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
         say(f"natcoord cold start ({escape(c['case'])}, {c['duration_s']:g} s simulated, "
             f"fresh process, build time): " + (
                 f"{c['build_time_s']:.2f} s (import {c['import_s']:.2f} s, plan and kernels "
-                f"from cache {c['kernel_load_s'] or 0:.2f} s, run {c['wall_time_s']:.3g} s), "
+                + ("from cache" if c.get("path") in ("generated", None) else
+                   f"({c['path']} path, not the generated kernels)")
+                + f" {c['kernel_load_s'] or 0:.2f} s, run {c['wall_time_s']:.3g} s), "
                 f"best of {len(c['samples_s'])}" if c["status"] == "ok" else
                 f"{c['status']}: {escape(c['reason'])}"))
     if work_precision:

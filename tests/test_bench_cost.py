@@ -241,6 +241,34 @@ def test_real_bench_cold_start_is_build_time(tiny_bench):
     assert best["n_steps"] > 0 and c["wall_time_s"] == best["wall_time_s"]
 
 
+def test_an_unusable_kernel_cache_is_said_and_the_path_recorded(tmp_path, monkeypatch):
+    """NATCOORD_CACHE_DIR a file: the generated kernels cannot be cached and natcoord runs
+    its generic ('sparse') kernels, many times slower. That was silent, and the cold start
+    said "kernels from cache": now a warning names the variable and the problem, once,
+    and the natcoord record (and the cold start) carry the compiled path that ran."""
+    from natcoord.compiled import codegen
+
+    afile = tmp_path / "afile"
+    afile.write_text("x")
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bench", "pendulum", "--engines",
+                        "natcoord", "--repeats", "1", "--out", str(tmp_path / "out"),
+                        "--history", str(tmp_path / "hist")], capture_output=True, text=True,
+                       cwd=ROOT, timeout=900, env={**os.environ,
+                                                   "NATCOORD_CACHE_DIR": str(afile)})
+    assert p.returncode == 0, p.stderr
+    said = (f"warning: NATCOORD_CACHE_DIR={afile}: not a writable folder ({afile} is a "
+            "file): the generated kernels cannot be cached; natcoord runs its generic "
+            "kernels (slower)")
+    assert " ".join(p.stderr.split()).count(said) == 1, p.stderr
+    assert "from cache" not in p.stdout and "(sparse path" in p.stdout, p.stdout
+    result = json.loads((tmp_path / "out" / "bench.json").read_text())
+    assert result["records"][0]["path"] == "sparse" == result["cold_start"]["path"]
+    monkeypatch.setenv("NATCOORD_CACHE_DIR", str(tmp_path / "new" / "cache"))
+    assert codegen.cache_problem() is None  # a folder that can be made is fine
+    monkeypatch.setattr(os, "access", lambda *a, **k: False)  # read-only (root writes any)
+    assert codegen.cache_problem().startswith("not a writable folder")
+
+
 # ---------------------------------------------------------------- the report
 
 

@@ -54,6 +54,41 @@ def cache_dir() -> Path:
     return Path(root) / "kernels"
 
 
+_WARNED: list[str] = []  # the cache problem said in this process (once)
+
+
+def cache_problem() -> str | None:
+    """Why generated kernels cannot be cached in :func:`cache_dir` (None: they can),
+    making nothing: a file in its path, or a folder this process may not write."""
+    folder = cache_dir()
+    for part in (folder, *folder.parents):
+        if part.exists():
+            if not part.is_dir():
+                return f"not a writable folder ({part} is a file)"
+            if not os.access(part, os.W_OK | os.X_OK):
+                return f"not a writable folder ({part}: permission denied or read-only)"
+            return None
+    return None
+
+
+def warn_uncached(problem: str | None = None) -> None:
+    """Say on stderr, once per process, that the generated kernels cannot be cached (so a
+    run takes the generic kernels, many times slower): ``problem``, else
+    :func:`cache_problem`'s (nothing said when there is none)."""
+    problem = problem or cache_problem()
+    if problem is None or _WARNED:
+        return
+    _WARNED.append(problem)
+    where = (f"NATCOORD_CACHE_DIR={os.environ['NATCOORD_CACHE_DIR']}"
+             if os.environ.get("NATCOORD_CACHE_DIR") else f"kernel cache {cache_dir()}")
+    print(f"warning: {where}: {problem}: the generated kernels cannot be cached; natcoord "
+          "runs its generic kernels (slower)", file=sys.stderr, flush=True)
+
+
+def _uncached(e: OSError) -> None:
+    warn_uncached(cache_problem() or f"cannot be written ({e.strerror or e})")
+
+
 def supported(plan: SchurPlan, frc: tuple) -> bool:
     """Whether the generated kernels serve this model: forces Q0 + T q, spring-dampers and
     planar torques (a spatial torque keeps the generic kernels), and a plan small enough
@@ -527,7 +562,8 @@ def load(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> np.ndarray
         return np.array([addresses[k] for k in NAMES], np.int64)
     except NotImplementedError:  # outside the translator's subset: numba compiles it
         pass
-    except OSError:
+    except OSError as e:
+        _uncached(e)
         return None
     import numba
     digest = hashlib.sha1((text + numba.__version__).encode()).hexdigest()[:20]
@@ -544,7 +580,8 @@ def load(plan: SchurPlan, frc: tuple, M: np.ndarray | None = None) -> np.ndarray
                                                  delete=False) as f:
                     f.write(text)
                 os.replace(f.name, path)
-        except OSError:
+        except OSError as e:
+            _uncached(e)
             return None
         spec = importlib.util.spec_from_file_location(name, path)
         mod = importlib.util.module_from_spec(spec)

@@ -194,6 +194,8 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
                 "wall_per_sim_s": best / case.duration, "settings": run["settings"],
                 "counters": {k: counters[k] for k in COUNTERS
                              if isinstance(counters.get(k), (int, float))}}
+        if isinstance(counters.get("path"), str):  # natcoord's compiled path that ran
+            rec["path"] = counters["path"]  # ('sparse' where 'generated' could not load)
         rec |= explain_cost({"samples_s": samples, "n_steps": n_steps, "counters": counters,
                              "duration_s": case.duration}, run.get("short"))
         if references is not None and case.benchmark:
@@ -273,7 +275,8 @@ def cold_start(job, tmp: Path, repeats: int = COLD_REPEATS, timeout_s: float = 6
         rec["parts"].append(json.loads(p.stdout.strip().splitlines()[-1]))
     best = int(np.argmin(rec["samples_s"]))
     rec |= {"build_time_s": rec["samples_s"][best], **{
-        k: rec["parts"][best].get(k) for k in ("import_s", "kernel_load_s", "wall_time_s")}}
+        k: rec["parts"][best].get(k) for k in ("import_s", "kernel_load_s", "wall_time_s",
+                                               "path")}}
     return rec
 
 
@@ -290,6 +293,9 @@ def bench(cases: Sequence[Case], engines: Sequence[str], *, repeats: int = 7,
     (:mod:`natcoord.suite.policy`); ``cell_budget_s``: process time a cell's samples may
     take."""
     jobs = [as_job(c) for c in cases]
+    if "natcoord" in engines:  # an unusable kernel cache makes natcoord's cells slow: say so
+        from ..compiled import codegen
+        codegen.warn_uncached()
     reuse, spare = reuse or {}, spare or {}
     todo = [(job, engine) for job in jobs for engine in engines]
     found: dict[tuple, dict] = {}
