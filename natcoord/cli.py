@@ -93,6 +93,11 @@ class Stopped(BaseException):
         self.signum = signum
 
 
+def _code(e: NatcoordError) -> int:
+    """The exit code of a NatcoordError: 5 for a fault of the environment, else 2."""
+    return ENVIRONMENT if isinstance(e, EnvironmentFault) else 2
+
+
 def _fail(message: str, code: int = 2):
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code)
@@ -1168,7 +1173,7 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
         try:
             write_user_file(out_file, text + "\n", force=force)
         except NatcoordError as e:
-            _fail(str(e))
+            _fail(str(e), _code(e))
         out.print(f"written: {escape(str(out_file))}")
 
 
@@ -1269,7 +1274,7 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
         text = FAMILIES[family](n, name=out_file.stem, duration=duration)
         write_case(out_file, text, force=force)
     except (ValueError, NatcoordError) as e:
-        _fail(str(e))
+        _fail(str(e), _code(e) if isinstance(e, NatcoordError) else 2)
     out.print(f"{family} N = {n}: {out_file}")
 
 
@@ -1303,7 +1308,7 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
         imported = import_mjcf(model, out_file.stem, duration=duration)
         write_case(out_file, imported.text, force=force)
     except NatcoordError as e:
-        _fail(str(e))
+        _fail(str(e), _code(e))
     for note in imported.notes:
         out.print(f"not carried: {escape(note)}", highlight=False)
     out.print(f"{model} -> {out_file} ({imported.dimension}-D, "

@@ -617,6 +617,20 @@ def test_a_full_disk_or_read_only_folder_exits_5_never_1(tmp_path, code):
     assert base.read_bytes() == before
 
 
+@pytest.mark.parametrize("code", [errno.EACCES, errno.EROFS, errno.ENOSPC])
+def test_generate_and_import_into_a_folder_that_cannot_be_written_exit_5(tmp_path, code):
+    """generate and import wrote the case file's OSError as bad input (exit 2): a
+    read-only folder or a full disk is the machine's (exit 5), the file named."""
+    for args in (["generate", "n_four_bar", "--n", "2"],
+                 ["import", CASES / "mjcf_four_bar.xml"]):
+        out = tmp_path / "rel.toml"
+        p = _cli_with_fault(code, *args, "--out", out)
+        _clean(p, 5)
+        assert f"{out}: cannot be written ({os.strerror(code)}" in " ".join(
+            p.stderr.split()), (args, p.stderr)
+        assert not out.exists()
+
+
 def test_a_path_that_cannot_name_a_folder_is_bad_input_not_the_machine(tmp_path):
     """A file where --out needs a folder, a name longer than the file system allows: exit
     2 naming the path (they were called a fault of the environment, exit 5)."""

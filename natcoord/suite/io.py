@@ -93,11 +93,16 @@ def check_folder(path: Path, option: str) -> None:
             return
 
 
+# errors of a path that cannot name the file to write (bad input), not of the machine
+_BAD_PATH = (errno.ENOTDIR, errno.ENAMETOOLONG, errno.ELOOP, errno.EISDIR, errno.ENOENT)
+
+
 def write_user_file(path: Path, text: str, *, force: bool = False) -> None:
     """Write a file a user named on the command line (a case file, a proposal): an existing
     file is kept unless ``force``, and a folder, symlink or special file in its place is
-    never replaced; NatcoordError naming the path otherwise."""
-    from ..errors import NatcoordError
+    never replaced; NatcoordError naming the path otherwise (EnvironmentFault when the
+    machine refuses the write: a read-only folder, a full disk)."""
+    from ..errors import EnvironmentFault, NatcoordError
 
     path = Path(path)
     check_user_file(path, force=force)
@@ -106,7 +111,11 @@ def write_user_file(path: Path, text: str, *, force: bool = False) -> None:
     except FileExistsError:
         raise NatcoordError(f"{path}: exists; give --force to replace it") from None
     except OSError as e:
-        raise NatcoordError(f"{path}: cannot be written ({e.strerror or e})") from None
+        if e.errno in _BAD_PATH:  # the path given cannot name the file: bad input
+            raise NatcoordError(f"{path}: cannot be written ({e.strerror or e})") from None
+        # the machine: a read-only folder, permissions, a full disk (exit 5)
+        raise EnvironmentFault(f"{path}: cannot be written ({e.strerror or e}: a fault of "
+                               "the environment)") from None
 
 
 def _clean(x):
