@@ -147,9 +147,9 @@ def test_more_jobs_than_runs_start_one_thread_per_run(tmp_path, monkeypatch):
 
 # ---- interruption -------------------------------------------------------------------------
 def _slow_project(tmp_path) -> Path:
-    """A project whose natcoord run takes long (pendulum for 2000 s at rk4 h 1e-4)."""
+    """A project whose natcoord run takes long (pendulum for 999 s at rk4 h 1e-4: just within the step budget of 10^7)."""
     home = _project(tmp_path)
-    slow = PENDULUM.replace("duration = 10.0", "duration = 2000.0").replace(
+    slow = PENDULUM.replace("duration = 10.0", "duration = 999.0").replace(
         "output_dt = 0.01", "output_dt = 1.0")
     slow = slow.replace("[engines.natcoord]\n", '[engines.natcoord]\nsettings = { method = '
                         '"rk4", h = 1e-4, formulation = "index1" }\n', 1)

@@ -201,7 +201,7 @@ def test_a_killed_run_leaves_no_staging_folder_for_ever(tmp_path):
     """SIGKILL (no clean-up possible) leaves a staging folder; the next command in the same
     parent folder removes it (its pid is gone)."""
     home = _project(tmp_path, "pendulum")
-    slow = PENDULUM.replace("duration = 10.0", "duration = 2000.0").replace(
+    slow = PENDULUM.replace("duration = 10.0", "duration = 999.0").replace(
         "output_dt = 0.01", "output_dt = 1.0").replace(
         "[engines.natcoord]\n", '[engines.natcoord]\nsettings = { method = "rk4", h = 1e-4, '
         'formulation = "index1" }\n', 1)
