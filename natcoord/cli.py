@@ -515,7 +515,9 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
 
     total = len(selected) * len(names)
     say = (lambda *a: None) if quiet else out.print
-    say(f"benchmarking {total} case x engine pairs, best of {repeats} calibrated samples")
+    say(f"benchmarking {total} case x engine pairs, best of up to {repeats} calibrated "
+        f"samples each (fewer where they would take over {bench.BUDGET_S:g} s of process "
+        "time; bench.json keeps every one)")
     result = bench.bench(selected, names, repeats=repeats, timeout_s=timeout,
                          progress=None if quiet else _progress_printer(total),
                          references=references)
