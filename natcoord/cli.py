@@ -25,7 +25,8 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .case.casefile import MAX_DURATION_S, MAX_NAME, NAME_PATTERN, check_file_name, load_case
+from .case.casefile import (MAX_DURATION_S, MAX_NAME, MAX_TIMEOUT_S, MIN_TIMEOUT_S, NAME_PATTERN,
+                            check_file_name, load_case)
 from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
@@ -48,7 +49,6 @@ RUN_FAILED = 3  # `run`: a case x engine failed (crashed, timed out, diverged)
 ENVIRONMENT = 5  # a full disk, a read-only folder, an unwritable step summary
 # Upper bounds of the numeric options: past these no value means anything a user could want,
 # and an infinite or huge one overflowed a wait, an SQLite integer or the memory of threads.
-MAX_TIMEOUT_S = 7 * 24 * 3600.0  # a week per engine run
 MAX_JOBS = 1024  # accuracy runs at once (never more than there are runs)
 MAX_REPEATS = 1000  # timing samples per cell
 MAX_BUDGET_S = 7 * 24 * 3600.0  # a night's bench budget: a week of engine process time
@@ -67,7 +67,7 @@ ResultsDir = Annotated[Path | None, typer.Option(
     "run or suite].",
     show_default=False)]
 Timeout = Annotated[float, typer.Option(
-    min=0.001, max=MAX_TIMEOUT_S,
+    min=MIN_TIMEOUT_S, max=MAX_TIMEOUT_S,
     help="Seconds per engine run (a case file's own `timeout`, when stricter, wins).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 Jobs = Annotated[int | None, typer.Option(

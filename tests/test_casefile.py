@@ -64,6 +64,8 @@ MALFORMED = [
     ("initial value on unknown channel", [(r'^fix = \{ theta = "45 deg" \}',
                                            'fix = { phi = "45 deg" }')],
      "initial.fix.phi", "unknown channel"),
+    ("timeout below --timeout's range", [(r"^duration = 2.0", "duration = 2.0\ntimeout = 1e-9")],
+     "timeout", "must be between 0.001 s and 604800 s"),
 ]
 
 

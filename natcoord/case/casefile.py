@@ -84,6 +84,7 @@ POSE_KEYS = {"origin", "angle"}
 MAX_FILE_BYTES = 1 << 20
 MAX_DEPTH = 8
 MAX_SAMPLES = 1_000_000
+MIN_TIMEOUT_S, MAX_TIMEOUT_S = 1e-3, 7 * 24 * 3600.0  # an engine run's time limit (s)
 MAX_DURATION_S = 1e5
 MAX_NAME = 64
 MAX_MAGNITUDE = 1e150  # a quantity's size: its square (energies, norms) must not overflow
@@ -304,6 +305,9 @@ def load_case(path: str | Path) -> Case:
     if output_dt > duration or abs(duration / output_dt - round(duration / output_dt)) > 1e-9:
         r.fail("output_dt", f"must divide duration {duration} s, got {output_dt} s")
     timeout = r.number(data, "timeout", "", "time", required=False, positive=True)
+    if timeout is not None and not MIN_TIMEOUT_S <= timeout <= MAX_TIMEOUT_S:
+        r.fail("timeout", f"must be between {MIN_TIMEOUT_S:g} s and {MAX_TIMEOUT_S:g} s (a "
+               f"week), as --timeout, got {timeout:g} s")
 
     ground = {}
     gtable = r.table(data, "ground", "", required=False)
