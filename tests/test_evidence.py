@@ -580,3 +580,20 @@ main()
     _clean(p)
     assert "judged 1" in p.stderr and "judging it again" in p.stderr, p.stderr
     assert p.returncode == 0, p.stderr
+
+
+def test_the_suites_page_names_an_error_grown_past_the_baseline(folder):
+    """The suite writes its page with the gate's verdict, baseline included: a cell failed
+    for growth (no channel over its tolerance) says why."""
+    from natcoord.report.html import build_context
+    summary = gate.load_summary(folder)
+    tol = gate.judge(summary, folder, cases=gate.CaseBook(CASES), references=REFERENCES
+                     ).channels[CELL]["theta"]["tolerance"]
+    _edit_csv(folder, lambda t: t.__setitem__("theta", t["theta"] + 0.5 * tol), rehash=True)
+    v = gate.judge(gate.load_summary(folder), folder, cases=gate.CaseBook(CASES),
+                   references=REFERENCES, baseline={CELL: {"theta": 1e-30}}, floor=1e-30)
+    assert v.outcome[CELL] == "fail"
+    ctx = build_context(folder, REFERENCES, None, v)
+    (cell,) = [c for row in ctx["matrix"] for c in row["cells"] if c["engine"] == "natcoord"]
+    assert cell["key"] == "fail" and "over the baseline" in cell["reason"], cell
+    assert ctx["overall"]["state"] == "fail"

@@ -249,7 +249,10 @@ def as_judged(records: list[dict], verdict) -> tuple[list[dict], list[str]]:
         faults = [line for line in faults if line not in mine]
         outcome = verdict.outcome.get(key) if r.get("status") == "ok" else None
         if outcome in ("pass", "fail"):
-            r = {**r, "verdict": outcome, "channels": verdict.channels.get(key, {})}
+            grew = [line.removeprefix(f"{key}: ") for line in verdict.lines
+                    if line.startswith(f"{key}: ") and "over the baseline" in line]
+            r = {**r, "verdict": outcome, "channels": verdict.channels.get(key, {}),
+                 "reason": "; ".join(grew) or r.get("reason")}
         elif outcome == "bad evidence":
             r = {**r, "verdict": "fail", "channels": {},
                  "reason": "; ".join(line.removeprefix(f"{key}: ") for line in mine)}
