@@ -55,6 +55,18 @@ def test_plugins_come_after_the_builtins_sorted_and_bad_ones_are_named(entries):
     assert reg.adapter("rk4").NAME == "rk4"
 
 
+@pytest.mark.parametrize("name", ["../../tmp/escaped", "/abs", "pd[/]mk", "pd,comma",
+                                  "1abc", "x" * 41, "a b"])
+def test_a_plugin_name_that_cannot_name_files_and_options_is_refused(entries, name):
+    """The name makes results/<case>/<engine>.csv (one with ../ wrote and deleted files
+    outside --out), is an item of --engines a,b, and is drawn in tables (rich markup
+    crashed `natcoord cases`): an engine name is letters, digits and _."""
+    r = entries([(name, "natcoord_rk4")])
+    assert name not in r.names
+    (p,) = r.problems
+    assert "is not an engine name" in p.error, p.error
+
+
 VALID = '''
 from natcoord.engines.capabilities import Capabilities
 from natcoord.engines.schema import Setting

@@ -30,6 +30,7 @@ import importlib.metadata as md
 import importlib.util
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -233,6 +234,10 @@ def _probe(pairs: list[tuple[str, str]]) -> dict[str, str]:
     return found
 
 
+ENGINE_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_]{0,39}")  # an engine's name: a file name
+# (results/<case>/<engine>.csv), an item of --engines a,b, plain text in a table
+
+
 @cache
 def discover() -> Registry:
     """Discover the engines once per process (importing an adapter module does not import
@@ -240,7 +245,11 @@ def discover() -> Registry:
     found: dict[str, str] = {}
     problems: list[Problem] = []
     for name, value in _entries():
-        if name in BUILTIN and value != BUILTIN[name]:
+        if not ENGINE_NAME.fullmatch(name):  # it names result files and --engines items
+            problems.append(Problem(name, value, f"{short(name)} is not an engine name: "
+                                    "use letters, digits and _ (at most 40, starting with a "
+                                    "letter)"))
+        elif name in BUILTIN and value != BUILTIN[name]:
             problems.append(Problem(name, value, f"{name!r} is a built-in engine's name; "
                                     "a plug-in must take another name"))
         elif name in found and found[name] != value:
