@@ -148,7 +148,9 @@ BAD = [
     ("dart", "{ erp = 2.0 }", "erp", "must be in [0, 1]"),
     ("dart", "{ loop_constraint = 'weld' }", "loop_constraint", "must be one of ball, revolute"),
     ("simbody", "{ integrator = 'rk_mersen' }", "integrator", "must be one of rk_merson"),
-    ("simbody", "{ step_limit = -1 }", "step_limit", "must be >= 1"),
+    ("simbody", "{ step_limit = -1 }", "step_limit", "must be in [1, 2147483647]"),
+    ("mujoco", "{ iterations = 9223372036854775807 }", "iterations",  # MuJoCo's XML: a C int
+     "must be in [1, 2147483647]"),
     ("natcoord", "{ methd = 'dop853' }", "methd", "unknown setting"),
     ("natcoord", "{ method = 'rk4' }", "", "fixed-step method"),
     ("natcoord", "{ reference = { method = 'rk4' } }", "reference", "fixed-step method"),

@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass
 
 TYPES = ("number", "integer", "boolean", "choice", "numbers", "table")
+C_INT_MAX = 2**31 - 1  # the largest count an engine reads into a C int (MuJoCo's XML, ...)
 
 
 @dataclass(frozen=True)
@@ -55,11 +56,14 @@ class Setting:
             raise ValueError(f"setting {self.name}: fields go with type 'table' only")
 
     def range(self) -> str:
-        """The range as text: '> 0', '>= 2', 'in [0, 1]', '' when unbounded."""
-        lo = (f"[{self.minimum:g}" if self.minimum is not None else
-              f"({self.exclusive_minimum:g}" if self.exclusive_minimum is not None else None)
-        hi = (f"{self.maximum:g}]" if self.maximum is not None else
-              f"{self.exclusive_maximum:g})" if self.exclusive_maximum is not None else None)
+        """The range as text: '> 0', '>= 2', 'in [0, 1]', '' when unbounded (an integer's
+        bounds in full)."""
+        def f(x):
+            return str(x) if self.type == "integer" and float(x).is_integer() else f"{x:g}"
+        lo = (f"[{f(self.minimum)}" if self.minimum is not None else
+              f"({f(self.exclusive_minimum)}" if self.exclusive_minimum is not None else None)
+        hi = (f"{f(self.maximum)}]" if self.maximum is not None else
+              f"{f(self.exclusive_maximum)})" if self.exclusive_maximum is not None else None)
         if lo and hi:
             return f"in {lo}, {hi}"
         if lo:

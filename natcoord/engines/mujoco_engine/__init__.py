@@ -56,7 +56,7 @@ from ...case.mechanism import Case
 from ...errors import Unsupported
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities
-from ..schema import Setting, defaults, particle_inertia
+from ..schema import C_INT_MAX, Setting, defaults, particle_inertia
 
 NAME = "mujoco"
 PACKAGE = "mujoco"
@@ -70,9 +70,9 @@ SETTINGS = (
     Setting("tolerance", "number", 1e-10, "the constraint solver's tolerance (0: run "
             "every iteration)", minimum=0.0),
     Setting("iterations", "integer", 100, "the constraint solver's iteration cap",
-            minimum=1),
+            minimum=1, maximum=C_INT_MAX),
     Setting("ls_iterations", "integer", 50, "the solver's line-search iteration cap",
-            minimum=1),
+            minimum=1, maximum=C_INT_MAX),
     Setting("solref_steps", "number", 10.0, "time constant of the soft equalities (loops, "
             "rods) in time steps; below 2 MuJoCo's refsafe would clamp it", minimum=2.0),
     Setting("solref_damping", "number", 1.0, "damping ratio of the soft equalities",

@@ -64,7 +64,7 @@ import time
 
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, misaligned_loop_revolutes
-from ..schema import Setting, defaults, particle_inertia
+from ..schema import C_INT_MAX, Setting, defaults, particle_inertia
 
 NAME = "pinocchio"
 PACKAGE = "pin"
@@ -75,7 +75,8 @@ SETTINGS = (
             "planar loop's out-of-plane rows are zero)", exclusive_minimum=0.0),
     Setting("accuracy", "number", 1e-12, "the proximal iterations' absolute accuracy",
             exclusive_minimum=0.0),
-    Setting("max_iter", "integer", 20, "the proximal iteration cap", minimum=1),
+    Setting("max_iter", "integer", 20, "the proximal iteration cap", minimum=1,
+            maximum=C_INT_MAX),
     Setting("baumgarte_kp", "number", 0.0, "Baumgarte position gain on the loop "
             "constraints", "1/s^2", minimum=0.0),
     Setting("baumgarte_kd", "number", 0.0, "Baumgarte velocity gain on the loop "

@@ -38,7 +38,7 @@ from ...case.mechanism import Case
 from ...errors import Unsupported
 from ..base import EngineRun, merged, steps_per_sample
 from ..capabilities import Capabilities, massless, misaligned_loop_revolutes, refuse
-from ..schema import Setting, defaults, particle_inertia
+from ..schema import C_INT_MAX, Setting, defaults, particle_inertia
 
 NAME = "pybullet"
 PACKAGE = "pybullet"
@@ -46,7 +46,8 @@ SETTINGS = (
     Setting("dt", "number", 1e-4, "time step (semi-implicit Euler, first order); must divide "
             "the case's output interval", "s", exclusive_minimum=0.0),
     Setting("solver_iterations", "integer", 100, "iterations of the constraint solver per "
-            "step (setPhysicsEngineParameter numSolverIterations)", minimum=1),
+            "step (setPhysicsEngineParameter numSolverIterations)", minimum=1,
+            maximum=C_INT_MAX),
     Setting("residual", "number", 1e-10, "the constraint solver stops when its residual "
             "falls below this (solverResidualThreshold)", minimum=0.0),
     Setting("erp", "number", 0.5, "error reduction of the constraint solver: the fraction of "

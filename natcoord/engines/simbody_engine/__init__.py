@@ -77,7 +77,7 @@ import time
 
 from ..base import EngineRun, merged
 from ..capabilities import Capabilities, drivers_off_ground_joints, misaligned_loop_revolutes
-from ..schema import Setting, defaults, particle_inertia
+from ..schema import C_INT_MAX, Setting, defaults, particle_inertia
 from .simulate import INTEGRATORS
 
 NAME = "simbody"
@@ -92,7 +92,7 @@ SETTINGS = (
     Setting("dt", "number", None, "a fixed step instead of error control (fixed-step "
             "integrators; none: error-controlled at accuracy)", "s", exclusive_minimum=0.0),
     Setting("step_limit", "integer", 100_000, "internal steps per output interval before "
-            "Simbody gives up (a stall fails fast)", minimum=1),
+            "Simbody gives up (a stall fails fast)", minimum=1, maximum=C_INT_MAX),
     Setting("loop_axis_offset", "number", 0.0, "> 0 holds a loop-closing 3-D revolute's "
             "axis by a second PointConstraint this far along it (0: such a loop is "
             "unsupported)", "m", minimum=0.0),
