@@ -106,6 +106,35 @@ def modules(tmp_path, monkeypatch, entries):
         sys.modules.pop(f"p_{n}", None)
 
 
+def test_declarations_that_contradict_themselves_are_refused_at_discovery(modules):
+    """A range no value is in, a default outside its own range or choices, a setting's
+    name no case file can write, capabilities naming dimensions, joints or drivers that do
+    not exist (every case declined: check-engine passed with every check skipped), a step
+    setting it does not declare: each plug-in is listed with its problem."""
+    r = modules({
+        "good": "",
+        "empty": "SETTINGS = (Setting('dt', 'number', 1.0, 'dt', minimum=1.0, "
+                 "maximum=0.5),)\n",
+        "outside": "SETTINGS = (Setting('dt', 'number', -5.0, 'dt', minimum=1.0),)\n",
+        "choice": "SETTINGS = (Setting('mode', 'choice', 'c', 'mode', choices=('a', 'b')),)\n",
+        "badname": "SETTINGS = (Setting('bad name!', 'integer', 2, 'n'),)\n",
+        "dims": "CAPABILITIES = Capabilities(dimensions={7})\n",
+        "joints": "CAPABILITIES = Capabilities(joints=('wormhole',))\n",
+        "drivers": "CAPABILITIES = Capabilities(drivers=('teleport',))\n",
+        "step": "CAPABILITIES = Capabilities(step='nonexistent')\n",
+    })
+    assert r.names == (*reg.BUILTIN, "good")
+    why = {p.name: p.error for p in r.problems}
+    assert "no value is in [1, 0.5]" in why["empty"]
+    assert "its default -5.0 must be >= 1" in why["outside"]
+    assert "its default 'c' must be one of a, b" in why["choice"]
+    assert "a setting's name is letters, digits and _" in why["badname"]
+    assert "dimensions holds 7, not one of 2, 3" in why["dims"]
+    assert "joints holds 'wormhole'" in why["joints"]
+    assert "drivers holds 'teleport'" in why["drivers"]
+    assert "CAPABILITIES.step names 'nonexistent', not one of its SETTINGS" in why["step"]
+
+
 def test_mistyped_declarations_are_refused_at_discovery(modules):
     """CAPABILITIES a dict, SETTINGS strings or None, ...: the plug-in is listed with its
     problem (cases --json and check-engine crashed on it), the others load."""
@@ -138,9 +167,13 @@ def test_mistyped_declarations_are_refused_at_discovery(modules):
     assert why["setlist"].startswith("its SETTINGS is [Setting(") and "(list)" in why["setlist"]
     assert why["fields"].startswith("its setting 't''s fields holds 'x' (str)")
     assert why["twice"] == "its SETTINGS names a setting 'dt': not a new non-empty string"
-    for name in ("nanjson", "objdefault", "strbound", "why"):
+    for name in ("strbound", "why"):
         assert why[name].startswith("its declarations (CAPABILITIES, SETTINGS) cannot be "
                                     "described as JSON"), why[name]
+    assert why["nanjson"] == ("import failed: ValueError: setting k: its default nan must be "
+                              "finite, got nan")
+    assert why["objdefault"].startswith("import failed: ValueError: setting k: its default "
+                                        "<object object at"), why["objdefault"]
     assert why["rules"] == "its CAPABILITIES.rules is 'no', not a function"
     assert why["runnot"] == "its run is 3, not a function"
     assert why["package"] == "its PACKAGE is None, not a package name (a string)"

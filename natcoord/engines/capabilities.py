@@ -86,6 +86,14 @@ class Capabilities:
             raise ValueError(f"forces must be 'any', 'com' or 'none', got {self.forces!r}")
         for name in ("dimensions", "joints", "loop_joints", "recut", "drivers", "particles"):
             object.__setattr__(self, name, frozenset(getattr(self, name)))
+        known = {"dimensions": {2, 3}, "particles": {2, 3}, "joints": set(JOINT_TYPES),
+                 "loop_joints": set(JOINT_TYPES), "recut": set(JOINT_TYPES),
+                 "drivers": set(DRIVER_TYPES)}
+        for name, allowed in known.items():  # a typo would decline (or claim) every case
+            odd = [x for x in getattr(self, name) if x not in allowed]
+            if odd:
+                raise ValueError(f"{name} holds {', '.join(map(repr, odd))[:200]}, not one of "
+                                 f"{', '.join(map(str, sorted(allowed, key=str)))}")
 
     def summary(self) -> dict:
         """JSON-friendly fields (``rules`` as the adapter function's name)."""

@@ -139,6 +139,13 @@ def _contract_error(name: str, module: ModuleType) -> str:
     why = _settings_error(module.SETTINGS)
     if why:
         return why
+    named = {st.name for st in module.SETTINGS}
+    for what, keys in (("step", [caps.step] if caps.step else []),
+                       ("step_with", list(caps.step_with))):
+        odd = [k for k in keys if k not in named]
+        if odd:
+            return (f"its CAPABILITIES.{what} names {', '.join(map(short, odd))}, not one "
+                    "of its SETTINGS")
     try:  # what `natcoord cases --json` prints of it
         json.dumps({"capabilities": caps.summary(), "settings": describe(module.SETTINGS)},
                    allow_nan=False)

@@ -18,9 +18,11 @@ Types (TOML values): ``number`` (an integer or a float, finite; never a boolean)
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 
 TYPES = ("number", "integer", "boolean", "choice", "numbers", "table")
+SETTING_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 C_INT_MAX = 2**31 - 1  # the largest count an engine reads into a C int (MuJoCo's XML, ...)
 
 
@@ -54,6 +56,22 @@ class Setting:
             raise ValueError(f"setting {self.name}: choices go with type 'choice' only")
         if (self.type == "table") != bool(self.fields):
             raise ValueError(f"setting {self.name}: fields go with type 'table' only")
+        if not isinstance(self.name, str) or not SETTING_NAME.fullmatch(self.name):
+            raise ValueError(f"setting {short(self.name)}: a setting's name is letters, "
+                             "digits and _, from a letter or _ (a case file's key)")
+        bounds = (self.minimum, self.exclusive_minimum, self.maximum, self.exclusive_maximum)
+        if not all(x is None or _is_number(x) for x in bounds):
+            return  # a plug-in's mistyped bound: its discovery says so (not JSON numbers)
+        lo = max((x for x in bounds[:2] if x is not None), default=-math.inf)
+        hi = min((x for x in bounds[2:] if x is not None), default=math.inf)
+        if not lo <= hi or (lo == hi and None in (self.minimum, self.maximum)):
+            raise ValueError(f"setting {self.name}: no value is {self.range()}")
+        if self.default is not None and self.type != "table":  # the engine's own value
+            # must be one a case may give (a table's fields are checked where it is read)
+            why = _value(self, self.default, self.name)
+            if why:
+                raise ValueError(f"setting {self.name}: its default {short(self.default)} "
+                                 f"{why[0][1]}")
 
     def range(self) -> str:
         """The range as text: '> 0', '>= 2', 'in [0, 1]', '' when unbounded (an integer's
