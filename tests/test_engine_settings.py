@@ -154,7 +154,9 @@ BAD = [
     ("natcoord", "{ methd = 'dop853' }", "methd", "unknown setting"),
     ("natcoord", "{ method = 'rk4' }", "", "fixed-step method"),
     ("natcoord", "{ reference = { method = 'rk4' } }", "reference", "fixed-step method"),
-    ("natcoord", "{ reference = { rtol = -1 } }", "reference.rtol", "must be > 0"),
+    ("natcoord", "{ reference = { rtol = -1 } }", "reference.rtol", "must be in (0, 1]"),
+    ("natcoord", "{ rtol = 1e300 }", "rtol", "must be in (0, 1]"),  # failed at run time
+    ("natcoord", "{ rank_tol = 1e10 }", "rank_tol", "must be in (0, 1)"),
     ("natcoord", "{ coordinates = 'shard' }", "coordinates", "must be one of joints, shared"),
 ]
 

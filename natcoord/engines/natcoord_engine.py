@@ -52,7 +52,8 @@ SOLVER_SETTINGS = (
             + ", ".join(f"{m} for {f}" for f, m in DEFAULT_METHOD.items()) + ")",
             choices=METHODS),
     Setting("rtol", "number", DEFAULT_TOLERANCES["rtol"], "relative tolerance of adaptive "
-            "steps", **_POSITIVE),
+            "steps (at most 1: a relative error past 100 % controls nothing)",
+            exclusive_minimum=0.0, maximum=1.0),
     Setting("atol", "number", DEFAULT_TOLERANCES["atol"], "absolute tolerance of adaptive "
             "steps (m, m/s)", **_POSITIVE),
     Setting("h", "number", None, "a fixed step instead of tolerances (rk4, trapezoidal; "
@@ -61,8 +62,9 @@ SOLVER_SETTINGS = (
             "projections on |Phi|", "m", **_POSITIVE),
     Setting("newton_tol", "number", Formulation.newton_tol, "Newton tolerance on |Phi|", "m",
             **_POSITIVE),
-    Setting("rank_tol", "number", Formulation.rank_tol, "relative rank tolerance of Phi_q",
-            **_POSITIVE),
+    Setting("rank_tol", "number", Formulation.rank_tol, "relative rank tolerance of Phi_q "
+            "(below 1: a pivot is relative to the largest)", exclusive_minimum=0.0,
+            exclusive_maximum=1.0),
     Setting("compiled", "boolean", Formulation.compiled, "run the integration as one "
             "compiled numba loop where the model allows"),
     Setting("stabilization", "choice", Index1.stabilization, "index1: drift control",
