@@ -25,8 +25,15 @@ from rich.markup import escape
 from rich.table import Table
 from rich.text import Text
 
-from .case.casefile import (MAX_DURATION_S, MAX_NAME, MAX_TIMEOUT_S, MIN_TIMEOUT_S, NAME_PATTERN,
-                            check_file_name, load_case)
+from .case.casefile import (
+    MAX_DURATION_S,
+    MAX_NAME,
+    MAX_TIMEOUT_S,
+    MIN_TIMEOUT_S,
+    NAME_PATTERN,
+    check_file_name,
+    load_case,
+)
 from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
@@ -1188,29 +1195,28 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     """A conformance scorecard: reaction sign and frame (a hanging rod, and with the joint
     reversed), energy on a conservative pendulum, convergence order under the engine's step
     setting, agreement with the stored references on every case it can run (first 0.5 s),
-    determined and undetermined reactions. Exit 0 all pass, 1 a check failed, 2 an unknown
+    determined and undetermined reactions. Exit 0 all pass, 1 a check failed or none was
+    judged (every one skipped), 2 an unknown
     engine, 3 the engine's package is not installed (or its version() fails)."""
-    import contextlib
     import json
 
     from .engines import adapter
+    from .engines.registry import version_of
     from .suite.conformance import check_engine
 
     if _engines(engine, "check-engine NAME") != [engine]:  # unknown: exit 2, naming them
         _fail(f"check-engine NAME: one engine name expected, got {engine!r}")
     mod = adapter(engine)
-    try:
-        with contextlib.redirect_stdout(sys.stderr):  # the adapter's code: never in --json
-            version = mod.version()
-    except ImportError as e:
-        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({e}); pip install "
-              f"{mod.PACKAGE}", RUN_FAILED)
-    except (Exception, SystemExit) as e:  # the adapter's bug: no run could be recorded
-        _fail(f"{engine}: the engine's version() raised {type(e).__name__}: {e}; every run "
-              "needs it, so nothing was checked", RUN_FAILED)
-    if not isinstance(version, str):
-        _fail(f"{engine}: the engine's version() returned {version!r}, not a string; every "
-              "run needs it, so nothing was checked", RUN_FAILED)
+    got = version_of(engine)  # in a child process: the adapter's code cannot end this one
+    if "missing" in got:
+        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({got['missing']}); pip "
+              f"install {mod.PACKAGE}", RUN_FAILED)
+    if "version" not in got:  # the adapter's bug: no run could be recorded
+        why = (f"raised {got['raised']}" if "raised" in got else
+               f"returned {got['not_str']}, not a string" if "not_str" in got else
+               got["ended"].removeprefix("version() "))
+        _fail(f"{engine}: the engine's version() {why}; every run needs it, so nothing was "
+              "checked", RUN_FAILED)
     say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
                                                                      style="dim")))
     try:
@@ -1235,7 +1241,11 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
         out.print(f"{len(card['rows'])} checks: "
                   + ", ".join(f"{sum(r['result'] == k for r in card['rows'])} {k}"
                               for k in ("pass", "fail", "info", "skipped")))
-    raise typer.Exit(1 if failed else 0)
+    judged = [r for r in card["rows"] if r["result"] in ("pass", "fail")]
+    if not judged:  # every check skipped: nothing was shown to conform
+        err.print(f"check-engine {escape(engine)}: no check passed or failed (the engine "
+                  "declines every case of the battery): nothing conforms", highlight=False)
+    raise typer.Exit(1 if failed or not judged else 0)
 
 
 @reference_app.command("update")

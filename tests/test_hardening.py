@@ -147,7 +147,8 @@ def test_more_jobs_than_runs_start_one_thread_per_run(tmp_path, monkeypatch):
 
 # ---- interruption -------------------------------------------------------------------------
 def _slow_project(tmp_path) -> Path:
-    """A project whose natcoord run takes long (pendulum for 999 s at rk4 h 1e-4: just within the step budget of 10^7)."""
+    """A project whose natcoord run takes long (pendulum for 999 s at rk4 h 1e-4: just
+    within the step budget of 10^7 steps)."""
     home = _project(tmp_path)
     slow = PENDULUM.replace("duration = 10.0", "duration = 999.0").replace(
         "output_dt = 0.01", "output_dt = 1.0")

@@ -311,6 +311,8 @@ def run(case, init, settings):
     ("raise RuntimeError('version broke')",
      "vr: the engine's version() raised RuntimeError: version broke"),
     ("print('chatter'); return 2", "vr: the engine's version() returned 2, not a string"),
+    ("import os; os._exit(0)",  # in the command's process it ended it: exit 0, no output
+     "vr: the engine's version() ended the process (exit status 0)"),
 ])
 def test_check_engine_says_a_broken_version(tmp_path, version, why):
     """A version() that raised gave a traceback: now a one-line error, exit 3."""
@@ -364,3 +366,16 @@ def test_a_builtin_engines_rule_fault_is_listed_as_failed(pendulum, monkeypatch)
     assert worker.cannot_run(pendulum.case, "natcoord") == ""
     rec = run_in_process(pendulum, "natcoord")
     assert rec["status"] == "failed" and "rules raised ValueError: oops" in rec["reason"]
+
+
+def test_check_engine_fails_an_engine_that_declines_every_check(tmp_path):
+    """Every check skipped (rules decline every case): the card passed, exit 0, with
+    nothing shown to conform."""
+    home = project_copy(tmp_path, "pendulum")
+    site = write_plugin(tmp_path / "site", "nope", '''
+CAPABILITIES = Capabilities(dimensions={2, 3}, rules=lambda case, settings: ["never"])
+''')
+    r = natcoord(["check-engine", "nope"], home, site)
+    assert r.returncode == 1, r.stdout + r.stderr
+    assert "no check passed or failed" in " ".join(r.stderr.split()), r.stderr
+    assert "Traceback" not in r.stdout + r.stderr

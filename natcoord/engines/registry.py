@@ -275,6 +275,43 @@ def discover() -> Registry:
     return Registry({**BUILTIN, **plugins}, tuple(problems))
 
 
+VERSION_TIMEOUT_S = 120.0  # for an engine's version() in a child process
+
+
+def _version_child() -> None:
+    """In the child process: argv[1]'s version(), as a marked JSON line on the real
+    standard output (what the adapter prints goes to standard error)."""
+    with contextlib.redirect_stdout(sys.stderr):
+        try:
+            v = adapter(sys.argv[1]).version()
+            said = {"version": v} if isinstance(v, str) else {"not_str": short(v)}
+        except ImportError as e:
+            said = {"missing": str(e)}
+        except (Exception, SystemExit, KeyboardInterrupt) as e:
+            said = {"raised": f"{type(e).__name__}: {e}"}
+    print(f"{_MARK}\t{json.dumps(said)}", file=sys.__stdout__, flush=True)
+    os._exit(0)
+
+
+def version_of(name: str) -> dict:
+    """Engine ``name``'s version() called in a child process (a plug-in's code cannot end,
+    hang or crash the command): ``{"version": str}``, or one of ``missing`` (its package is
+    not installed), ``raised``, ``not_str`` or ``ended`` with the reason."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    code = [sys.executable, "-c",
+            "from natcoord.engines.registry import _version_child; _version_child()", name]
+    try:
+        p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
+                           timeout=VERSION_TIMEOUT_S)
+    except subprocess.TimeoutExpired:
+        return {"ended": f"version() did not finish within {VERSION_TIMEOUT_S:g} s"}
+    for line in p.stdout.decode(errors="replace").splitlines():
+        if line.startswith(_MARK + "\t"):
+            return json.loads(line.split("\t", 1)[1])
+    return {"ended": "version() " + _ended(p.returncode, p.stderr.decode(errors="replace"))
+            .removeprefix("importing it ")}
+
+
 def engine_names() -> tuple[str, ...]:
     """Every engine that loads: built-ins first in their order, then plug-ins by name."""
     return discover().names

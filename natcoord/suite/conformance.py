@@ -29,9 +29,7 @@ the engine cannot run it, with the reason), the figure, the capability it touche
 
 from __future__ import annotations
 
-import contextlib
 import math
-import sys
 import tempfile
 import time
 from collections.abc import Callable
@@ -301,7 +299,7 @@ def check_engine(engine: str, cases_dir: Path, references: Path,
     """Run the battery on ``engine``: ``{engine, version, seconds, rows}`` (rows as dicts)."""
     import shutil
 
-    from ..engines import adapter
+    from ..engines.registry import version_of
 
     t0 = time.perf_counter()
     b = Battery(engine, cases_dir, references, say)
@@ -312,11 +310,11 @@ def check_engine(engine: str, cases_dir: Path, references: Path,
         b.references_()
     finally:
         shutil.rmtree(b.tmp, ignore_errors=True)
-    try:
-        with contextlib.redirect_stdout(sys.stderr):  # the adapter's code
-            version = str(adapter(engine).version())
-    except (Exception, SystemExit) as e:
-        version = f"unknown (version() raised {type(e).__name__}: {e})"
+    got = version_of(engine)  # in a child process: the adapter's code
+    version = got.get("version") or "unknown (" + (
+        f"version() raised {got['raised']}" if "raised" in got else
+        f"version() returned {got['not_str']}" if "not_str" in got else
+        got.get("ended") or f"package not installed: {got.get('missing')}") + ")"
     return {"engine": engine, "version": version,
             "seconds": round(time.perf_counter() - t0, 1),
             "rows": [asdict(r) for r in b.rows]}
