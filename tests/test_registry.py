@@ -219,12 +219,16 @@ def test_what_a_plugin_prints_on_import_goes_to_stderr(modules, capsys):
      "the engine's check_settings raised RuntimeError: broke"),
     ("def check_settings(settings):\n    return 'bad'\n",
      "the engine's check_settings returned 'bad', not a list of (field, reason) pairs"),
-    ("def check_settings(settings):\n    return [('dt',)]\n",
-     "the engine's check_settings returned [('dt',)], not a list of (field, reason) pairs"),
+    ("def check_settings(settings):\n    return [('dt',)]\n",  # JSON from its process
+     "the engine's check_settings returned [['dt']], not a list of (field, reason) pairs"),
+    ("def check_settings(settings):\n    import os\n    os._exit(0)\n",  # it ended the
+     "the engine's check_settings ended the process (exit status 0)"),    # command: exit 0
 ])
 def test_a_broken_check_settings_is_one_problem_not_a_crash(modules, capsys, body, why):
     """A plug-in's check_settings that raised crashed every command loading a case that
-    sets the engine's settings (a traceback): it is now the case's problem, one line."""
+    sets the engine's settings (a traceback), one that ended its process ended the command
+    (a failing gate exited 0): it runs in a child process, and what went wrong is the
+    case's problem, one line."""
     from natcoord.engines.schema import problems
 
     modules({"cs": body})

@@ -275,16 +275,21 @@ def discover() -> Registry:
     return Registry({**BUILTIN, **plugins}, tuple(problems))
 
 
-VERSION_TIMEOUT_S = 120.0  # for an engine's version() in a child process
+CALL_TIMEOUT_S = 120.0  # for a plug-in's function called in a child process
 
 
-def _version_child() -> None:
-    """In the child process: argv[1]'s version(), as a marked JSON line on the real
-    standard output (what the adapter prints goes to standard error)."""
+def _call_child() -> None:
+    """In the child process: adapter module argv[1]'s function argv[2] on the JSON
+    arguments argv[3], its answer as a marked JSON line on the real standard output (what
+    the adapter prints goes to standard error)."""
     with contextlib.redirect_stdout(sys.stderr):
         try:
-            v = adapter(sys.argv[1]).version()
-            said = {"version": v} if isinstance(v, str) else {"not_str": short(v)}
+            module = importlib.import_module(sys.argv[1])
+            value = getattr(module, sys.argv[2])(*json.loads(sys.argv[3]))
+            try:
+                said = {"value": json.loads(json.dumps(value, allow_nan=False))}
+            except (TypeError, ValueError):
+                said = {"not_json": short(value)}
         except ImportError as e:
             said = {"missing": str(e)}
         except (Exception, SystemExit, KeyboardInterrupt) as e:
@@ -293,23 +298,52 @@ def _version_child() -> None:
     os._exit(0)
 
 
-def version_of(name: str) -> dict:
-    """Engine ``name``'s version() called in a child process (a plug-in's code cannot end,
-    hang or crash the command): ``{"version": str}``, or one of ``missing`` (its package is
-    not installed), ``raised``, ``not_str`` or ``ended`` with the reason."""
+@cache
+def _isolated(module: str, fn: str, args: str, source: str) -> str:  # source: the cache's
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     code = [sys.executable, "-c",
-            "from natcoord.engines.registry import _version_child; _version_child()", name]
+            "from natcoord.engines.registry import _call_child; _call_child()", module, fn,
+            args]
     try:
         p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
-                           timeout=VERSION_TIMEOUT_S)
+                           timeout=CALL_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        return {"ended": f"version() did not finish within {VERSION_TIMEOUT_S:g} s"}
+        return json.dumps({"ended": f"did not finish within {CALL_TIMEOUT_S:g} s"})
+    sys.stderr.write(p.stderr.decode(errors="replace"))  # what the plug-in printed
     for line in p.stdout.decode(errors="replace").splitlines():
         if line.startswith(_MARK + "\t"):
-            return json.loads(line.split("\t", 1)[1])
-    return {"ended": "version() " + _ended(p.returncode, p.stderr.decode(errors="replace"))
-            .removeprefix("importing it ")}
+            return line.split("\t", 1)[1]
+    return json.dumps({"ended": _ended(p.returncode, p.stderr.decode(errors="replace"))
+                       .removeprefix("importing it ")})
+
+
+def isolated(module: str, fn: str, *args) -> dict:
+    """Adapter module ``module``'s function ``fn`` on the JSON-able ``args``, called in a
+    child process, so that a plug-in's code cannot end, hang or crash the command (the
+    answer is kept for the process): ``{"value": its JSON value}``, or one of ``missing``
+    (an ImportError: its package is not installed), ``raised``, ``not_json`` or ``ended``
+    with the reason."""
+    try:  # the answer is kept for the module's source as it is
+        spec = importlib.util.find_spec(module)
+        source = hashlib.sha256(Path(spec.origin).read_bytes()).hexdigest() if spec and \
+            spec.origin and os.path.isfile(spec.origin) else ""
+    except (ImportError, ValueError, OSError):
+        source = ""
+    return json.loads(_isolated(module, fn, json.dumps(list(args), sort_keys=True), source))
+
+
+def version_of(name: str) -> dict:
+    """Engine ``name``'s version() in a child process (:func:`isolated`): ``{"version":
+    str}``, or ``missing``, ``raised``, ``not_str`` or ``ended`` with the reason."""
+    got = isolated(discover().modules[name], "version")
+    if "value" in got:
+        v = got["value"]
+        return {"version": v} if isinstance(v, str) else {"not_str": short(v)}
+    if "not_json" in got:
+        return {"not_str": got["not_json"]}
+    if "ended" in got:
+        return {"ended": "version() " + got["ended"]}
+    return got
 
 
 def engine_names() -> tuple[str, ...]:

@@ -196,17 +196,31 @@ def check(settings, schema: tuple[Setting, ...], prefix: str = "") -> list[tuple
 def problems(adapter, settings) -> list[tuple[str, str]]:
     """Problems of an engine's ``settings`` against its adapter's declared ``SETTINGS``
     and, when the schema holds, the adapter's own ``check_settings`` (rules between
-    settings). A ``check_settings`` that raises or returns anything but (field, reason)
-    pairs of strings is one problem saying so (field ""); what it prints goes to standard
-    error."""
+    settings; a plug-in's is called in a child process). A ``check_settings`` that raises,
+    ends its process or returns anything but (field, reason) pairs of strings is one
+    problem saying so (field ""); what it prints goes to standard error."""
     import contextlib
     import sys
+
+    from .registry import BUILTIN, isolated
 
     out = check(settings, tuple(getattr(adapter, "SETTINGS", ())))
     if not out and hasattr(adapter, "check_settings"):
         try:
-            with contextlib.redirect_stdout(sys.stderr):
-                got = adapter.check_settings(settings)
+            if getattr(adapter, "NAME", None) in BUILTIN:
+                with contextlib.redirect_stdout(sys.stderr):
+                    got = adapter.check_settings(settings)
+            else:  # a plug-in's code in a child process: it cannot end or hang the command
+                said = isolated(adapter.__name__, "check_settings", settings)
+                if "raised" in said or "missing" in said:
+                    return [("", "the engine's check_settings raised "
+                             f"{said.get('raised') or 'ImportError: ' + said['missing']}")]
+                if "ended" in said:
+                    return [("", f"the engine's check_settings {said['ended']}")]
+                if "not_json" in said:
+                    return [("", f"the engine's check_settings returned {said['not_json']}, "
+                             "not a list of (field, reason) pairs")]
+                got = said["value"]
             out = list(got)
         except (Exception, SystemExit) as e:  # the adapter's bug, said in one line
             return [("", f"the engine's check_settings raised {type(e).__name__}: {e}")]
