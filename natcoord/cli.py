@@ -100,8 +100,8 @@ class Stopped(BaseException):
         self.signum = signum
 
 
-def _code(e: NatcoordError) -> int:
-    """The exit code of a NatcoordError: 5 for a fault of the environment, else 2."""
+def _code(e: Exception) -> int:
+    """The exit code of a refused command: 5 for a fault of the environment, else 2."""
     return ENVIRONMENT if isinstance(e, EnvironmentFault) else 2
 
 
@@ -1207,14 +1207,11 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     if _engines(engine, "check-engine NAME") != [engine]:  # unknown: exit 2, naming them
         _fail(f"check-engine NAME: one engine name expected, got {engine!r}")
     mod = adapter(engine)
-    got = version_of(engine)  # in a child process: the adapter's code cannot end this one
-    if "missing" in got:
-        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({got['missing']}); pip "
-              f"install {mod.PACKAGE}", RUN_FAILED)
-    if "version" not in got:  # the adapter's bug: no run could be recorded
-        why = (f"raised {got['raised']}" if "raised" in got else
-               f"returned {got['not_str']}, not a string" if "not_str" in got else
-               got["ended"].removeprefix("version() "))
+    version, why, missing = version_of(engine)  # in a child process: the adapter's code
+    if missing:                                  # cannot end this one
+        _fail(f"{engine}: package {mod.PACKAGE!r} is not installed ({why}); pip install "
+              f"{mod.PACKAGE}", RUN_FAILED)
+    if version is None:  # the adapter's bug: no run could be recorded
         _fail(f"{engine}: the engine's version() {why}; every run needs it, so nothing was "
               "checked", RUN_FAILED)
     say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
@@ -1286,7 +1283,7 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
         text = FAMILIES[family](n, name=out_file.stem, duration=duration)
         write_case(out_file, text, force=force)
     except (ValueError, NatcoordError) as e:
-        _fail(str(e), _code(e) if isinstance(e, NatcoordError) else 2)
+        _fail(str(e), _code(e))
     out.print(f"{family} N = {n}: {out_file}")
 
 

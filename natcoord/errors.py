@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 
 class NatcoordError(Exception):
     """Base class of every error natcoord raises on purpose."""
@@ -54,3 +57,15 @@ class StoredFileError(NatcoordError, ValueError):
 class EnvironmentFault(NatcoordError):
     """The machine, not the input: a full disk, a read-only folder, an unwritable file
     outside the results. Exit status 5."""
+
+
+def unwritable(folder: Path) -> tuple[Path, bool] | None:
+    """Whether files can be written in ``folder`` (made if need be), looking only: None
+    when they can, else (the nearest part of it that exists, whether that part is a file
+    rather than a folder this process may write)."""
+    for part in (Path(folder), *Path(folder).parents):
+        if part.exists() or part.is_symlink():
+            if not part.is_dir():
+                return part, True
+            return None if os.access(part, os.W_OK | os.X_OK) else (part, False)
+    return None

@@ -60,15 +60,14 @@ _WARNED: list[str] = []  # the cache problem said in this process (once)
 def cache_problem() -> str | None:
     """Why generated kernels cannot be cached in :func:`cache_dir` (None: they can),
     making nothing: a file in its path, or a folder this process may not write."""
-    folder = cache_dir()
-    for part in (folder, *folder.parents):
-        if part.exists():
-            if not part.is_dir():
-                return f"not a writable folder ({part} is a file)"
-            if not os.access(part, os.W_OK | os.X_OK):
-                return f"not a writable folder ({part}: permission denied or read-only)"
-            return None
-    return None
+    from ..errors import unwritable
+
+    bad = unwritable(cache_dir())
+    if bad is None:
+        return None
+    part, is_file = bad
+    return (f"not a writable folder ({part} is a file)" if is_file else
+            f"not a writable folder ({part}: permission denied or read-only)")
 
 
 def warn_uncached(problem: str | None = None) -> None:

@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from types import ModuleType
+from typing import NamedTuple
 
 from .schema import short
 
@@ -207,29 +208,38 @@ def _by_plugin(err: str) -> dict[str, str]:
     return parts
 
 
+def _child(target: str, args: list[str], timeout_s: float) -> tuple[list, str, int | None]:
+    """Run this module's ``target()`` in a child process with ``args`` (this process's
+    import path): (its answers, the JSON of each marked line it wrote to standard output;
+    its standard error; its exit status, None when it did not finish within
+    ``timeout_s``)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    code = [sys.executable, "-c", f"from natcoord.engines.registry import {target}; "
+            f"{target}()", *args]
+    try:
+        p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
+                           timeout=timeout_s)
+        out, err, status = p.stdout, p.stderr, p.returncode
+    except subprocess.TimeoutExpired as e:
+        out, err, status = e.stdout or b"", e.stderr or b"", None
+    answers = [json.loads(line.split("\t", 1)[1])
+               for line in out.decode(errors="replace").splitlines()
+               if line.startswith(_MARK + "\t")]
+    return answers, err.decode(errors="replace"), status
+
+
 def _probe(pairs: list[tuple[str, str]]) -> dict[str, str]:
     """name -> :func:`_load`'s answer for every plug-in, each imported in a child process
     (one for all, another after one that ends it): what their import does cannot end,
     hang or crash this process. What a plug-in that does not load printed there is passed
     on to standard error (one that loads prints again when imported here)."""
     found: dict[str, str] = {}
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
     while len(found) < len(pairs):
         todo = [(n, v) for n, v in pairs if n not in found]
-        code = [sys.executable, "-c",
-                "from natcoord.engines.registry import _probe_child; _probe_child()",
-                json.dumps(todo)]
-        try:
-            p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
-                               timeout=PROBE_TIMEOUT_S)
-            out, err, status = p.stdout, p.stderr, p.returncode
-        except subprocess.TimeoutExpired as e:
-            out, err, status = e.stdout or b"", e.stderr or b"", None
-        for line in out.decode(errors="replace").splitlines():
-            if line.startswith(_MARK + "\t"):
-                name, why = json.loads(line.split("\t", 1)[1])
-                found[name] = why
-        said = _by_plugin(err.decode(errors="replace"))
+        answers, err, status = _child("_probe_child", [json.dumps(todo)], PROBE_TIMEOUT_S)
+        for name, why in answers:
+            found[name] = why
+        said = _by_plugin(err)
         culprit = next((n for n, _ in todo if n not in found), None)
         if culprit is not None:
             found[culprit] = (
@@ -278,72 +288,69 @@ def discover() -> Registry:
 CALL_TIMEOUT_S = 120.0  # for a plug-in's function called in a child process
 
 
+class Answer(NamedTuple):
+    """What a plug-in's function gave in a child process (:func:`isolated`): ``value``
+    (its JSON value; None when it gave none or none JSON can carry) and ``shown`` (its
+    repr, cut), or ``why`` it gave none, completing "the engine's version() ...": "raised
+    T: m", "ended the process (...)", "did not finish within ..."; ``missing``: it raised
+    ImportError (its package is not installed)."""
+
+    value: object = None
+    shown: str = ""
+    why: str | None = None
+    missing: bool = False
+
+
 def _call_child() -> None:
     """In the child process: adapter module argv[1]'s function argv[2] on the JSON
-    arguments argv[3], its answer as a marked JSON line on the real standard output (what
-    the adapter prints goes to standard error)."""
+    arguments argv[3], its :class:`Answer` as a marked JSON line on the real standard
+    output (what the adapter prints goes to standard error)."""
     with contextlib.redirect_stdout(sys.stderr):
         try:
             module = importlib.import_module(sys.argv[1])
             value = getattr(module, sys.argv[2])(*json.loads(sys.argv[3]))
             try:
-                said = {"value": json.loads(json.dumps(value, allow_nan=False))}
+                said = Answer(json.loads(json.dumps(value, allow_nan=False)), short(value))
             except (TypeError, ValueError):
-                said = {"not_json": short(value)}
-        except ImportError as e:
-            said = {"missing": str(e)}
+                said = Answer(None, short(value))
         except (Exception, SystemExit, KeyboardInterrupt) as e:
-            said = {"raised": f"{type(e).__name__}: {e}"}
+            said = Answer(why=f"raised {type(e).__name__}: {e}",
+                          missing=isinstance(e, ImportError))
     print(f"{_MARK}\t{json.dumps(said)}", file=sys.__stdout__, flush=True)
     os._exit(0)
 
 
 @cache
-def _isolated(module: str, fn: str, args: str, source: str) -> str:  # source: the cache's
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
-    code = [sys.executable, "-c",
-            "from natcoord.engines.registry import _call_child; _call_child()", module, fn,
-            args]
-    try:
-        p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
-                           timeout=CALL_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        return json.dumps({"ended": f"did not finish within {CALL_TIMEOUT_S:g} s"})
-    sys.stderr.write(p.stderr.decode(errors="replace"))  # what the plug-in printed
-    for line in p.stdout.decode(errors="replace").splitlines():
-        if line.startswith(_MARK + "\t"):
-            return line.split("\t", 1)[1]
-    return json.dumps({"ended": _ended(p.returncode, p.stderr.decode(errors="replace"))
-                       .removeprefix("importing it ")})
+def _isolated(module: str, fn: str, args: str, source: str) -> Answer:  # source: the cache's
+    answers, err, status = _child("_call_child", [module, fn, args], CALL_TIMEOUT_S)
+    sys.stderr.write(err)  # what the plug-in printed
+    if answers:
+        return Answer(*answers[0])
+    return Answer(why=f"did not finish within {CALL_TIMEOUT_S:g} s" if status is None else
+                  _ended(status, err).removeprefix("importing it "))
 
 
-def isolated(module: str, fn: str, *args) -> dict:
+def isolated(module: str, fn: str, *args) -> Answer:
     """Adapter module ``module``'s function ``fn`` on the JSON-able ``args``, called in a
     child process, so that a plug-in's code cannot end, hang or crash the command (the
-    answer is kept for the process): ``{"value": its JSON value}``, or one of ``missing``
-    (an ImportError: its package is not installed), ``raised``, ``not_json`` or ``ended``
-    with the reason."""
-    try:  # the answer is kept for the module's source as it is
+    answer is kept for the module's source as it is and the arguments)."""
+    try:
         spec = importlib.util.find_spec(module)
         source = hashlib.sha256(Path(spec.origin).read_bytes()).hexdigest() if spec and \
             spec.origin and os.path.isfile(spec.origin) else ""
     except (ImportError, ValueError, OSError):
         source = ""
-    return json.loads(_isolated(module, fn, json.dumps(list(args), sort_keys=True), source))
+    return _isolated(module, fn, json.dumps(list(args), sort_keys=True), source)
 
 
-def version_of(name: str) -> dict:
-    """Engine ``name``'s version() in a child process (:func:`isolated`): ``{"version":
-    str}``, or ``missing``, ``raised``, ``not_str`` or ``ended`` with the reason."""
-    got = isolated(discover().modules[name], "version")
-    if "value" in got:
-        v = got["value"]
-        return {"version": v} if isinstance(v, str) else {"not_str": short(v)}
-    if "not_json" in got:
-        return {"not_str": got["not_json"]}
-    if "ended" in got:
-        return {"ended": "version() " + got["ended"]}
-    return got
+def version_of(name: str) -> tuple[str | None, str, bool]:
+    """Engine ``name``'s version() in a child process (:func:`isolated`): (the version,
+    None when there is none; what went wrong, completing "the engine's version() ...";
+    whether its package is missing)."""
+    a = isolated(discover().modules[name], "version")
+    if a.why is None and not isinstance(a.value, str):
+        return None, f"returned {a.shown}, not a string", False
+    return a.value if a.why is None else None, a.why or "", a.missing
 
 
 def engine_names() -> tuple[str, ...]:

@@ -212,15 +212,12 @@ def problems(adapter, settings) -> list[tuple[str, str]]:
                     got = adapter.check_settings(settings)
             else:  # a plug-in's code in a child process: it cannot end or hang the command
                 said = isolated(adapter.__name__, "check_settings", settings)
-                if "raised" in said or "missing" in said:
-                    return [("", "the engine's check_settings raised "
-                             f"{said.get('raised') or 'ImportError: ' + said['missing']}")]
-                if "ended" in said:
-                    return [("", f"the engine's check_settings {said['ended']}")]
-                if "not_json" in said:
-                    return [("", f"the engine's check_settings returned {said['not_json']}, "
-                             "not a list of (field, reason) pairs")]
-                got = said["value"]
+                if said.why:
+                    return [("", f"the engine's check_settings {said.why}")]
+                if said.value is None:
+                    return [("", f"the engine's check_settings returned {said.shown}, not a "
+                             "list of (field, reason) pairs")]
+                got = said.value
             out = list(got)
         except (Exception, SystemExit) as e:  # the adapter's bug, said in one line
             return [("", f"the engine's check_settings raised {type(e).__name__}: {e}")]

@@ -310,11 +310,8 @@ def check_engine(engine: str, cases_dir: Path, references: Path,
         b.references_()
     finally:
         shutil.rmtree(b.tmp, ignore_errors=True)
-    got = version_of(engine)  # in a child process: the adapter's code
-    version = got.get("version") or "unknown (" + (
-        f"version() raised {got['raised']}" if "raised" in got else
-        f"version() returned {got['not_str']}" if "not_str" in got else
-        got.get("ended") or f"package not installed: {got.get('missing')}") + ")"
+    version, why, _ = version_of(engine)  # in a child process: the adapter's code
+    version = version or f"unknown (version() {why})"
     return {"engine": engine, "version": version,
             "seconds": round(time.perf_counter() - t0, 1),
             "rows": [asdict(r) for r in b.rows]}

@@ -79,18 +79,17 @@ def check_folder(path: Path, option: str) -> None:
     ``option``), making nothing: it, or the nearest part of it that exists, must be a
     folder (else NatcoordError, exit 2) that this process may write (else
     EnvironmentFault, exit 5)."""
-    from ..errors import EnvironmentFault, NatcoordError
+    from ..errors import EnvironmentFault, NatcoordError, unwritable
 
-    path = Path(path)
-    for part in (path, *path.parents):
-        if part.exists() or part.is_symlink():
-            if not part.is_dir():
-                raise NatcoordError(f"{option} {path}: cannot be a folder: {part} is a file, "
-                                    "not a folder")
-            if not os.access(part, os.W_OK | os.X_OK):
-                raise EnvironmentFault(f"{option} {path}: {part} cannot be written "
-                                       "(permission denied or a read-only folder)")
-            return
+    bad = unwritable(path)
+    if bad is None:
+        return
+    part, is_file = bad
+    if is_file:
+        raise NatcoordError(f"{option} {path}: cannot be a folder: {part} is a file, not a "
+                            "folder")
+    raise EnvironmentFault(f"{option} {path}: {part} cannot be written (permission denied "
+                           "or a read-only folder)")
 
 
 # errors of a path that cannot name the file to write (bad input), not of the machine
