@@ -128,10 +128,11 @@ def _listing(folder: Path) -> tuple[list[str], list[str]]:
     return sorted(files), sorted(other)
 
 
-def _ours(files: list[str]) -> set[str]:
-    """The sub-folders natcoord makes for ``files`` (relative paths): their parents, and
-    ``results`` with a folder per case."""
-    out = {"results"}
+def _ours(folder: Path, files: list[str]) -> set[str]:
+    """The sub-folders natcoord makes in ``folder`` for ``files`` (relative paths): their
+    parents, and ``results`` with the folder of every case in it."""
+    out = {"results"} | {os.path.relpath(p, folder) for p in Path(folder).glob("results/*")
+                         if p.is_dir() and not p.is_symlink()}
     for f in files:
         parts = Path(f).parts[:-1]
         out |= {os.path.join(*parts[:k]) for k in range(1, len(parts) + 1)}
@@ -144,11 +145,11 @@ def _foreign(folder: Path) -> list[str]:
     marker = read_marker(folder) or {"files": []}
     files, other = _listing(folder)
     listed = set(marker["files"]) | {MARKER}
-    ours = _ours(marker["files"])
+    ours = _ours(folder, marker["files"])
     folders = [os.path.relpath(os.path.join(r, d), folder) for r, ds, _ in os.walk(folder)
                for d in ds if not os.path.islink(os.path.join(r, d))]
     return sorted([f for f in files if f not in listed] + other
-                  + [d for d in folders if d not in ours and Path(d).parent != Path("results")])
+                  + [d for d in folders if d not in ours])
 
 
 def _remove_written(folder: Path) -> bool:
@@ -166,9 +167,7 @@ def _remove_written(folder: Path) -> bool:
         if p.is_file() and not p.is_symlink():
             p.unlink()
     (root / MARKER).unlink(missing_ok=True)
-    ours = _ours(marker["files"]) | {os.path.relpath(p, root) for p in root.glob("results/*")
-                                      if p.is_dir() and not p.is_symlink()}
-    for rel in sorted(ours, key=lambda d: -len(Path(d).parts)) + ["."]:
+    for rel in sorted(_ours(root, marker["files"]), key=lambda d: -len(Path(d).parts)) + ["."]:
         with contextlib.suppress(OSError):
             os.rmdir(root / rel)  # only empty folders go
     return not root.exists()
