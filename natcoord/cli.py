@@ -13,9 +13,11 @@ line naming the problem, a fault of the environment (a full disk, a read-only fo
 from __future__ import annotations
 
 import errno
+import math
 import os
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -61,6 +63,24 @@ MAX_REPEATS = 1000  # timing samples per cell
 MAX_BUDGET_S = 7 * 24 * 3600.0  # a night's bench budget: a week of engine process time
 MAX_MARGIN = 1000.0  # proposed tolerance over the measured error
 MAX_LAST = 100_000  # runs read from the history (a run a night for 270 years)
+def _number(lo: float, hi: float, optional: bool = False) -> Callable[[str], float]:
+    """A float option's parser: a finite number in [lo, hi], else the option's error
+    naming the value (click's range check lets nan through, and calls inf out of range)."""
+    def parse(text):
+        if text is None or isinstance(text, float):
+            return text  # the default, already a number
+        try:
+            value = float(text)
+        except (TypeError, ValueError):
+            raise typer.BadParameter(f"{text!r} is not a number") from None
+        if not math.isfinite(value):
+            raise typer.BadParameter(f"{text!r} is not a finite number")
+        if not lo <= value <= hi:
+            raise typer.BadParameter(f"{text} is outside [{lo:g}, {hi:g}]")
+        return value
+    return parse
+
+
 CasesDir = Annotated[Path | None, typer.Option(
     "--cases-dir", help="Folder of case files [default: <project>/cases].", show_default=False)]
 RefDir = Annotated[Path | None, typer.Option(
@@ -74,8 +94,9 @@ ResultsDir = Annotated[Path | None, typer.Option(
     "run or suite].",
     show_default=False)]
 Timeout = Annotated[float, typer.Option(
-    min=MIN_TIMEOUT_S, max=MAX_TIMEOUT_S,
-    help="Seconds per engine run (a case file's own `timeout`, when stricter, wins).")]
+    parser=_number(MIN_TIMEOUT_S, MAX_TIMEOUT_S), metavar="SECONDS",
+    help=f"Seconds per engine run, {MIN_TIMEOUT_S:g} to {MAX_TIMEOUT_S:g} (a case file's own "
+    "`timeout`, when stricter, wins).")]
 Engines = Annotated[str | None, typer.Option(help="Comma-separated engines [default: all].")]
 Jobs = Annotated[int | None, typer.Option(
     "--jobs", min=1, max=MAX_JOBS,
@@ -697,11 +718,11 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
               cases_dir: CasesDir = None, references: RefDir = None,
               history: HistoryDb = None,
               bench_budget: Annotated[float, typer.Option(
-                  min=0, max=MAX_BUDGET_S,
-                  help="Engine process time (s) a night's bench may spend on other "
-                  "engines' cells that need measuring (natcoord's are outside it); a cell "
-                  "left over is timed by its accuracy run and measured on a later "
-                  "night.")] = NIGHT_BUDGET_S,
+                  parser=_number(0, MAX_BUDGET_S), metavar="SECONDS",
+                  help=f"Engine process time (s, at most {MAX_BUDGET_S:g}) a night's bench may "
+                  "spend on other engines' cells that need measuring (natcoord's are "
+                  "outside it); a cell left over is timed by its accuracy run and measured "
+                  "on a later night.")] = NIGHT_BUDGET_S,
               quick: Annotated[bool, typer.Option(
                   "--quick", help="A first look: natcoord and mujoco (or "
                   "--engines), every cell timed by its accuracy run (no bench process), no "
@@ -1143,8 +1164,8 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
 def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file.")],
                 engines: Engines = None,
                 margin: Annotated[float, typer.Option(
-                    min=1.0, max=MAX_MARGIN,
-                    help="Tolerance = measured error x margin.")] = 3.0,
+                    parser=_number(1.0, MAX_MARGIN), metavar="FACTOR",
+                    help=f"Tolerance = measured error x margin (1 to {MAX_MARGIN:g}).")] = 3.0,
                 out_file: Annotated[Path | None, typer.Option(
                     "--out", help="Write the proposed blocks here too.")] = None,
                 timeout: Timeout = DEFAULT_TIMEOUT_S, cases_dir: CasesDir = None,
@@ -1266,8 +1287,9 @@ def generate_cmd(family: Annotated[str, typer.Argument(help="Case family: n_four
                  out_arg: Annotated[str, typer.Option("--out", help="Case file to write "
                                                       "(NAME.toml); its stem is the case name.")],
                  duration: Annotated[float | None, typer.Option(
-                     min=1e-3, max=MAX_DURATION_S,
-                     help="s [default: the family's specification].")] = None,
+                     parser=_number(1e-3, MAX_DURATION_S), metavar="SECONDS",
+                     help=f"s, 0.001 to {MAX_DURATION_S:g} [default: the family's "
+                     "specification].")] = None,
                  force: Annotated[bool, typer.Option(
                      "--force", help="Replace an existing case file.")] = False):
     """Write one member of a parametric case family as a case file (loaded back to check
@@ -1295,7 +1317,8 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
                name: Annotated[str | None, typer.Option(
                    help="Case name [default: the file's stem, or the model's].")] = None,
                duration: Annotated[float, typer.Option(
-                   min=1e-3, max=MAX_DURATION_S, help="s.")] = 2.0,
+                   parser=_number(1e-3, MAX_DURATION_S), metavar="SECONDS",
+                   help=f"s, 0.001 to {MAX_DURATION_S:g}.")] = 2.0,
                force: Annotated[bool, typer.Option(
                    "--force", help="Replace an existing case file.")] = False):
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,

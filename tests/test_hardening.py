@@ -449,6 +449,7 @@ def test_suite_and_bench_take_a_time_limit():
     ["suite", "pendulum", "--repeats", "100000"], ["bench", "pendulum", "--repeats", "100000"],
     ["suite", "pendulum", "--jobs", "1000000000000"],
     ["generate", "n_four_bar", "--n", "2", "--duration", "inf"],
+    ["generate", "n_four_bar", "--n", "2", "--duration", "nan"],
     ["import", "m.xml", "--duration", "1e300"],
     ["bench", "pendulum", "--scaling", "64,3000"]], ids=" ".join)
 def test_infinite_or_huge_numbers_are_refused_naming_the_option(tmp_path, args):
@@ -471,7 +472,13 @@ def test_infinite_or_huge_numbers_are_refused_naming_the_option(tmp_path, args):
              "import": ["--out", tmp_path / "x.toml"]}[args[0]]
     res = CliRunner().invoke(app, [*args, *map(str, where)])
     assert res.exit_code == 2, (res.exit_code, res.output, res.exception)
-    assert option in res.output + res.stderr, res.output + res.stderr
+    said = res.output + res.stderr
+    assert option in said, said
+    value = args[args.index(option) + 1]
+    if value in ("inf", "nan"):  # said as such, not as a value beyond the range's end
+        assert f"'{value}' is not a finite number" in said, said
+    elif option in ("--timeout", "--duration"):
+        assert f"{value} is outside [0.001, " in said, said
 
 
 def test_the_longest_time_limit_a_run_takes_does_not_overflow(tmp_path):
