@@ -524,12 +524,30 @@ def test_a_result_file_put_in_a_folder_without_a_marker_has_no_record(folder, tm
     assert v.code == gate.REGRESSION and len(v.faults) == 1 and v.faults[0].startswith(
         f"{extra} has no record in summary.json"), v.lines
     assert v.outcome == {CELL: "pass"}
+    assert v.folder_faults == v.faults and v.said == {}, v.said  # the folder's, no cell's
     extra.unlink()
     (folder / ".natcoord-results").write_text("{not json")
     v = gate.judge(gate.load_summary(folder), folder, cases=gate.CaseBook(CASES),
                    references=REFERENCES)
     assert v.code == gate.BAD_INPUT and ".natcoord-results: damaged results marker" in \
         v.faults[0], v.lines
+
+
+def test_what_the_gate_says_of_a_cell_is_kept_as_the_cells(folder):
+    """A cell whose file cannot be trusted: the gate keeps its line under the cell
+    (``said``, without the cell's name), which the report shows as the cell's reason; the
+    folder as a whole has no fault of its own."""
+    from natcoord.report.html import as_judged
+
+    _csv(folder).write_text("t,theta\n0,1\n")  # altered: its sha256 no longer matches
+    summary = gate.load_summary(folder)
+    v = gate.judge(summary, folder, cases=gate.CaseBook(CASES), references=REFERENCES)
+    assert v.outcome == {CELL: "bad evidence"} and v.code == gate.REGRESSION, v.lines
+    assert len(v.said[CELL]) == 1 and v.faults == [f"{CELL}: {v.said[CELL][0]}"], v.said
+    assert v.folder_faults == []
+    shown, whole = as_judged(summary["records"], v)
+    cell = next(r for r in shown if f"{r['case']}/{r['engine']}" == CELL)
+    assert cell["verdict"] == "fail" and cell["reason"] == v.said[CELL][0] and whole == []
 
 
 def test_propose_keeps_an_existing_out_file(tmp_path):

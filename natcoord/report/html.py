@@ -241,27 +241,21 @@ def as_judged(records: list[dict], verdict) -> tuple[list[dict], list[str]]:
     channels, a cell whose files cannot be trusted fails with the gate's reason. Also
     returns the gate's lines about the folder as a whole (a result file without its
     record, a file natcoord wrote that is gone ...)."""
-    faults = list(verdict.faults)
     out = []
     for r in records:
         key = f"{r.get('case')}/{r.get('engine')}"
-        mine = [line for line in faults if line.startswith(f"{key}: ")]
-        faults = [line for line in faults if line not in mine]
+        said = "; ".join(verdict.said.get(key, ()))
         outcome = verdict.outcome.get(key) if r.get("status") == "ok" else None
-        if outcome in ("pass", "fail"):
-            grew = [line.removeprefix(f"{key}: ") for line in verdict.lines
-                    if line.startswith(f"{key}: ") and "over the baseline" in line]
+        if outcome in ("pass", "fail"):  # what its channels do not show: growth over the
             r = {**r, "verdict": outcome, "channels": verdict.channels.get(key, {}),
-                 "reason": "; ".join(grew) or r.get("reason")}
+                 "reason": said or r.get("reason")}  # baseline
         elif outcome == "bad evidence":
-            r = {**r, "verdict": "fail", "channels": {},
-                 "reason": "; ".join(line.removeprefix(f"{key}: ") for line in mine)}
+            r = {**r, "verdict": "fail", "channels": {}, "reason": said}
         elif outcome is not None:  # cannot judge (no reference, no tolerance ...)
             r = {**r, "verdict": "no-reference" if r.get("verdict") == "no-reference"
-                 else "n/a", "channels": {}, "reason": "; ".join(
-                     line.removeprefix(f"{key}: ") for line in mine) or r.get("reason")}
+                 else "n/a", "channels": {}, "reason": said or r.get("reason")}
         out.append(r)
-    return out, faults
+    return out, verdict.folder_faults
 
 
 def overall_verdict(records: list[dict], faults: list[str] = ()) -> dict:

@@ -41,7 +41,9 @@ class Verdict:
     ``channels``: per cell judged from its files, its channels as
     :func:`natcoord.suite.compare.channel_errors` gives them; ``outcome``: per cell that
     ran, ``pass`` (judged from its files, within every rule), ``fail``, ``bad evidence``
-    or ``cannot judge``; ``faults``: the lines about files that could not be trusted."""
+    or ``cannot judge``; ``faults``: the lines about files that could not be trusted;
+    ``said``: per cell, what the gate said of it (its lines without the cell's name) but
+    for what its channels show (a channel over its tolerance)."""
 
     code: int
     lines: list[str] = field(default_factory=list)
@@ -49,12 +51,26 @@ class Verdict:
     channels: dict[str, dict] = field(default_factory=dict)
     outcome: dict[str, str] = field(default_factory=dict)
     faults: list[str] = field(default_factory=list)
+    said: dict[str, list[str]] = field(default_factory=dict)
 
-    def worse(self, code: int, line: str, fault: bool = False) -> None:
+    def worse(self, code: int, line: str, fault: bool = False, cell: str | None = None,
+              shown: bool = False) -> None:
+        """Raise the exit code to ``code`` for ``line``, about ``cell`` ("case/engine";
+        None: the folder as a whole); ``shown``: the cell's channels say it already."""
         self.code = max(self.code, code)
+        if cell is not None and not shown:
+            self.said.setdefault(cell, []).append(line)
+        line = line if cell is None else f"{cell}: {line}"
         self.lines.append(line)
         if fault:
             self.faults.append(line)
+
+    @property
+    def folder_faults(self) -> list[str]:
+        """The faults about the folder as a whole (a result file without its record, a
+        file natcoord wrote that is gone ...), not about one cell that ran."""
+        mine = {f"{k}: {line}" for k, lines in self.said.items() for line in lines}
+        return [line for line in self.faults if line not in mine]
 
     @property
     def passed(self) -> list[str]:
@@ -126,18 +142,19 @@ def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
     for case in summary.get("cases", ()):  # every cell asked for must have its record
         for engine in sorted(engines):
             if (case, engine) not in have:
-                v.worse(NOT_RUN, f"{case}/{engine}: no record (required, not run)")
+                v.worse(NOT_RUN, "no record (required, not run)", cell=f"{case}/{engine}")
     for r in records:
         key = f"{r['case']}/{r['engine']}"
         if r["status"] in ("failed", "skipped") and (required is None or r["engine"] in required):
-            v.worse(NOT_RUN, f"{key}: required engine {r['status']}: {r.get('reason') or ''}")
+            v.worse(NOT_RUN, f"required engine {r['status']}: {r.get('reason') or ''}",
+                    cell=key)
         elif r["status"] == "ok":
             _judge_cell(v, r, key, Path(results), cases, Path(references),
                         (baseline or {}).get(key) or {}, baseline_factor, floor)
         elif (baseline or {}).get(key):
-            v.worse(NOT_RUN, f"{key}: {r['status']} ({(r.get('reason') or '')[:200]}), but the "
+            v.worse(NOT_RUN, f"{r['status']} ({(r.get('reason') or '')[:200]}), but the "
                     "baseline holds its errors from a judged run: a cell that passed "
-                    "before must run and be judged again")
+                    "before must run and be judged again", cell=key)
     return v
 
 
@@ -146,7 +163,7 @@ def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
     """One cell that ran, judged from its files, against its tolerances and its baseline."""
     v.outcome[key] = "cannot judge"
     if r["engine"] not in engine_names():
-        v.worse(BAD_INPUT, f"{key}: {r['engine'][:40]!r} is not an engine", fault=True)
+        v.worse(BAD_INPUT, f"{r['engine'][:40]!r} is not an engine", fault=True, cell=key)
         return
     try:
         case = cases.get(r["case"])
@@ -154,17 +171,18 @@ def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
                                      r.get("files"))
     except evidence.BadEvidence as e:
         v.outcome[key] = "bad evidence"
-        v.worse(REGRESSION, f"{key}: {e}", fault=True)
+        v.worse(REGRESSION, str(e), fault=True, cell=key)
         return
     except (evidence.BadReference, CaseError) as e:
-        v.worse(BAD_INPUT, f"{key}: cannot judge: {e}", fault=True)
+        v.worse(BAD_INPUT, f"cannot judge: {e}", fault=True, cell=key)
         return
     if r.get("case_hash") and r["case_hash"] != case.digest:
         v.notes.append(f"{key}: {case.file} changed since the run; judged with its "
                        "tolerances as they are now")
     channels = v.channels[key] = judged["channels"]
     if judged["verdict"] == "not-gated":
-        v.worse(BAD_INPUT, f"{key}: cannot judge: {judged['verdict_reason']} ({case.file})")
+        v.worse(BAD_INPUT, f"cannot judge: {judged['verdict_reason']} ({case.file})",
+                cell=key)
         return
     held = judged["verdict"] == "pass"
     for name, c in channels.items():
@@ -172,19 +190,20 @@ def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
         if c["pass"] is False:
             held = False
             if c["max_abs"] is None or c["max_abs"] == float("inf"):
-                v.worse(REGRESSION, f"{key}: {name}: {c['note'] or 'no value'}")
+                v.worse(REGRESSION, f"{name}: {c['note'] or 'no value'}", cell=key, shown=True)
                 continue
             ratio = c["max_abs"] / c["tolerance"] if c["tolerance"] else float("inf")
-            v.worse(REGRESSION, f"{key}: {name} max error {_fmt(c['max_abs'], unit)} > "
-                    f"tolerance {_fmt(c['tolerance'], unit)} ({ratio:.3g}x)")
+            v.worse(REGRESSION, f"{name} max error {_fmt(c['max_abs'], unit)} > "
+                    f"tolerance {_fmt(c['tolerance'], unit)} ({ratio:.3g}x)", cell=key,
+                    shown=True)
         err, tol, was = c["max_abs"], c["tolerance"], base.get(name)
         # growth below a tenth of the tolerance is platform noise, not a regression
         if c["pass"] is not None and was is not None and err is not None and \
                 err > max(baseline_factor * was, floor, 0.1 * tol):
             held = False
-            v.worse(REGRESSION, f"{key}: {name} error {_fmt(err, unit)} grew "
+            v.worse(REGRESSION, f"{name} error {_fmt(err, unit)} grew "
                     f"{err / max(was, floor):.3g}x over the baseline {_fmt(was, unit)} "
-                    f"(limit {baseline_factor:g}x)")
+                    f"(limit {baseline_factor:g}x)", cell=key)
     v.outcome[key] = "pass" if held else "fail"
 
 
