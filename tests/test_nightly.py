@@ -323,6 +323,19 @@ def test_an_unreachable_scheduler_is_a_clear_error(tmp_path):
     assert p.returncode == 2 and "cannot reach the Dask scheduler" in p.stderr, p.stderr
 
 
+def test_a_scheduler_without_a_worker_is_a_clear_error(tmp_path):
+    """A scheduler no worker serves: refused once no worker came within the connection
+    wait, not after every run's deadline (130 s for one 10 s run); nothing written."""
+    from distributed import LocalCluster
+
+    with LocalCluster(n_workers=0, processes=True, dashboard_address=None) as cluster:
+        p = _cli("run", "pendulum", "--engines", "natcoord", "--timeout", "10", "--scheduler",
+                 cluster.scheduler_address, "--out", tmp_path / "r", timeout=300)
+    assert p.returncode == 2 and "the Dask scheduler has no worker (waited 30 s)" in \
+        p.stderr, p.stderr
+    assert not (tmp_path / "r").exists()
+
+
 @pytest.mark.parametrize("command", [["run"], ["suite", "--quick", "--history", "h.db"]],
                          ids=lambda c: c[0])
 def test_a_scheduler_that_is_no_address_is_bad_input(tmp_path, command):

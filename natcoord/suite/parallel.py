@@ -205,7 +205,8 @@ def distributed(jobs, engines, out: Path, timeout_s: float, scheduler: str,
                 failed: Callable[[object, str, str], dict], *, connect_s: float = 30.0,
                 margin_s: float = MARGIN_S) -> Iterator[tuple]:
     """Yield ``(index, record)`` from a Dask cluster at ``scheduler`` (tcp://host:port);
-    files are written under ``out`` here. ``failed(case, engine, reason)`` makes the record
+    files are written under ``out`` here. A scheduler not reached, or without a worker,
+    within ``connect_s`` is a NatcoordError. ``failed(case, engine, reason)`` makes the record
     of a run that the cluster lost."""
     try:
         from distributed import Client
@@ -226,6 +227,12 @@ def distributed(jobs, engines, out: Path, timeout_s: float, scheduler: str,
         raise NatcoordError(f"--scheduler {scheduler}: cannot reach the Dask scheduler "
                             f"({type(e).__name__}: {e})") from None
     with client:
+        try:  # a cluster without a worker would hold every run until the last deadline
+            client.wait_for_workers(1, timeout=connect_s)
+        except (DaskTimeout, TimeoutError):
+            raise NatcoordError(f"--scheduler {scheduler}: the Dask scheduler has no worker "
+                                f"(waited {connect_s:g} s); start one with `dask worker "
+                                f"{scheduler}`") from None
         futures = {client.submit(remote_run, pickle.dumps(job), engine, timeout_s,
                                  pure=False, retries=0): i
                    for i, (job, engine) in enumerate(todo)}
