@@ -229,6 +229,28 @@ CAPABILITIES = Capabilities(dimensions={{2}}, rules=rules)
     assert r.returncode == 3, r.stdout + r.stderr
 
 
+def test_what_an_engine_writes_in_its_current_folder_stays_out_of_the_users(tmp_path):
+    """A plug-in whose run writes a log into the current folder (as MuJoCo's warnings
+    did): the engine process runs in a scratch folder of its own, removed afterwards; the
+    folder the command started from holds only what it held, and the run passes."""
+    home = project_copy(tmp_path, "pendulum")
+    site = write_plugin(tmp_path / "site", "rlog", '''
+def run(case, init, settings):
+    from pathlib import Path
+
+    from natcoord.engines import natcoord_engine
+    Path("rlog.log").write_text("a plug-in's log")
+    Path("dump").mkdir()
+    return natcoord_engine.run(case, init, {"method": "rk4", "h": 1e-3})
+''')
+    before = sorted(p.name for p in home.iterdir())
+    r = natcoord(["run", "pendulum", "--engines", "rlog", "--out", str(tmp_path / "out")],
+                 home, site)
+    [rec] = json.loads((tmp_path / "out" / "summary.json").read_text())["records"]
+    assert rec["status"] == "ok", (rec, r.stderr)
+    assert sorted(p.name for p in home.iterdir()) == before, r.stderr
+
+
 @pytest.mark.slow
 def test_cases_lists_faulty_plugins_and_stays_json(tmp_path):
     """Plug-ins that exit on import, declare a dict for CAPABILITIES, print on import or in

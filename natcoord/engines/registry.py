@@ -34,6 +34,7 @@ import re
 import signal
 import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -210,15 +211,17 @@ def _by_plugin(err: str) -> dict[str, str]:
 
 def _child(target: str, args: list[str], timeout_s: float) -> tuple[list, str, int | None]:
     """Run this module's ``target()`` in a child process with ``args`` (this process's
-    import path): (its answers, the JSON of each marked line it wrote to standard output;
-    its standard error; its exit status, None when it did not finish within
-    ``timeout_s``)."""
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in sys.path if p)}
+    import path, in a scratch folder of its own): (its answers, the JSON of each marked
+    line it wrote to standard output; its standard error; its exit status, None when it
+    did not finish within ``timeout_s``)."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(os.path.abspath(p) for p in sys.path
+                                                       if p)}
     code = [sys.executable, "-c", f"from natcoord.engines.registry import {target}; "
             f"{target}()", *args]
-    try:
-        p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
-                           timeout=timeout_s)
+    try:  # in a scratch folder: what a plug-in writes in its current folder is dropped
+        with tempfile.TemporaryDirectory(prefix="natcoord-plugin-") as tmp:
+            p = subprocess.run(code, capture_output=True, env=env, stdin=subprocess.DEVNULL,
+                               timeout=timeout_s, cwd=tmp)
         out, err, status = p.stdout, p.stderr, p.returncode
     except subprocess.TimeoutExpired as e:
         out, err, status = e.stdout or b"", e.stderr or b"", None

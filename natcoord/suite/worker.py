@@ -330,19 +330,36 @@ def run_job(job: Job) -> tuple[Result, dict]:
 MAYBE_ABSENT = ("acceleration", "angular_acceleration")
 
 
+@contextlib.contextmanager
+def scratch_cwd():
+    """Run an engine in a fresh temporary folder as the current directory, removed
+    afterwards: what an engine or a plug-in writes there (a log, a dump) never lands in the
+    folder the command was started from. A relative ``NATCOORD_CACHE_DIR`` keeps meaning
+    the command's folder."""
+    import tempfile
+
+    cache = os.environ.get("NATCOORD_CACHE_DIR")
+    if cache:
+        os.environ["NATCOORD_CACHE_DIR"] = os.path.abspath(cache)
+    with tempfile.TemporaryDirectory(prefix="natcoord-engine-") as tmp, contextlib.chdir(tmp):
+        yield Path(tmp)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="natcoord.suite.worker")
     p.add_argument("job_file", help="pickled Job written by the runner")
     p.add_argument("out_dir")
     a = p.parse_args(argv)
+    out_dir = Path(a.out_dir).resolve()
     with open(a.job_file, "rb") as f:
         job: Job | Assessment = pickle.load(f)
-    if isinstance(job, Assessment):
-        write_json(Path(a.out_dir) / f"{job.engine}.assessed.json",
-                   {c.name: list(assess(c, job.engine)) for c in job.cases})
-        return 0
-    res, extra = run_job(job)
-    folder = Path(a.out_dir) / "results" / res.case
+    with scratch_cwd():
+        if isinstance(job, Assessment):
+            write_json(out_dir / f"{job.engine}.assessed.json",
+                       {c.name: list(assess(c, job.engine)) for c in job.cases})
+            return 0
+        res, extra = run_job(job)
+    folder = out_dir / "results" / res.case
     if res.table is not None:
         write_csv(folder / f"{res.engine}.csv", res.table)
     if res.methods is not None:
