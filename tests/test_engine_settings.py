@@ -424,3 +424,17 @@ def test_a_plate_with_an_axis_or_a_planar_mass_loads(tmp_path):
         p.write_text(text.replace('name = "plate"\ndescription', f'name = "plate{k}"\n'
                                   "description"))
         assert load_case(p).name == f"plate{k}"
+
+
+@pytest.mark.parametrize("h, k", [(0.004, 3), (0.005, 2), (0.01, 1), (0.02, 1)])
+def test_natcoord_says_the_fixed_step_it_took(h, k):
+    """A fixed step h is the longest step: each output interval (0.01 s) is taken in k
+    equal steps, which the run's notes state and its step count confirms."""
+    from natcoord.engines import natcoord_engine
+
+    case = load_case(CASES / "pendulum.toml")
+    run = natcoord_engine.run(case, None, {"formulation": "index1", "method": "rk4", "h": h})
+    intervals = len(case.times) - 1
+    assert run.n_steps == k * intervals, (run.n_steps, intervals)
+    assert f"fixed steps of {0.01 / k:.6g} s: {k} per output interval of 0.01 s (h = {h:g} s" \
+        in " ".join(run.notes), run.notes

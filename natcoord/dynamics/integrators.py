@@ -122,6 +122,12 @@ def _rms(x):
     return math.sqrt(float(np.mean(x * x))) if len(x) else 0.0
 
 
+
+def substeps(span: float, h: float) -> int:
+    """Fixed steps over an output interval of ``span`` s with steps of at most ``h`` s:
+    equal steps that land on every sample (the compiled loops take the same number)."""
+    return max(1, math.ceil(span / h - 1e-9))
+
 def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol: float,
               record) -> None:
     """Advance ``y`` through ``times`` (T,), calling ``record(k, t, y)`` at every sample.
@@ -161,7 +167,7 @@ def time_loop(form, y, times, *, method: str, h: float | None, rtol: float, atol
             h_adapt = float(sol.t[-1] - sol.t[-2]) if len(sol.t) > 1 else None
             y = form.post_step(t1, sol.y[:, -1])
         else:
-            nsub = max(1, math.ceil((t1 - t0) / h - 1e-9))
+            nsub = substeps(t1 - t0, h)
             hh = (t1 - t0) / nsub
             for i in range(nsub):
                 t = t0 + i * hh

@@ -57,7 +57,8 @@ SOLVER_SETTINGS = (
     Setting("atol", "number", DEFAULT_TOLERANCES["atol"], "absolute tolerance of adaptive "
             "steps (m, m/s)", **_POSITIVE),
     Setting("h", "number", None, "a fixed step instead of tolerances (rk4, trapezoidal; "
-            "none: adaptive)", "s", **_POSITIVE),
+            "none: adaptive): the longest step, each output interval taken in equal steps "
+            "of at most h", "s", **_POSITIVE),
     Setting("project_tol", "number", Formulation.project_tol, "tolerance of the "
             "projections on |Phi|", "m", **_POSITIVE),
     Setting("newton_tol", "number", Formulation.newton_tol, "Newton tolerance on |Phi|", "m",
@@ -113,6 +114,7 @@ def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     """Integrate the case from ``init`` (assembled here when None, or when settings ask
     for other coordinates than ``init`` was assembled in)."""
     from ..dynamics.forward import integrate
+    from ..dynamics.integrators import substeps
     from ..model import casemodel
     from ..model.kinematics import State
     from ..outputs import channels as outputs
@@ -137,6 +139,11 @@ def run(case: Case, init: InitialState | None, settings: dict) -> EngineRun:
     notes = [f"natural coordinates ({coordinates}): {diag['n']} coordinates, "
              f"{diag['m']} constraints of rank {diag['rank']}: {diag['dof']} DOF, "
              f"{diag['redundant']} redundant; channel values by the {first} reactions"]
+    if solver.h is not None and len(case.times) > 1:
+        span = float(case.times[1] - case.times[0])
+        k = substeps(span, solver.h)
+        notes.append(f"fixed steps of {span / k:.6g} s: {k} per output interval of {span:g} s"
+                     f" (h = {solver.h:g} s is the longest step)")
     s = {"coordinates": coordinates, **solver.settings()}
     return EngineRun(motions[first], build, sol.wall_time_s, sol.counters["steps"], s,
                      counters, notes, motions if len(motions) > 1 or case.reactions else {})
