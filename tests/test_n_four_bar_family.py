@@ -151,6 +151,30 @@ def test_generate_names_the_duration_option_it_cannot_take(tmp_path, duration, s
     assert list(tmp_path.iterdir()) == []
 
 
+def test_a_model_past_the_coordinate_budget_is_refused_before_it_is_built(tmp_path):
+    """N = 1100 couplers make 8804 coordinates: the model's arrays, growing as their
+    square, took 2.6 GB at N = 1000 and would take about 10 GB at the loader's N = 2000.
+    Refused (exit 2, naming the field and the budget) before they are allocated; N = 1000,
+    within it, is the largest member the family writes."""
+    import resource
+
+    from typer.testing import CliRunner
+
+    from natcoord.cli import app
+    from natcoord.model.casemodel import MAX_COORDINATES
+
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    res = CliRunner().invoke(app, ["generate", "n_four_bar", "--n", "1100", "--out",
+                                   str(tmp_path / "x.toml")])
+    assert res.exit_code == 2, res.output
+    assert f"bodies: 2201 bodies make 8804 natural coordinates (joints), beyond natcoord's " \
+        f"budget of {MAX_COORDINATES}" in " ".join(res.output.split()), res.output
+    assert list(tmp_path.iterdir()) == []
+    grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before  # KiB
+    assert grew < 1_000_000, grew  # a model of 8804 coordinates takes about 3 GB
+    assert 4 * (2 * 1000 + 1) <= MAX_COORDINATES < 4 * (2 * 1100 + 1)
+
+
 def test_a_generated_file_that_does_not_load_is_named_by_its_path(tmp_path):
     from natcoord.case.generate import write_case
     from natcoord.errors import NatcoordError

@@ -40,6 +40,8 @@ from .kinematics import Prescribed, State, assemble, solve_velocity
 from .model import Model
 
 COORDINATES = ("joints", "shared")
+MAX_COORDINATES = 8192  # the model's dense arrays (M, each body's and joint's maps) grow
+# as n^2: 2.6 GB at n = 8004 (a chain of 1000 four-bars); past this a case is refused
 POINT_JOINTS = ("spherical",)  # joints that are a shared point (with 2-D revolute joints)
 
 
@@ -215,6 +217,10 @@ def build(case: Case, coordinates: str = "joints") -> CaseModel:
     for body in case.bodies:
         for name, u in vectors[body.name]:
             b.vector(name, u)
+    if b.n > MAX_COORDINATES:  # refused before the arrays that grow as n^2
+        raise ModelError("bodies", f"{len(case.bodies)} bodies make {b.n} natural coordinates "
+                         f"({coordinates}), beyond natcoord's budget of {MAX_COORDINATES}: "
+                         "the model's memory grows as their square (2.6 GB at 8004)")
 
     for i, body in enumerate(case.bodies):
         R0, o0 = frames[body.name]
