@@ -10,7 +10,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from natcoord import evaluate_channels
+from natcoord import CaseError, evaluate_channels, load_case
 from natcoord.case.generate import N_FOUR_BAR_MEASURED, n_four_bar
 from natcoord.compiled import sparsity
 from natcoord.derivations import exact
@@ -154,8 +154,8 @@ def test_generate_names_the_duration_option_it_cannot_take(tmp_path, duration, s
 def test_a_model_past_the_coordinate_budget_is_refused_before_it_is_built(tmp_path):
     """N = 1100 couplers make 8804 coordinates: the model's arrays, growing as their
     square, took 2.6 GB at N = 1000 and would take about 10 GB at the loader's N = 2000.
-    Refused (exit 2, naming the field and the budget) before they are allocated; N = 1000,
-    within it, is the largest member the family writes."""
+    Refused (exit 2, naming the budget) before they are allocated: by the family at once,
+    and by the loader for a case file as large written by hand (naming its field)."""
     import resource
 
     from typer.testing import CliRunner
@@ -167,9 +167,19 @@ def test_a_model_past_the_coordinate_budget_is_refused_before_it_is_built(tmp_pa
     res = CliRunner().invoke(app, ["generate", "n_four_bar", "--n", "1100", "--out",
                                    str(tmp_path / "x.toml")])
     assert res.exit_code == 2, res.output
-    assert f"bodies: 2201 bodies make 8804 natural coordinates (joints), beyond natcoord's " \
-        f"budget of {MAX_COORDINATES}" in " ".join(res.output.split()), res.output
+    assert "N = 1100 makes 8804 natural coordinates, beyond natcoord's budget of " \
+        f"{MAX_COORDINATES} (N <= 1023)" in " ".join(res.output.split()), res.output
     assert list(tmp_path.iterdir()) == []
+    text = n_four_bar(1023, name="x")  # 8188 coordinates; two free rods more, written by
+    i = text.index("[[bodies]]")        # hand: the loader refuses them, naming the field
+    extra = "".join(f'[[bodies]]\nname = "free{k}"\nkind = "uniform_rod"\nmass = 1.0\n'
+                    f'points = {{ P{k} = [0.0, {k + 5}.0], Q{k} = [1.0, {k + 5}.0] }}\n\n'
+                    for k in range(2))
+    (tmp_path / "x.toml").write_text(text[:i] + extra + text[i:])
+    with pytest.raises(CaseError) as e:
+        load_case(tmp_path / "x.toml")
+    assert e.value.field == "bodies" and "2049 bodies make 8196 natural coordinates " \
+        "(joints), beyond natcoord's budget of 8192" in e.value.reason, e.value
     grew = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before  # KiB
     assert grew < 1_000_000, grew  # a model of 8804 coordinates takes about 3 GB
     assert 4 * (2 * 1000 + 1) <= MAX_COORDINATES < 4 * (2 * 1100 + 1)

@@ -238,8 +238,12 @@ def n_four_bar(n: int, *, name: str | None = None, duration: float | None = None
     """
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ValueError(f"n_four_bar: N must be an integer >= 1, got {n!r}")
-    if n > 2000:
-        raise ValueError(f"n_four_bar: N = {n} makes a case file beyond the loader's budget")
+    from ..model.casemodel import MAX_COORDINATES
+
+    if 4 * (2 * n + 1) > MAX_COORDINATES:  # 2N + 1 rods of two points in the plane
+        raise ValueError(f"n_four_bar: N = {n} makes {4 * (2 * n + 1)} natural coordinates, "
+                         f"beyond natcoord's budget of {MAX_COORDINATES} (N <= "
+                         f"{(MAX_COORDINATES // 4 - 1) // 2})")
     name = name or f"a02_four_bar_n{n}"
     duration = duration if duration is not None else (20.0 if n == 40 else 10.0)
     lines = [
