@@ -270,7 +270,9 @@ class FormulationLoop:
         place, set up before the timed part (a benchmark repeats ``go``): by default
         ``init`` once here (Python set-up: maggi's partition of the start was a quarter of a
         four_bar run) and ``run_compiled`` at every call (the compiled loops copy their
-        start, so every run begins from the same state)."""
+        start, so every run begins from the same state). Its counts are added to the
+        formulation's counters in the run, and it returns None (index1's returns its
+        counter array instead, added once by the caller)."""
         y = self.init(t0, q0, qd0)
 
         def go(Q, QD, QDD):

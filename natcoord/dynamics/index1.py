@@ -176,12 +176,16 @@ class Index1Loop(FormulationLoop):
     def run_compiled(self, times, y, method, rtol, atol, h=None):
         """The whole run in :func:`natcoord.compiled.index1.run`: (Q, QD, QDD) (T, n) at ``times``
         from y = [q, qd] (:meth:`compiled_runner` once)."""
+        from ..compiled.index1 import add_counters
         out = tuple(np.zeros((len(times), self.n)) for _ in range(3))
-        self.compiled_runner(times, 0.0, y[:self.n], y[self.n:], method, rtol, atol, h)(*out)
+        add_counters(self.compiled_runner(times, 0.0, y[:self.n], y[self.n:], method, rtol,
+                                          atol, h)(*out), self.cnt)
         return out
 
     def compiled_runner(self, times, t0, q0, qd0, method, rtol, atol, h=None):
-        """``go(Q, QD, QDD)``: the whole run from (q0, qd0) at ``times`` into (T, n) in place
+        """``go(Q, QD, QDD)``: the whole run from (q0, qd0) at ``times`` into (T, n) in place,
+        returning its counter array (:func:`natcoord.compiled.index1.add_counters` adds it
+        to the counters: once, after a benchmark's repeated runs, not in each)
         (:func:`natcoord.compiled.index1.prepare`: the sparse Schur path for a regular M or
         one left regular by an elimination, else the QR null-space form with M, on the
         coordinates kept where there is one), after :meth:`prepare_compiled` (made here
@@ -195,8 +199,8 @@ class Index1Loop(FormulationLoop):
                              kernels.Steps(rtol, atol, self.opt["project_tol"], h),
                              kernels.Route(self._plan_args, self._kern, M, self.opt["rank_tol"],
                                            None if e is None else e.dep_map))
-        q0, qd0, cnt = np.ascontiguousarray(q0, float), np.ascontiguousarray(qd0, float), self.cnt
-        return lambda Q, QD, QDD: go(q0, qd0, (Q, QD, QDD), cnt)
+        q0, qd0 = np.ascontiguousarray(q0, float), np.ascontiguousarray(qd0, float)
+        return lambda Q, QD, QDD: go(q0, qd0, (Q, QD, QDD))
 
     def rhs(self, t, y):
         q, qd = y[:self.n], y[self.n:]
