@@ -126,6 +126,13 @@ def _code(e: Exception) -> int:
     return ENVIRONMENT if isinstance(e, EnvironmentFault) else 2
 
 
+def _print_json(data) -> None:
+    """``data`` on standard output as strict JSON (NaN and inf as null)."""
+    from .suite.io import json_text
+
+    print(json_text(data))
+
+
 def _fail(message: str, code: int = 2):
     err.print(f"[bold red]error:[/] {escape(message)}", highlight=False)
     raise typer.Exit(code)
@@ -340,12 +347,10 @@ def cases_cmd(cases_dir: CasesDir = None,
     names = _known_engines()
     why = assessed([j.case for j in jobs], names)  # a plug-in's rules in its own process
     if as_json:
-        import json
-
         from .engines.schema import describe
 
         reg = discover()
-        print(json.dumps({
+        _print_json({
             "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
                        "engines": {e: (why[c.name, e] or None) for e in names}}
                       for c in (job.case for job in jobs)],
@@ -354,8 +359,7 @@ def cases_cmd(cases_dir: CasesDir = None,
                             "capabilities": adapter(e).CAPABILITIES.summary(),
                             "settings": describe(adapter(e).SETTINGS)} for e in names},
             "engine_problems": [{"name": p.name, "entry_point": p.value, "error": p.error}
-                                for p in reg.problems]},
-            indent=1))
+                                for p in reg.problems]})
         return
     table = Table(title=f"cases in {escape(str(resolve(cases_dir, 'cases')))}")
     table.add_column("case")
@@ -700,9 +704,7 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
             result["scaling"] = _scaling(sizes, quiet=as_json)
         bench.store(result, staging, copies)
     if as_json:
-        import json
-
-        print(json.dumps(result, indent=1, default=str))
+        _print_json(result)
     else:
         out.print(f"benchmark: {target / 'bench.json'}")
 
@@ -1012,7 +1014,6 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
     """Ask the history database: the recent runs (commit, machine, gate verdict), one
     cell's accuracy and speed, what regressed since the last green suite, flaky cells.
     Read-only; exit 1 when --since-green finds a regression, else 0."""
-    import json as _json
 
     from .suite import history as hist
     from .suite import history_views as views
@@ -1035,7 +1036,7 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
         _fail(str(e))
     code = 1 if since_green and data["regressed"] else 0
     if as_json:
-        print(_json.dumps(data, indent=1, default=str))
+        _print_json(data)
         raise typer.Exit(code)
     if since_green:
         g, n = data["green"], data["latest"]
@@ -1084,7 +1085,6 @@ def bisect_cmd(good: Annotated[str, typer.Argument(help="A commit where the gate
     and engines (git bisect in a temporary worktree: each commit's own natcoord, case files
     and references; a crash or timeout counts as bad, a commit that cannot start is
     skipped). Exit 0 with the commit named, 3 when bisect could not name one."""
-    import json as _json
 
     from .suite.bisect import bisect
 
@@ -1094,7 +1094,7 @@ def bisect_cmd(good: Annotated[str, typer.Argument(help="A commit where the gate
     except NatcoordError as e:
         _fail(str(e))
     if as_json:
-        print(_json.dumps({k: v for k, v in found.items() if k != "log"}, indent=1))
+        _print_json({k: v for k, v in found.items() if k != "log"})
     elif found["first_bad"]:
         out.print(f"first bad commit: {found['first_bad']} {escape(found['subject'])}")
     else:
@@ -1116,7 +1116,6 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     slowdown (median past 1.5x and Mann-Whitney U at p <= 0.05 on the calibrated samples;
     a cell with too few samples for that test says "cannot judge speed").
     """
-    import json as _json
 
     from .suite import diff, gate
 
@@ -1128,7 +1127,7 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
             _fail(str(e))
     c = _read_whole([base, new], judge)
     if as_json:
-        print(_json.dumps(c.as_json(), indent=1, default=str))
+        _print_json(c.as_json())
         raise typer.Exit(c.code)
     table = Table(title=f"{escape(str(base))} -> {escape(str(new))}")
     for col in ("case", "engine", "status", "verdict", "worst/tol before", "worst/tol now",
@@ -1219,7 +1218,6 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     determined and undetermined reactions. Exit 0 all pass, 1 a check failed or none was
     judged (every one skipped), 2 an unknown
     engine, 3 the engine's package is not installed (or its version() fails)."""
-    import json
 
     from .engines import adapter
     from .engines.registry import version_of
@@ -1244,7 +1242,7 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
         _fail(str(e))
     failed = [r for r in card["rows"] if r["result"] == "fail"]
     if as_json:
-        print(json.dumps(card, indent=1))
+        _print_json(card)
     else:
         table = Table(title=f"check-engine {escape(engine)} {escape(card['version'])} "
                             f"({card['seconds']:g} s)")

@@ -245,10 +245,15 @@ def test_a_long_name_is_counted_without_its_quotes(case_variant):
      "(400 characters) is beyond 1e+150"),
     ((r"^mass = 1.0", 'mass = "1e400 kg"'), "bodies[0] (crank).mass",
      "must be finite, got '1e400 kg'"),
+    ((r"^angle = 1e-9", "angle = 1e-320"), "engines.natcoord.tolerance.angle",
+     "1e-320 is below 1e-150 (its square would underflow to zero)"),
+    ((r"^mass = 1.0", "mass = 1e-200"), "bodies[0] (crank).mass", "1e-200 is below 1e-150"),
 ])
 def test_a_quantity_whose_square_overflows_is_refused(case_variant, sub, field, reason):
     """mass 1e308 and gravity 1e200 loaded and then failed at run time with numpy's
-    RuntimeWarnings; an integer past a float raised OverflowError."""
+    RuntimeWarnings; an integer past a float raised OverflowError. A positive quantity as
+    small as 1e-320 (a tolerance) made an error over it inf, which reached JSON as
+    Infinity."""
     path = case_variant("slider_crank", [sub])
     with pytest.raises(CaseError) as info:
         load_case(path)

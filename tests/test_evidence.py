@@ -550,6 +550,31 @@ def test_what_the_gate_says_of_a_cell_is_kept_as_the_cells(folder):
     assert cell["verdict"] == "fail" and cell["reason"] == v.said[CELL][0] and whole == []
 
 
+def test_the_page_passes_only_what_the_gate_passes(folder, tmp_path):
+    """A reference that cannot be trusted (a line of text appended): the gate cannot judge
+    the cell (exit 2) and the page fails with its line, where it said PASS ("1 pass, 1
+    ran") beside another cell that passed; a cell that ran without a tolerance leaves the
+    page PARTLY GATED, not PASS."""
+    from natcoord.report.html import as_judged, overall_verdict
+
+    refs = tmp_path / "refs"
+    shutil.copytree(REFERENCES, refs)
+    with open(refs / "pendulum.csv", "a") as f:
+        f.write("garbage,1\n")
+    summary = gate.load_summary(folder)
+    v = gate.judge(summary, folder, cases=gate.CaseBook(CASES), references=refs)
+    assert v.code == gate.BAD_INPUT and v.outcome == {CELL: "cannot judge"}, v.lines
+    shown, faults = as_judged(summary["records"], v)
+    page = overall_verdict(shown, faults)
+    assert page["word"] == "FAIL" and faults == [f"{CELL}: {v.said[CELL][0]}"], page
+    assert "reference holds values that are not numbers" in faults[0], faults
+    passed = {**shown[0], "verdict": "pass", "engine": "mujoco"}
+    unjudged = {**shown[0], "verdict": "n/a", "reason": "no tolerance written"}
+    page = overall_verdict([passed, unjudged])
+    assert (page["word"], page["summary"]) == ("PARTLY GATED", "1 pass, 1 not judged"), page
+    assert overall_verdict([passed])["word"] == "PASS"
+
+
 def test_propose_keeps_an_existing_out_file(tmp_path):
     """`propose --out` onto an existing file: exit 2 before any run, the file unchanged;
     a folder in its place is never replaced, even with --force."""

@@ -493,7 +493,11 @@ def test_reading_a_wal_history_creates_nothing_beside_it(tmp_path, command):
     ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": "fast"}]}',
      "samples_s"),
     ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": [0.1, 0.1, 0.1],'
-     ' "cpu_samples_s": 5}]}', "records[0].cpu_samples_s: not a list of durations")])
+     ' "cpu_samples_s": 5}]}', "records[0].cpu_samples_s: not a list of timing samples"),
+    ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": [0.0, 0.0, 0.0]}]}',
+     "records[0].samples_s: not a list of timing samples (s, each at least 1e-12)"),
+    ('{"records": [{"case": "pendulum", "engine": "natcoord", "samples_s": [1e-320, 1e-3]}]}',
+     "records[0].samples_s: not a list of timing samples")])
 def test_a_malformed_bench_json_exits_2_naming_it(tmp_path, text, problem):
     d = _gate_folder(tmp_path)
     (d / "bench.json").write_text(text)
@@ -833,3 +837,43 @@ def test_gate_and_report_read_the_last_run_by_default(tmp_path):
     assert (first / "index.html").is_file()
     _clean(_cli("run", "no_such_case", "--engines", "natcoord", env=env), 2)
     assert (home / "reports" / "latest").resolve() == first
+
+
+def test_json_for_machines_is_strict():
+    """Every --json output and stored JSON goes through one writer: a non-finite number
+    is null, never the NaN / Infinity tokens a strict JSON reader refuses (compare --json
+    printed "speed_ratio": NaN and "worst_of_tolerance_new": Infinity)."""
+    import json
+
+    import numpy as np
+
+    from natcoord.suite.io import json_text
+
+    text = json_text({"a": float("inf"), "b": [np.float64("nan"), np.float32(1.5)], "c": 2})
+    assert json.loads(text, parse_constant=lambda c: pytest.fail(c)) == {
+        "a": None, "b": [None, 1.5], "c": 2}
+
+
+def test_report_keeps_a_page_it_did_not_write(tmp_path):
+    """`report --results` of a folder holding the user's own index.html (no marker):
+    exit 2 naming it, the page kept, where it was replaced silently. natcoord's own page
+    there (a marker listing it, or its generator tag in a folder without a marker) is
+    rewritten; a link in its place is kept."""
+    d = tmp_path / "r"
+    shutil.copytree(_real_run(), d)
+    args = ("report", "--results", d, "--references", REFERENCES,
+            "--history", tmp_path / "none.db")
+    _clean(_cli(*args), 0)  # the marker lists the page natcoord wrote: rewritten
+    (d / ".natcoord-results").unlink()
+    _clean(_cli(*args), 0)  # no marker: its own page, by its generator tag
+    mine = "<html><body>my page</body></html>"
+    (d / "index.html").write_text(mine)
+    p = _cli(*args)
+    _clean(p, 2)
+    said = " ".join(p.stderr.split())
+    assert "index.html: not a report natcoord wrote" in said, said
+    assert (d / "index.html").read_text() == mine
+    (d / "index.html").unlink()
+    (d / "index.html").symlink_to(tmp_path / "elsewhere.html")
+    _clean(_cli(*args), 2)
+    assert (d / "index.html").is_symlink() and not (tmp_path / "elsewhere.html").exists()

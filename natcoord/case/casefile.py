@@ -88,6 +88,8 @@ MIN_TIMEOUT_S, MAX_TIMEOUT_S = 1e-3, 7 * 24 * 3600.0  # an engine run's time lim
 MAX_DURATION_S = 1e5
 MAX_NAME = 64
 MAX_MAGNITUDE = 1e150  # a quantity's size: its square (energies, norms) must not overflow
+MIN_POSITIVE = 1e-150  # a positive quantity's least: its square must not underflow to 0, a
+# ratio over it (an error over a tolerance of 1e-320) must not overflow to inf
 MAX_TEXT = 10_000
 RESERVED_CHANNELS = ("t", "time")  # result and reference CSVs' time column
 # a name, at most MAX_NAME characters: the pattern bounds the length, so every check of a
@@ -180,6 +182,9 @@ class _Reader:
                       "square would overflow)")
         if positive and x <= 0:
             self.fail(field, f"must be positive, got {value!r}")
+        if positive and x < MIN_POSITIVE:
+            self.fail(field, f"{short(value)} is below {MIN_POSITIVE:g} (its square would "
+                      "underflow to zero)")
         return float(x)
 
     def number(self, table, key, path, dimension, *, required=True, default=None,

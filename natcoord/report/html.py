@@ -33,6 +33,7 @@ from markupsafe import Markup, escape
 
 from ..case.mechanism import FORCE_KINDS
 from ..engines import engine_names
+from ..errors import NatcoordError
 from . import balance, changes, front, redundant, speed, trends
 from .lazy import FigureStore, to_text
 from .look import style
@@ -195,7 +196,7 @@ _CELL = {
     "unsupported": ("unsupported", "unsupported"),
     "skipped": ("skipped", "skipped"),
     "no-reference": ("no reference", "noref"),
-    "n/a": ("ran", "na"),
+    "n/a": ("not judged", "na"),
     "missing": ("not run", "missing"),
 }
 
@@ -239,9 +240,10 @@ def as_judged(records: list[dict], verdict) -> tuple[list[dict], list[str]]:
     (:func:`natcoord.suite.gate.judge`'s ``verdict``; the summary's own verdicts and
     errors are never shown then): a cell judged gets the gate's verdict and recomputed
     channels, a cell whose files cannot be trusted fails with the gate's reason. Also
-    returns the gate's lines about the folder as a whole (a result file without its
-    record, a file natcoord wrote that is gone ...)."""
-    out = []
+    returns the gate's lines that fail the page: about the folder as a whole (a result
+    file without its record, a file natcoord wrote that is gone ...) and about a cell it
+    cannot judge because a file it judges with cannot be trusted (a damaged reference)."""
+    out, faults = [], list(verdict.folder_faults)
     for r in records:
         key = f"{r.get('case')}/{r.get('engine')}"
         said = "; ".join(verdict.said.get(key, ()))
@@ -254,13 +256,16 @@ def as_judged(records: list[dict], verdict) -> tuple[list[dict], list[str]]:
         elif outcome is not None:  # cannot judge (no reference, no tolerance ...)
             r = {**r, "verdict": "no-reference" if r.get("verdict") == "no-reference"
                  else "n/a", "channels": {}, "reason": said or r.get("reason")}
+            faults += [f"{key}: {line}" for line in verdict.said.get(key, ())
+                       if f"{key}: {line}" in verdict.faults]
         out.append(r)
-    return out, verdict.folder_faults
+    return out, faults
 
 
 def overall_verdict(records: list[dict], faults: list[str] = ()) -> dict:
-    """The page's verdict over the cells; ``faults``: lines about the folder's evidence
-    as a whole (:func:`as_judged`), each of which fails it."""
+    """The page's verdict over the cells; ``faults``: lines about evidence that cannot be
+    trusted (:func:`as_judged`), each of which fails it. PASS only when every cell that
+    ran was judged and passed, as the gate's exit 0."""
     cells = [cell_for(r) for r in records]
     counts: dict[str, int] = {}
     for c in cells:
@@ -277,6 +282,8 @@ def overall_verdict(records: list[dict], faults: list[str] = ()) -> dict:
         state, word = "fail", "FAIL"
     elif counts.get("pass", 0) == 0:
         state, word = "incomplete", "NOT GATED"
+    elif counts.get("no-reference", 0) + counts.get("n/a", 0):  # the gate fails (exit 2)
+        state, word = "incomplete", "PARTLY GATED"  # while a cell that ran is not judged
     else:
         state, word = "pass", "PASS"
     parts = []
@@ -791,6 +798,27 @@ def render(context: dict) -> str:
     return re.sub(r"\n[ \t]+", "\n", page)  # indentation: the page has no <pre>
 
 
+def _replaceable(out: Path) -> bool:
+    """Whether the page ``out`` may be (re)written: absent, or natcoord's: a file its
+    folder's marker lists, or whose head names natcoord as its generator (a report of a
+    folder written without a marker). A user's own page, or a link, is kept."""
+    from ..suite import outdir
+
+    if not out.exists() and not out.is_symlink():
+        return True
+    if out.is_symlink() or not out.is_file():
+        return False
+    marker = outdir.read_marker(out.parent)
+    if marker is not None and out.name in marker["files"]:
+        return True
+    try:
+        with open(out, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return b'<meta name="generator" content="natcoord ' in head
+
+
 def write_report(results_dir: Path, references: Path = Path("references"),
                  history: Path | None = None, verdict=None) -> Path:
     """Write ``results_dir/index.html`` from the run's results, the stored references and,
@@ -801,8 +829,13 @@ def write_report(results_dir: Path, references: Path = Path("references"),
     from ..suite import outdir
 
     results_dir = Path(results_dir)
-    html = render(build_context(results_dir, references, history, verdict))
     out = results_dir / "index.html"
+    if not _replaceable(out):
+        raise NatcoordError(f"{out}: not a report natcoord wrote (the folder's marker does "
+                            "not list it, and it does not name natcoord as its generator); "
+                            "natcoord replaces only its own: move it, then run the command "
+                            "again")
+    html = render(build_context(results_dir, references, history, verdict))
     tmp = out.with_suffix(".html.tmp")
     with outdir.recording(results_dir, [out.name, tmp.name]):
         tmp.write_text(html, encoding="utf-8")

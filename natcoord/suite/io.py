@@ -133,8 +133,14 @@ def _clean(x):
     return x
 
 
+def json_text(data) -> str:
+    """``data`` as strict JSON (NaN and inf as null, never the NaN/Infinity tokens a JSON
+    reader refuses; an object JSON has no type for as its text)."""
+    return json.dumps(_clean(data), indent=1, default=str, allow_nan=False)
+
+
 def write_json(path: Path, data) -> None:
-    write_atomic(path, json.dumps(_clean(data), indent=1, sort_keys=False) + "\n")
+    write_atomic(path, json_text(data) + "\n")
 
 
 def write_csv(path: Path, table: pd.DataFrame) -> None:

@@ -30,9 +30,18 @@ def _number(x) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
-def _durations(xs) -> bool:
-    return isinstance(xs, list) and all(_number(s) and math.isfinite(s) and s >= 0
+MIN_SAMPLE_S = 1e-12  # a timing sample's least: a run of 0 s (or 1e-320 s) made speed
+# ratios NaN or inf
+
+
+def _durations(xs, least: float = 0.0) -> bool:
+    return isinstance(xs, list) and all(_number(s) and math.isfinite(s) and s >= least
                                         for s in xs)
+
+
+def _samples(xs) -> bool:
+    """A list of timing samples (s per run), each at least MIN_SAMPLE_S."""
+    return _durations(xs, MIN_SAMPLE_S)
 
 
 _KINDS = {"a string": lambda x: isinstance(x, str), "a number": _number,
@@ -65,9 +74,10 @@ def check_bench(path: Path, data) -> dict:
     for k in ("machine", "cold_start"):
         if k in data and not isinstance(data[k], dict):
             raise StoredFileError(f"{path}: {k}: not a table")
-    if "samples_s" in data.get("cold_start", {}) and not _durations(
+    if "samples_s" in data.get("cold_start", {}) and not _samples(
             data["cold_start"]["samples_s"]):
-        raise StoredFileError(f"{path}: cold_start.samples_s: not a list of durations (s)")
+        raise StoredFileError(f"{path}: cold_start.samples_s: not a list of timing samples "
+                              f"(s, each at least {MIN_SAMPLE_S:g})")
     for i, r in enumerate(records):
         where = f"{path}: records[{i}]"
         if not isinstance(r, dict):
@@ -76,8 +86,9 @@ def check_bench(path: Path, data) -> dict:
             if not isinstance(r.get(k), str):
                 raise StoredFileError(f"{where}.{k}: missing or not a string")
         for k in _SAMPLES:
-            if k in r and not _durations(r[k]):
-                raise StoredFileError(f"{where}.{k}: not a list of durations (s)")
+            if k in r and not _samples(r[k]):
+                raise StoredFileError(f"{where}.{k}: not a list of timing samples (s, each at "
+                                      f"least {MIN_SAMPLE_S:g})")
         if r.get("status", "ok") == "ok" and r.get("samples_s") == []:  # NaN speed ratios
             raise StoredFileError(f"{where}.samples_s: not a list of durations (s): "
                                   "empty, in a record with status ok")
@@ -126,8 +137,9 @@ def _check_record(where: str, r) -> None:
     _optional(r, _TEXTS, "a string", f"{where}.")
     _optional(r, _RECORD_NUMBERS, "a number", f"{where}.")
     _optional(r, _TABLES, "a table", f"{where}.")
-    if "samples_s" in r and not _durations(r["samples_s"]):
-        raise StoredFileError(f"{where}.samples_s: not a list of durations (s)")
+    if "samples_s" in r and not _samples(r["samples_s"]):
+        raise StoredFileError(f"{where}.samples_s: not a list of timing samples (s, each at "
+                              f"least {MIN_SAMPLE_S:g})")
     if "notes" in r and not (isinstance(r["notes"], list)
                              and all(isinstance(x, str) for x in r["notes"])):
         raise StoredFileError(f"{where}.notes: not a list of strings")
