@@ -492,7 +492,7 @@ def gate_cmd(results: ResultsDir = None,
 
     results = _results_dir(results)
     baseline = resolve(baseline, "references/baseline.json")
-    required = set(_engines(require, "--require")) if require else None
+    required = set(_engines(require, "--require")) if require is not None else None
 
     def judge():
         try:
@@ -1018,6 +1018,11 @@ def history_cmd(cell: Annotated[str | None, typer.Option(
     from .suite import history as hist
     from .suite import history_views as views
 
+    asked = [name for name, given in (("--cell", cell is not None),
+                                      ("--since-green", since_green), ("--flaky", flaky_))
+             if given]
+    if len(asked) > 1:
+        _fail(f"{' and '.join(asked)} ask for different views: give one")
     db = resolve(history, "reports/history.db")
     try:
         hist.check(db)

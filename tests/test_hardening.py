@@ -311,6 +311,11 @@ def test_an_unknown_engine_is_refused_naming_the_option_that_named_it(tmp_path):
         assert f"error: {given}: unknown engine 'nosuch'; engines are natcoord" in p.stderr, \
             p.stderr
         _no_traceback(p)
+    p = _cli("gate", "--results", d, "--require", " ")  # passed, requiring nothing
+    assert p.returncode == 2 and "--require: no engine named in ' '" in p.stderr, p.stderr
+    p = _cli("history", "--flaky", "--since-green", "--history", tmp_path / "h.db")
+    assert p.returncode == 2 and "--since-green and --flaky ask for different views: give " \
+        "one" in p.stderr, p.stderr  # --flaky was dropped without a word
     p = _cli("check-engine", "natcoord,mujoco")  # was a KeyError with a traceback
     assert p.returncode == 2 and "check-engine NAME: one engine name expected, got " \
         "'natcoord,mujoco'" in p.stderr, p.stderr
