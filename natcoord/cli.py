@@ -1138,7 +1138,7 @@ def compare_cmd(base: Annotated[Path, typer.Argument(help="The earlier results f
     for col in ("case", "engine", "status", "verdict", "worst/tol before", "worst/tol now",
                 "speed ratio", "p"):
         table.add_column(col)
-    fmt = lambda x, f: "" if x is None else format(x, f)  # noqa: E731
+    fmt = lambda x, f: "" if x is None or x != x else format(x, f)  # noqa: E731 (nan: none)
     for r in c.rows:
         table.add_row(escape(r["case"]), r["engine"], r["status"], r["verdict"],
                       fmt(r["worst_of_tolerance_base"], ".3g"),

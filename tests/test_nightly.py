@@ -39,7 +39,8 @@ def test_speed_rule_needs_factor_significance_and_power():
     assert three.judged and three.slower  # calibrated samples: 3 vs 3 have the power
     two = speed.judge("c", "e", base[:2], [3 * x for x in base[:2]])
     assert not two.judged and not two.slower  # no power: said so, never a silent pass
-    assert "cannot judge speed: 2 vs 2 samples" in two.line()
+    assert "cannot judge speed: 2 -> 2 samples" in two.line()
+    assert two.p == pytest.approx(1 / 6)  # the exact test's own p (was shown as 1.0)
     assert speed.judge("c", "e", base, [3 * base[0]]).judged is False  # 1 vs 7
     c = speed.judge("c", "e", base, base, {"steps": 70}, {"steps": 71})
     assert c.counters == {"steps": (70, 71)}  # a behaviour change, reported apart
@@ -125,7 +126,7 @@ def test_compare_says_it_cannot_judge_speed_on_too_few_samples(tmp_path, pendulu
     slow = _doctored(a, tmp_path / "slow", cut(3))
     p = _cli("compare", few, slow)
     assert p.returncode == 0, p.stderr
-    assert "pendulum/natcoord: cannot judge speed: 2 vs 2 samples" in p.stderr, p.stderr
+    assert "pendulum/natcoord: cannot judge speed: 2 -> 2 samples" in p.stderr, p.stderr
     j = json.loads(_cli("compare", few, slow, "--json").stdout)
     (un,) = j["cannot_judge_speed"]
     assert (un["case"], un["n_base"], un["n_new"], un["judged"]) == ("pendulum", 2, 2, False)
@@ -225,7 +226,7 @@ def test_gate_judges_speed_against_history(tmp_path, pendulum_folder):
             r[key] = r[key][:1]
     lone = _doctored(a, tmp_path / "lone", one)
     p = _cli("gate", "--results", lone, "--history", db)
-    assert p.returncode == 0 and "cannot judge speed: 1 vs 7 samples" in p.stderr, p.stderr
+    assert p.returncode == 0 and "cannot judge speed: 7 -> 1 samples" in p.stderr, p.stderr
 
 
 

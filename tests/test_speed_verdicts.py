@@ -177,7 +177,7 @@ def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
     assert judged.clock == "cpu" and not judged.slower and not judged.judged  # 3 vs 2
     assert unseen.n_base == 0 and not unseen.judged
     notes = diff.speed_notes([judged, unseen], db)
-    assert notes[0].startswith("c/natcoord: cannot judge speed: 3 vs 2 samples")
+    assert notes[0].startswith("c/natcoord: cannot judge speed: 2 -> 3 samples")
     assert notes[1].startswith("speed not judged for 1 cell(s): no earlier benchmark")
 
 

@@ -69,12 +69,12 @@ class SpeedChange:
 
     def line(self) -> str:
         if not self.judged:
-            return (f"{self.case}/{self.engine}: cannot judge speed: {self.n_new} vs "
-                    f"{self.n_base} samples (the rank test needs at least 3 vs 3 to reach "
+            return (f"{self.case}/{self.engine}: cannot judge speed: {self.n_base} -> "
+                    f"{self.n_new} samples (the rank test needs at least 3 and 3 to reach "
                     f"p <= {ALPHA:g}; median {self.ratio:.3g}x, {self.clock} time)")
         what = "SLOWER" if self.slower else "faster" if self.ratio < 1 else "same"
         return (f"{self.case}/{self.engine}: {what}: median {self.ratio:.3g}x "
-                f"(p = {self.p:.2g}, {self.n_new} vs {self.n_base} samples, "
+                f"(p = {self.p:.2g}, {self.n_base} -> {self.n_new} samples, "
                 f"{self.clock} time)")
 
 
@@ -104,7 +104,8 @@ def judge(case: str, engine: str, base: list[float], new: list[float],
     ratio = statistics.median(n) / statistics.median(b) if b and n else float("nan")
     judged = has_power(len(b), len(n))
     p = (float(mannwhitneyu(n, b, alternative="greater", method="exact").pvalue)
-         if judged and ratio > 1 else 1.0)
+         if b and n else float("nan"))  # the test's own p, also where too few samples
+    # give it no power to reach ALPHA (then the cell is not judged on it)
     changed = {k: (base_counters[k], v) for k, v in (new_counters or {}).items()
                if base_counters and k in base_counters and base_counters[k] != v}
     return SpeedChange(case, engine, ratio, p, len(b), len(n),
