@@ -187,6 +187,10 @@ def test_tolerances_come_from_the_case_file(folder, tmp_path):
     assert p.returncode == 1 and "theta max error" in p.stderr and "> tolerance 1e-15" \
         in p.stderr, p.stderr
     assert "changed since the run" in p.stderr
+    r = _cli("report", "--results", folder, "--history", tmp_path / "none.db", env=env)
+    _clean(r)  # the page says what the gate noted, beside its verdict
+    assert r.returncode == 0 and "pendulum.toml changed since the run; judged with its " \
+        "tolerances as they are now" in (folder / "index.html").read_text(), r.stderr
 
 
 def test_the_baseline_stores_the_errors_judged_not_the_summarys(folder, tmp_path):

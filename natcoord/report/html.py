@@ -745,7 +745,8 @@ def build_context(results_dir: Path, references: Path = Path("references"),
         "engine_versions": engine_versions,
         "engines": [{"name": e, "color": colors[e]} for e in engines],
         "overall": overall_verdict(records, faults),
-        "matrix": matrix,
+        "gate_notes": list(verdict.notes) if verdict is not None else [],  # judged, but
+        "matrix": matrix,  # with a caveat (a case file changed since the run)
         "footnotes": footnotes,
         "cases": cases,
         "speed": speed_ctx,
