@@ -259,3 +259,46 @@ def test_a_quantity_whose_square_overflows_is_refused(case_variant, sub, field, 
         load_case(path)
     assert info.value.field == field, str(info.value)
     assert reason in info.value.reason, str(info.value)
+
+
+PLANAR_POINTS = """
+name = "flat"
+description = "a plate on a spherical joint, its points in one plane"
+dimension = 3
+gravity = [0.0, 0.0, -9.81]
+duration = 1.0
+output_dt = 0.01
+
+[ground]
+points = { O = [0.0, 0.0, 0.0] }
+
+[[bodies]]
+name = "plate"
+kind = "rigid"
+mass = 1.0
+com = COM
+inertia = [[0.001, 0.0, 0.0], [0.0, 0.0833333333, 0.0], [0.0, 0.0, 0.0833333333]]
+points = { O = [0.0, 0.0, 0.0], P = [1.0, 0.0, 0.0], Q = [0.0, 1.0, 0.0] }
+
+[[joints]]
+name = "O"
+type = "spherical"
+bodies = ["ground", "plate"]
+points = ["O", "O"]
+
+[channels]
+zP = { kind = "position", body = "plate", point = "P", axis = "z" }
+"""
+
+
+@pytest.mark.parametrize("com, what", [("[0.5, 0.0, 0.0]", "its inertia (a moment about the "
+                                        "plane) leaves that plane"),
+                                       ("[0.5, 0.0, 0.2]", "its centre of mass leaves")])
+def test_a_body_whose_mass_leaves_its_points_plane_names_what_does(tmp_path, com, what):
+    """It said "its mass (centre of mass or inertia) leaves that plane" of a centre of
+    mass in the plane."""
+    (tmp_path / "flat.toml").write_text(PLANAR_POINTS.replace("COM", com))
+    with pytest.raises(CaseError) as info:
+        load_case(tmp_path / "flat.toml")
+    assert info.value.field == "bodies[0] (plate).points", str(info.value)
+    assert what in info.value.reason, str(info.value)

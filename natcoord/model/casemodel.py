@@ -235,10 +235,16 @@ def build(case: Case, coordinates: str = "joints") -> CaseModel:
             b.body(body.name, basis[body.name], mass=body.mass, com=o0 + R0 @ body.com,
                    second_moment=Jg, frame=(R0, o0))
         except ValueError:  # its mass leaves the span of its points: no frame to carry it
+            pts = np.array(list(ref[body.name].values()), float)
+            com = o0 + R0 @ body.com
+            span = np.linalg.matrix_rank(pts[1:] - pts[0], 1e-9) if len(pts) > 1 else 0
+            off = np.linalg.matrix_rank(np.vstack([pts[1:] - pts[0], com - pts[0]]),
+                                        1e-9) > span
+            what = "its centre of mass" if off else "its inertia (a moment about the plane)"
             raise ModelError(f"bodies[{i}] ({body.name}).points", "its points span only a "
-                             "plane and no joint gives it an axis out of that plane, but its "
-                             "mass (centre of mass or inertia) leaves that plane: they cannot "
-                             "define its frame; add a point out of the plane") from None
+                             f"plane and no joint gives it an axis out of that plane, but "
+                             f"{what} leaves that plane: they cannot define its frame; add "
+                             "a point out of the plane") from None
     for name, bodies in owner.items():
         for body in bodies:
             if name not in basis[body]:
