@@ -302,3 +302,24 @@ def test_a_body_whose_mass_leaves_its_points_plane_names_what_does(tmp_path, com
         load_case(tmp_path / "flat.toml")
     assert info.value.field == "bodies[0] (plate).points", str(info.value)
     assert what in info.value.reason, str(info.value)
+
+
+def test_initial_rates_that_depend_on_each_other_are_named_so(tmp_path):
+    """Three rates for a spherical joint's three freedoms, one of them (xP's, along the
+    rod) fixed by the constraints already: "sets 3" read as enough; now it says that two
+    count and one direction is left open."""
+    from natcoord.errors import AssemblyError
+    from natcoord.model import casemodel
+
+    text = PLANAR_POINTS.replace("COM", "[0.5, 0.0, 0.0]").replace(
+        'Q = [0.0, 1.0, 0.0] }', 'Q = [0.0, 1.0, 0.0], R = [0.0, 0.0, 1.0] }').replace(
+        "[channels]\n", '[initial]\nvelocity = { yP = 2.0, zP = 0.0, xP = 0.0 }\n\n'
+        '[channels]\nxP = { kind = "position", body = "plate", point = "P", axis = "x" }\n'
+        'yP = { kind = "position", body = "plate", point = "P", axis = "y" }\n')
+    (tmp_path / "flat.toml").write_text(text)
+    case = load_case(tmp_path / "flat.toml")
+    with pytest.raises(AssemblyError) as info:
+        casemodel.initial_state(casemodel.build(case))
+    assert "degree(s) of freedom left by its drivers, but initial.velocity sets 3, of which " \
+        "2 fix a velocity the constraints leave free" in str(info.value), str(info.value)
+    assert "1 velocity direction(s) left open" in str(info.value)

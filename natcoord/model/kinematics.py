@@ -127,10 +127,16 @@ def solve_velocity(model, q: np.ndarray, given: list[Prescribed] = (),
     if res > 1e-9 * max(1.0, np.max(np.abs(qd))):
         raise AssemblyError(f"the initial velocities are inconsistent with the constraints "
                             f"and drivers (residual {res:.3g})")
-    if np.linalg.matrix_rank(A, 1e-9) < model.n:
+    rank = int(np.linalg.matrix_rank(A, 1e-9))
+    if rank < model.n:
+        fixed = rank - (model.n - dof)  # what the rates fix beyond the constraints
+        which = (f"{len(given)}, of which {fixed} fix a velocity the constraints leave "
+                 "free (the others follow from them and the constraints)"
+                 if fixed < len(given) else str(len(given)))
         raise AssemblyError(f"the mechanism has {dof} degree(s) of freedom left by its "
-                            f"drivers, but initial.velocity sets {len(given)}: the rates "
-                            "given must fix every velocity")
+                            f"drivers, but initial.velocity sets {which}: {dof - fixed} "
+                            "velocity direction(s) left open; the rates given must fix "
+                            "every velocity")
     return qd
 
 
