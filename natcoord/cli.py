@@ -333,9 +333,10 @@ def counts_line(records: list[dict]) -> str:
 @app.command("cases")
 def cases_cmd(cases_dir: CasesDir = None,
               as_json: Annotated[bool, typer.Option(
-                  "--json", help="Print JSON: cases (per case its name, description, file "
-                                 "and, per engine, null (it can run it) or the reason it "
-                                 "cannot), engines (per engine its package, adapter module, "
+                  "--json", help="Print JSON: cases (per case its name, description, file, "
+                                 "per engine null (it can run it) or the reason it cannot, "
+                                 "and absent_engines: blocks of engines not installed here), "
+                                 "engines (per engine its package, adapter module, "
                                  "built-in or plug-in, capabilities and settings schema) and "
                                  "engine_problems (plug-ins that do not load).")] = False):
     """List the cases with a one-line description, the engines that can run each and, for
@@ -352,7 +353,8 @@ def cases_cmd(cases_dir: CasesDir = None,
         reg = discover()
         _print_json({
             "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
-                       "engines": {e: (why[c.name, e] or None) for e in names}}
+                       "engines": {e: (why[c.name, e] or None) for e in names},
+                       "absent_engines": list(c.absent_engines)}
                       for c in (job.case for job in jobs)],
             "engines": {e: {"package": adapter(e).PACKAGE, "module": reg.modules[e],
                             "origin": "built-in" if reg.builtin(e) else "plug-in",
@@ -372,6 +374,10 @@ def cases_cmd(cases_dir: CasesDir = None,
         table.add_row(escape(c.name), escape(c.description), " ".join(can),
                       escape("\n".join(cannot)))
     out.print(table)
+    for c in (job.case for job in jobs):
+        for e in c.absent_engines:
+            err.print(escape(f"note: {c.file}: [engines.{e}]: no engine {e!r} is installed "
+                             "here; its block is not used"), highlight=False)
 
 
 def _short(reason: str, width: int = 100) -> str:

@@ -55,7 +55,9 @@ MALFORMED = [
     ("tolerance on unknown channel", [(r"^angle = 1e-9", "thetta = 1e-9")],
      "engines.natcoord.tolerance.thetta", "neither a channel"),
     ("unknown engine", [(r"^\[engines.natcoord\]", "[engines.bullet]")], "engines.bullet",
-     "unknown engine"),
+     "unknown engine 'bullet' (did you mean pybullet?)"),
+    ("no engine's name", [(r"^\[engines.natcoord\]", '["engines"."my-plug"]')],
+     "engines.my-plug", "unknown engine 'my-plug'"),
     ("zero prismatic axis", [(r"^axis = \[1.0, 0.0\]", "axis = [0.0, 0.0]")],
      "joints[3] (slide).axis", "must not be zero"),
     ("engine step not dividing output_dt", [(r"^\[engines.mujoco.settings\]\ndt = 1e-4",
@@ -323,3 +325,34 @@ def test_initial_rates_that_depend_on_each_other_are_named_so(tmp_path):
     assert "degree(s) of freedom left by its drivers, but initial.velocity sets 3, of which " \
         "2 fix a velocity the constraints leave free" in str(info.value), str(info.value)
     assert "1 velocity direction(s) left open" in str(info.value)
+
+
+def test_a_plugins_block_loads_where_the_plugin_is_not_installed(case_variant, tmp_path):
+    """A case file with tolerances for a plug-in engine (as its author's repository keeps
+    it) loads on a machine without that plug-in: the block is checked as far as it can be
+    (tolerances, reason) and not used; `natcoord cases` says so. It was refused (exit 2),
+    which took every command of that machine down with it."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    block = ('[engines.myplug]\nreason = "measured on my machine"\nsettings = { dt = 1e-3 }'
+             '\n[engines.myplug.tolerance]\nangle = 1e-6\n\n[engines.natcoord]')
+    path = case_variant("slider_crank", [(r"^\[engines.natcoord\]", block)])
+    case = load_case(path)
+    assert case.absent_engines == ("myplug",) and "myplug" not in case.engines
+    assert set(case.engines) >= {"natcoord", "mujoco"}
+    bad = case_variant("slider_crank", [(r"^\[engines.natcoord\]", block.replace(
+        "angle = 1e-6", "angle = -1.0")), (r'^name = "slider_crank"', 'name = "bad"')],
+        stem="bad")
+    with pytest.raises(CaseError) as info:  # what can be checked still is
+        load_case(bad)
+    assert info.value.field == "engines.myplug.tolerance.angle", str(info.value)
+    bad.unlink()
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "cases", "--cases-dir",
+                        str(tmp_path)], capture_output=True, text=True, timeout=300,
+                       cwd=ROOT, env={**__import__("os").environ, "COLUMNS": "200"})
+    assert p.returncode == 0, p.stderr
+    assert "[engines.myplug]: no engine 'myplug' is installed here; its block is not used" \
+        in " ".join(p.stderr.split()), p.stderr

@@ -413,3 +413,37 @@ def test_the_prior_is_written_from_a_suite_folder(tmp_path):
     path = eta.write_prior(suite, tmp_path)
     assert eta.prior(tmp_path) == {("run", "c", "e"): 2.5}  # a carried record is no time
     assert json.loads(path.read_text())["measured"]["machine"] == {"cores": 2}
+
+
+def test_the_reference_durations_are_written_from_a_full_suite_into_the_project(tmp_path):
+    """`python -m natcoord.suite.eta RESULTS_DIR` wrote the installed checkout's
+    references/durations.json whatever NATCOORD_HOME said, took a one-case quick suite as
+    the whole suite's durations, and answered --help with a traceback."""
+    import subprocess
+    import sys
+
+    from .conftest import ROOT
+
+    home = tmp_path / "project"
+    (home / "cases").mkdir(parents=True)
+    (home / "references").mkdir()
+    folder = tmp_path / "suite"
+    folder.mkdir()
+    (folder / "summary.json").write_text('{"records": [], "generated": "2026-11-28"}')
+    (folder / "bench.json").write_text('{"records": [], "policy": {"mode": "quick"}}')
+    shipped = (ROOT / "references" / "durations.json").read_bytes()
+
+    def eta(*args):
+        return subprocess.run([sys.executable, "-m", "natcoord.suite.eta", *map(str, args)],
+                              capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                              env={**os.environ, "NATCOORD_HOME": str(home)})
+
+    p = eta("--help")
+    assert p.returncode == 0 and "usage: python -m natcoord.suite.eta" in p.stdout, p.stderr
+    p = eta(folder)
+    assert p.returncode == 2 and "not a full suite's folder" in p.stderr, p.stderr
+    assert "Traceback" not in p.stderr and not (home / "references" / "durations.json").exists()
+    (folder / "bench.json").write_text('{"records": [], "policy": {"mode": "nightly"}}')
+    p = eta(folder)
+    assert p.returncode == 0 and (home / "references" / "durations.json").is_file(), p.stderr
+    assert (ROOT / "references" / "durations.json").read_bytes() == shipped

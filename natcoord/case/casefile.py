@@ -382,13 +382,18 @@ def load_case(path: str | Path) -> Case:
     fix = _channel_values(r, init, "fix", channels, ("angle", "position"))
     velocity = _channel_values(r, init, "velocity", channels, ("angle", "position"))
 
-    engines = {}
+    engines, absent = {}, []
     for ename, spec in r.table(data, "engines", "", required=False).items():
         p = f"engines.{ename}"
         known = _engine_names()
         if ename not in known:
-            r.fail(p, f"unknown engine {ename!r}; expected one of {', '.join(known)} (a "
-                   "plug-in engine must be installed: see natcoord cases)")
+            from ..engines.registry import ENGINE_NAME
+            close = difflib.get_close_matches(ename, known, n=1, cutoff=0.75)
+            if close or not ENGINE_NAME.fullmatch(ename):  # a typo, or no engine's name
+                r.fail(p, f"unknown engine {short(ename)}" + (
+                    f" (did you mean {close[0]}?)" if close else "") + f"; engines are "
+                    f"{', '.join(known)} (a plug-in engine must be installed: see "
+                    "natcoord cases)")
         tol = {}
         for key, value in r.table(spec, "tolerance", p, required=False).items():
             if key not in CHANNEL_KINDS and key not in {c.name for c in channels}:
@@ -397,6 +402,11 @@ def load_case(path: str | Path) -> Case:
                                   positive=True)
         r.known(spec, ENGINE_KEYS, p)
         settings = r.table(spec, "settings", p, required=False)
+        if ename not in known:  # a plug-in not installed here: its block is checked as
+            r.string(spec, "reason", p, required=bool(tol), default="")  # far as it can
+            r.string(spec, "unsupported", p, required=False, default="")  # be, not used
+            absent.append(ename)  # (a case file shared with other machines still loads)
+            continue
         for field, reason in _engine_settings(ename, settings, output_dt):
             r.fail(f"{p}.settings" + (f".{field}" if field else ""), reason)
         engines[ename] = EngineSpec(
@@ -417,6 +427,7 @@ def load_case(path: str | Path) -> Case:
                 dimension=dim, gravity=gravity, duration=duration, output_dt=output_dt,
                 ground=ground, bodies=bodies, joints=joints, forces=forces,
                 guess=guess, fix=fix, velocity=velocity, channels=channels, engines=engines,
+                absent_engines=tuple(absent),
                 tags=tags, drivers=drivers, rods=rods, springs=springs, reactions=reactions,
                 pose_tolerance=1e-6 if reference_frame else float("inf"),
                 comparison=comparison, timeout=timeout, benchmark=benchmark,

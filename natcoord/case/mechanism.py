@@ -276,6 +276,8 @@ class Case:
     channels: tuple[Channel, ...]
     engines: dict[str, EngineSpec]
     tags: tuple[str, ...] = ()
+    absent_engines: tuple[str, ...] = ()  # [engines.X] blocks of engines not installed
+    # here (plug-ins of another machine): loaded, not used
     drivers: tuple[Driver, ...] = ()
     rods: tuple[Rod, ...] = ()
     springs: tuple[Spring, ...] = ()

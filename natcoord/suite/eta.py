@@ -21,7 +21,7 @@ A machine with no suite of its own yet expects the durations of a reference suit
 shipped with the cases (:func:`prior`: ``references/durations.json``, measured on a fresh
 clone of a 2-core machine, first night: numba compiling included), scaled by tonight's pace
 like any other expectation; ``python -m natcoord.suite.eta RESULTS_DIR`` writes that file
-from a suite's folder.
+from a full suite's folder (:func:`main`).
 """
 
 from __future__ import annotations
@@ -207,7 +207,38 @@ class Eta:
         return rest * ((1 - w) + w * self.pace(done))
 
 
-if __name__ == "__main__":  # python -m natcoord.suite.eta RESULTS_DIR [REFERENCES]
-    ref = Path(sys.argv[2]) if len(sys.argv) > 2 else Path(__file__).resolve().parents[2] / \
-        "references"
-    print(write_prior(Path(sys.argv[1]), ref))
+def main(argv=None) -> int:
+    """``python -m natcoord.suite.eta RESULTS_DIR [--references DIR]``: write the reference
+    suite's durations from a full (nightly) suite's folder into the project's references
+    (``$NATCOORD_HOME`` or the project folder), or the folder given."""
+    import argparse
+
+    from ..case.project import resolve
+    from ..errors import NatcoordError
+
+    p = argparse.ArgumentParser(prog="python -m natcoord.suite.eta", description=(
+        "Write the reference suite's durations (references/durations.json) from a full "
+        "nightly suite's folder, into the project's references ($NATCOORD_HOME or the "
+        "project folder) or the folder given."))
+    p.add_argument("results", type=Path, help="a suite's results folder")
+    p.add_argument("--references", type=Path, default=None,
+                   help="folder to write durations.json in [default: <project>/references]")
+    a = p.parse_args(argv)
+    try:
+        summary = read_json(a.results / "summary.json")
+        bench = (read_json(a.results / "bench.json") if (a.results / "bench.json").is_file()
+                 else {})
+        if summary.get("mode") == "quick" or (bench.get("policy") or {}).get(
+                "mode") != "nightly":
+            raise NatcoordError(f"{a.results}: not a full suite's folder (a nightly "
+                                "`natcoord suite` writes its bench.json with the nightly "
+                                "policy): its durations would stand for the whole suite")
+        print(write_prior(a.results, resolve(a.references, "references")))
+    except NatcoordError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
