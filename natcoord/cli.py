@@ -63,7 +63,7 @@ MAX_REPEATS = 1000  # timing samples per cell
 MAX_BUDGET_S = 7 * 24 * 3600.0  # a night's bench budget: a week of engine process time
 MAX_MARGIN = 1000.0  # proposed tolerance over the measured error
 MAX_LAST = 100_000  # runs read from the history (a run a night for 270 years)
-def _number(lo: float, hi: float, optional: bool = False) -> Callable[[str], float]:
+def _number(lo: float, hi: float) -> Callable[[str], float]:
     """A float option's parser: a finite number in [lo, hi], else the option's error
     naming the value (click's range check lets nan through, and calls inf out of range)."""
     def parse(text):
