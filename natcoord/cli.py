@@ -735,7 +735,12 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                   "--quick", help="A first look: natcoord and mujoco (or "
                   "--engines), every cell timed by its accuracy run (no bench process), no "
                   "sweeps, no speed gate; not recorded in the history, reports/latest not "
-                  "moved.")] = False):
+                  "moved.")] = False,
+              accept_speed: Annotated[bool, typer.Option(
+                  "--accept-speed", help="Take tonight's speed as the new baseline: a "
+                  "significant slowdown is reported, not failed (exit 4), and its samples "
+                  "are later nights' baseline. Without it a slowdown's samples never are: "
+                  "a lasting one fails every night until accepted.")] = False):
     """The nightly job: run all, bench, report, gate (accuracy, and speed against the
     history), record history; reports/latest then points at it. Exits with the gate's code
     (4: a significant slowdown). Bench policy: natcoord measured every night, another
@@ -845,9 +850,14 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         verdict = gate.judge(summary, staging, references=references, baseline=base,
                              cases=gate.CaseBook(resolve(cases_dir, "cases"),
                                                  {j.case.name: j.case for j in selected}))
+        accepted = [f"accepted (--accept-speed): {s.line()}" for s in slower
+                    if accept_speed]  # reported; the new baseline from tonight on
+        slower = [] if accept_speed else slower
+        verdict.notes += accepted
         if verdict.code == 0 and slower:
             verdict.code = diff.SLOWER
-        verdict.lines += [s.line() for s in slower] + diff.speed_notes(speed, history)
+        verdict.lines += ([s.line() for s in slower] + accepted
+                          + diff.speed_notes(speed, history))
         if quick:
             verdict.lines.append("quick suite: speed not judged (one sample per cell, from "
                                  "its accuracy run); "
@@ -870,7 +880,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             hist.record(history, kind="suite", summary=summary,
                         bench=bench_result and policy.measured_only(bench_result),
                         gate=verdict.code, results_dir=str(target.resolve()),
-                        commit=hist.git_commit(resolve(None, ".")))
+                        commit=hist.git_commit(resolve(None, ".")),
+                        slower=[(s.case, s.engine) for s in slower])
     except NatcoordError as e:
         faults.append((e, ENVIRONMENT if isinstance(e, EnvironmentFault) else 2))
     try:

@@ -202,6 +202,37 @@ def test_two_benchmarks_with_a_malformed_sample_list_are_bad_input(tmp_path, fie
     assert f"records[0].{field}: not a list" in p.stderr, p.stderr
 
 
+def test_a_slowdown_the_gate_caught_is_no_baseline_until_accepted(tmp_path):
+    """A lasting 3x slowdown passed the speed gate from its third night on: the nights it
+    failed entered the pooled baseline. Now a run records the cells its gate found slower
+    and their samples are left out of later baselines (the slowdown keeps failing), until
+    a night is accepted (suite --accept-speed records none). A history from before the
+    table reads as before."""
+    import sqlite3
+
+    db = tmp_path / "history.db"
+
+    def night(x: float, slower=()):
+        rec = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [x] * 3,
+               "cpu_samples_s": [x] * 3}
+        history.record(db, kind="suite", gate=4 if slower else 0, slower=slower,
+                       bench={"machine": {"fingerprint": "m"}, "records": [rec]})
+
+    for _ in range(3):
+        night(1.0)
+    night(3.0, slower=[("c", "natcoord")])  # caught: exit 4
+    assert history.past_cpu_samples(db, "c", "natcoord", "h", "m") == [1.0] * 9
+    assert history.past_samples(db, "c", "natcoord", "h", "m")[0] == [1.0] * 9
+    night(3.0)  # accepted: tonight's speed is the baseline from now on
+    assert history.past_cpu_samples(db, "c", "natcoord", "h", "m")[:3] == [3.0] * 3
+    with sqlite3.connect(db) as con:  # as a history written before the table was
+        con.execute("DROP TABLE slower")
+    assert history.past_cpu_samples(db, "c", "natcoord", "h", "m")[:6] == [3.0] * 6
+    night(1.0)  # writing to it adds the table again
+    with sqlite3.connect(db) as con:
+        assert con.execute("SELECT COUNT(*) FROM slower").fetchone() == (0,)
+
+
 # ---------------------------------------------------------------- the real timing path
 
 

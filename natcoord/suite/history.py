@@ -21,7 +21,7 @@ import sqlite3
 import statistics
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import closing, contextmanager
 from pathlib import Path
 from urllib.parse import quote_from_bytes
@@ -45,9 +45,16 @@ CREATE TABLE IF NOT EXISTS bench (
 CREATE TABLE IF NOT EXISTS bench_cpu (
     run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
     samples TEXT);
+CREATE TABLE IF NOT EXISTS slower (
+    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT);
 CREATE INDEX IF NOT EXISTS results_cell ON results (case_name, engine, channel);
 CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash);
 """
+
+
+SLOWER_TABLE = ("CREATE TABLE IF NOT EXISTS slower (run_id INTEGER REFERENCES runs(id), "
+                "case_name TEXT, engine TEXT)")  # the cells a run's speed gate found slower
+# (not accepted): their samples are no speed baseline for later runs
 
 
 TABLES = {"meta": {"key", "value"},
@@ -326,6 +333,7 @@ def connect(path: Path) -> Iterator[sqlite3.Connection]:
                     db.execute(statement)
                 db.execute("INSERT INTO meta VALUES ('schema_version', ?)",
                            (str(SCHEMA_VERSION),))
+            db.execute(SLOWER_TABLE)  # a history from before it gets it too
             db.execute("COMMIT")
         except sqlite3.Error as e:
             if db.in_transaction:
@@ -365,9 +373,12 @@ def git_commit(folder: Path) -> str:
 
 
 def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | None = None,
-           gate: int | None = None, results_dir: str = "", commit: str = "") -> int:
+           gate: int | None = None, results_dir: str = "", commit: str = "",
+           slower: Iterable[tuple[str, str]] = ()) -> int:
     """Append one run (its summary's channel errors and its bench samples) in one
-    transaction; returns the run id."""
+    transaction; returns the run id. ``slower``: the (case, engine) cells its speed gate
+    found significantly slower, whose samples later runs do not take as their baseline
+    (a lasting slowdown keeps failing until it is accepted)."""
     first = summary or bench or {}
     machine = first.get("machine", {})
     with connect(path) as db:
@@ -402,6 +413,8 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                     db.execute("INSERT INTO bench_cpu VALUES (?, ?, ?, ?, ?)",
                                (run_id, r["case"], r["engine"], r.get("case_hash", ""),
                                 json.dumps(r["cpu_samples_s"])))
+            db.executemany("INSERT INTO slower VALUES (?, ?, ?)",
+                           [(run_id, c, e) for c, e in slower])
             db.execute("COMMIT")
         except BaseException:
             if db.in_transaction:
@@ -446,11 +459,18 @@ def import_jsonl(db_path: Path, jsonl: Path) -> int:
 def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str,
             machine: str, last: int, exclude_dir: str) -> list[tuple]:
     """``columns`` of ``table`` (bench or bench_cpu) for the last ``last`` benchmarks of a
-    cell with the same case file and machine, not those of the folder ``exclude_dir``."""
+    cell with the same case file and machine, not those of the folder ``exclude_dir`` nor
+    those its speed gate found slower (the ``slower`` table, where the history has it)."""
+    flagged = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND "
+                         "name = 'slower'").fetchone()
+    not_slower = (f" AND NOT EXISTS (SELECT 1 FROM slower WHERE slower.run_id = runs.id AND "
+                  f"slower.case_name = {table}.case_name AND slower.engine = {table}.engine)"
+                  if flagged else "")
     return db.execute(
         f"SELECT {columns} FROM {table} JOIN runs ON runs.id = {table}.run_id WHERE "
-        "case_name = ? AND engine = ? AND case_hash = ? AND runs.machine = ? AND "
-        "(? = '' OR IFNULL(runs.results_dir, '') != ?) ORDER BY runs.id DESC LIMIT ?",
+        f"{table}.case_name = ? AND {table}.engine = ? AND {table}.case_hash = ? AND "
+        "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?)"
+        f"{not_slower} ORDER BY runs.id DESC LIMIT ?",
         (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
 
 
