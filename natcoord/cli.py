@@ -866,36 +866,44 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
         phases["speed gate, report"] = clock.clock()
         ci_text = diff.write_ci_summary(staging, summary, verdict.code, slower,
                                         target / "index.html", verdict.lines)
-    marks = list(phases.items())
-    out.print(f"suite{' --quick' if quick else ''} took {marks[-1][1] - marks[0][1]:.0f} s: "
-              + ", ".join(f"{k} {t - marks[i][1]:.0f} s" for i, (k, t) in
-                          enumerate(marks[1:])))
-    if out_dir is None and not quick:
-        _point_latest(target)
-    for line in verdict.lines:
-        err.print(escape(line), highlight=False)
-    code, faults = verdict.code, []
-    try:  # the results are published: a fault from here on is reported, not fatal
-        if not quick:  # a first look is no nightly: no history, no speed baseline
-            hist.record(history, kind="suite", summary=summary,
-                        bench=bench_result and policy.measured_only(bench_result),
-                        gate=verdict.code, results_dir=str(target.resolve()),
-                        commit=hist.git_commit(resolve(None, ".")),
-                        slower=[(s.case, s.engine) for s in slower])
-    except NatcoordError as e:
-        faults.append((e, ENVIRONMENT if isinstance(e, EnvironmentFault) else 2))
+        late = _Deferred()  # from here the night is published: finish it whole
     try:
-        diff.append_step_summary(ci_text)
-    except NatcoordError as e:
-        faults.append((e, ENVIRONMENT))
-    out.print(counts_line(summary["records"]) + (" (quick)" if quick else ""))
-    out.print(f"report: {(target / 'index.html').resolve()}")
-    out.print("[green]gate passed[/]" if verdict.code == 0
-              else f"[bold red]gate failed[/] (exit {verdict.code})")
-    for e, c in faults:
-        err.print(f"[bold red]error:[/] {escape(str(e))} (the results are kept in "
-                  f"{escape(str(target))})", highlight=False)
-        code = code or c
+        marks = list(phases.items())
+        out.print(f"suite{' --quick' if quick else ''} took {marks[-1][1] - marks[0][1]:.0f} s: "
+                  + ", ".join(f"{k} {t - marks[i][1]:.0f} s" for i, (k, t) in
+                              enumerate(marks[1:])))
+        if out_dir is None and not quick:
+            _point_latest(target)
+        for line in verdict.lines:
+            err.print(escape(line), highlight=False)
+        code, faults = verdict.code, []
+        try:  # the results are published: a fault from here on is reported, not fatal
+            if not quick:  # a first look is no nightly: no history, no speed baseline
+                hist.record(history, kind="suite", summary=summary,
+                            bench=bench_result and policy.measured_only(bench_result),
+                            gate=verdict.code, results_dir=str(target.resolve()),
+                            commit=hist.git_commit(resolve(None, ".")),
+                            slower=[(s.case, s.engine) for s in slower])
+        except NatcoordError as e:
+            faults.append((e, ENVIRONMENT if isinstance(e, EnvironmentFault) else 2))
+        try:
+            diff.append_step_summary(ci_text)
+        except NatcoordError as e:
+            faults.append((e, ENVIRONMENT))
+        out.print(counts_line(summary["records"]) + (" (quick)" if quick else ""))
+        out.print(f"report: {(target / 'index.html').resolve()}")
+        out.print("[green]gate passed[/]" if verdict.code == 0
+                  else f"[bold red]gate failed[/] (exit {verdict.code})")
+        for e, c in faults:
+            err.print(f"[bold red]error:[/] {escape(str(e))} (the results are kept in "
+                      f"{escape(str(target))})", highlight=False)
+            code = code or c
+        if late.got:
+            err.print(f"{'interrupted' if late.got[0] == signal.SIGINT else 'terminated'} "
+                      f"after the results were published: finished recording them "
+                      f"({target})", highlight=False)
+    finally:
+        late.restore()
     raise typer.Exit(code)
 
 
@@ -1399,6 +1407,24 @@ def _not_utf8(e: UnicodeError) -> str:
                 "rename it or give another path")
     return (f"text that is not valid UTF-8 ({e.reason}): a file name or a file in another "
             "encoding?")
+
+
+class _Deferred:
+    """From its making on, a Ctrl-C or SIGTERM is noted (``got``) instead of stopping the
+    command, until :meth:`restore`: a suite whose results are published records them,
+    moves reports/latest and exits with its gate's code (stopped there, it said nothing
+    was published and the history missed the night). Main thread only."""
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.got: list[int] = []
+        self.old = [signal.signal(s, lambda signum, frame: self.got.append(signum))
+                    for s in self.SIGNALS]
+
+    def restore(self) -> None:
+        for s, handler in zip(self.SIGNALS, self.old, strict=True):
+            signal.signal(s, handler)
 
 
 def _stop(signum, frame):

@@ -413,3 +413,36 @@ def test_propose_measures_and_writes_tolerances_that_then_pass(tmp_path):
     assert g.returncode == 0 and "baseline updated" in g.stdout
     assert set(json.loads((tmp_path / "b.json").read_text())["errors"]) == {
         "new_bar/natcoord", "new_bar/exudyn"}
+
+
+def test_a_suite_stopped_once_published_is_recorded_and_says_so(tmp_path, monkeypatch):
+    """A Ctrl-C once the night is published (here: as the history is written) used to end
+    the command with "no results of this command published" while they were, and the
+    history missed the night. Now the published night is finished whole: recorded, the
+    gate's exit code, and a line saying when it was interrupted."""
+    import signal
+
+    from typer.testing import CliRunner
+
+    from natcoord.cli import app
+
+    real = history.record
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)  # delivered to this (main) thread at once
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(history, "record", interrupted)
+    db, out = tmp_path / "h.db", tmp_path / "night"
+    before = signal.getsignal(signal.SIGINT)
+    res = CliRunner().invoke(app, ["suite", "pendulum", "--engines", "natcoord", "--jobs",
+                                   "1", "--repeats", "3", "--cases-dir", str(CASES),
+                                   "--references", str(REFERENCES), "--history", str(db),
+                                   "--out", str(out)])
+    assert res.exit_code == 0, (res.output, res.exception)
+    said = " ".join((res.output + res.stderr).split())
+    assert "interrupted after the results were published: finished recording them" in said
+    assert (out / "summary.json").is_file()
+    with history.reading(db) as con:  # the night is in the history
+        assert con.execute("SELECT COUNT(*) FROM runs").fetchone() == (1,)
+    assert signal.getsignal(signal.SIGINT) is before  # the handlers given back
