@@ -9,13 +9,15 @@ channels in a run (over 1 fails); its speed the median of its benchmark samples 
 from __future__ import annotations
 
 import json
+import sqlite3
 import statistics
 from pathlib import Path
 
+from . import speed
 from .history import reading
 
 GROWTH = 10.0  # a worst figure grown this much (and past 0.1) counts as regressed
-SLOWER = 1.5  # a median time grown this much is listed (the gate's rule judges it)
+SLOWER = 1.5  # trends: a median time grown this much (since-green uses the gate's rule)
 
 
 def _worst(db, run_id: int) -> dict[tuple[str, str], dict]:
@@ -34,6 +36,22 @@ def _median_s(db, run_id: int) -> dict[tuple[str, str], float]:
     return {(c, e): statistics.median(json.loads(raw)) for c, e, raw in db.execute(
         "SELECT case_name, engine, samples FROM bench WHERE run_id = ?", (run_id,))
         if json.loads(raw)}
+
+
+def _timings(db, run_id: int) -> dict[tuple[str, str], tuple[list, list]]:
+    """Per cell of a run, its (wall, CPU) timing samples (CPU: [] where not measured, or
+    in a history from before CPU samples)."""
+    out = {(c, e): (json.loads(raw), []) for c, e, raw in db.execute(
+        "SELECT case_name, engine, samples FROM bench WHERE run_id = ?", (run_id,))}
+    try:
+        for c, e, raw in db.execute("SELECT case_name, engine, samples FROM bench_cpu "
+                                    "WHERE run_id = ?", (run_id,)):
+            if (c, e) in out:
+                out[c, e] = (out[c, e][0], json.loads(raw))
+    except sqlite3.OperationalError as e:
+        if "no such table" not in str(e):
+            raise
+    return out
 
 
 def runs(path: Path, last: int = 20) -> list[dict]:
@@ -85,8 +103,9 @@ def _info(r) -> dict | None:
 def since_green(path: Path) -> dict:
     """The newest suite against the last suite whose gate passed before it: ``{"green",
     "latest"}`` (run summaries, None when there is none) and ``regressed``: the cells that
-    failed, whose worst figure grew past :data:`GROWTH` x (and 0.1), or whose median time
-    grew past :data:`SLOWER` x (on the same machine: else ``speed`` says why not), each
+    failed, whose worst figure grew past :data:`GROWTH` x (and 0.1), or that the speed
+    gate's rule finds slower (:func:`natcoord.suite.speed.judge`: CPU time where both have
+    it, 1.5x and the rank test; on the same machine: else ``speed`` says why not), each
     with what changed."""
     with reading(path) as db:
         if db is None:
@@ -99,7 +118,7 @@ def since_green(path: Path) -> dict:
         if not (latest and green):
             return out
         now, then = _worst(db, latest[0]), _worst(db, green[0])
-        t_now, t_then = _median_s(db, latest[0]), _median_s(db, green[0])
+        t_now, t_then = _timings(db, latest[0]), _timings(db, green[0])
     if latest[4] != green[4]:  # times of two machines say nothing of the code
         out["speed"] = (f"times not compared: the green suite ran on another machine "
                         f"({green[4] or '?'}, the newest on {latest[4] or '?'})")
@@ -113,9 +132,12 @@ def since_green(path: Path) -> dict:
         w, w0 = c.get("worst"), was.get("worst")
         if w is not None and w0 is not None and w > max(GROWTH * w0, 0.1):
             why.append(f"worst error/tolerance {w0:.3g} -> {w:.3g}")
-        s, s0 = t_now.get(key), t_then.get(key)
-        if s and s0 and s > SLOWER * s0:
-            why.append(f"median time {s0:.3g} s -> {s:.3g} s ({s / s0:.2f}x)")
+        if key in t_now and key in t_then:
+            (wall, cpu), (wall0, cpu0) = t_now[key], t_then[key]
+            judged = speed.judge(*key, wall0, wall, base_cpu=cpu0, new_cpu=cpu)
+            if judged.slower:
+                why.append(f"slower: median {judged.ratio:.3g}x (p = {judged.p:.2g}, "
+                           f"{judged.n_base} -> {judged.n_new} samples, {judged.clock} time)")
         if why:
             out["regressed"].append({"cell": "/".join(key), "why": why})
     return out
