@@ -14,6 +14,66 @@ CASES = ROOT / "cases"
 REFERENCES = ROOT / "references"
 DATA = Path(__file__).resolve().parent / "data"
 
+# 3-D bodies on a spherical joint, shared by the tests of the loader and the engines
+# (written to a file of the case name: NAME.toml)
+PLATE = """name = "plate"
+description = "a 3-D body on a ball joint whose three points span a plane its inertia leaves"
+dimension = 3
+gravity = [0.0, 0.0, -9.81]
+duration = 0.1
+output_dt = 0.01
+[ground]
+points = { O = [0.0, 0.0, 0.0] }
+[[bodies]]
+name = "plate"
+kind = "rigid"
+mass = 1.0
+com = [0.5, 0.0, 0.0]
+inertia = [[0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]]
+points = { O = [0.0, 0.0, 0.0], A = [1.0, 0.0, 0.0], B = [0.0, 1.0, 0.0] }
+[[joints]]
+name = "O"
+type = "spherical"
+bodies = ["ground", "plate"]
+points = ["O", "O"]
+[channels]
+x = { kind = "position", body = "plate", point = "A", axis = "x" }
+"""
+
+SPHERICAL_ROD = """
+name = "spherical_rod"
+description = "a rod on a spherical joint, released with a sideways spin"
+dimension = 3
+gravity = [0.0, 0.0, -9.81]
+duration = 1.0
+output_dt = 0.01
+
+[ground]
+points = { O = [0.0, 0.0, 0.0] }
+
+[[bodies]]
+name = "rod"
+kind = "rigid"
+mass = 1.0
+com = [0.5, 0.0, 0.0]
+inertia = [[0.001, 0.0, 0.0], [0.0, 0.0833333333, 0.0], [0.0, 0.0, 0.0833333333]]
+points = { O = [0.0, 0.0, 0.0], P = [1.0, 0.0, 0.0], Q = [0.0, 1.0, 0.0], R = [0.0, 0.0, 1.0] }
+
+[[joints]]
+name = "O"
+type = "spherical"
+bodies = ["ground", "rod"]
+points = ["O", "O"]
+
+[initial]
+velocity = { yP = 2.0, zP = 0.0, zQ = 0.0 }
+
+[channels]
+zQ = { kind = "position", body = "rod", point = "Q", axis = "z" }
+yP = { kind = "position", body = "rod", point = "P", axis = "y" }
+zP = { kind = "position", body = "rod", point = "P", axis = "z" }
+"""
+
 
 def project_copy(tmp_path: Path, *cases: str) -> Path:
     """A project folder (cases/, references/) holding copies of shipped cases."""

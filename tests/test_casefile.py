@@ -11,7 +11,7 @@ import pytest
 from natcoord import CaseError, load_case
 from natcoord.case.casefile import load_cases
 
-from .conftest import CASES
+from .conftest import CASES, PLATE, SPHERICAL_ROD
 
 
 def test_shipped_cases_load():
@@ -263,45 +263,15 @@ def test_a_quantity_whose_square_overflows_is_refused(case_variant, sub, field, 
     assert reason in info.value.reason, str(info.value)
 
 
-PLANAR_POINTS = """
-name = "flat"
-description = "a plate on a spherical joint, its points in one plane"
-dimension = 3
-gravity = [0.0, 0.0, -9.81]
-duration = 1.0
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0, 0.0] }
-
-[[bodies]]
-name = "plate"
-kind = "rigid"
-mass = 1.0
-com = COM
-inertia = [[0.001, 0.0, 0.0], [0.0, 0.0833333333, 0.0], [0.0, 0.0, 0.0833333333]]
-points = { O = [0.0, 0.0, 0.0], P = [1.0, 0.0, 0.0], Q = [0.0, 1.0, 0.0] }
-
-[[joints]]
-name = "O"
-type = "spherical"
-bodies = ["ground", "plate"]
-points = ["O", "O"]
-
-[channels]
-zP = { kind = "position", body = "plate", point = "P", axis = "z" }
-"""
-
-
 @pytest.mark.parametrize("com, what", [("[0.5, 0.0, 0.0]", "its inertia (a moment about the "
                                         "plane) leaves that plane"),
                                        ("[0.5, 0.0, 0.2]", "its centre of mass leaves")])
 def test_a_body_whose_mass_leaves_its_points_plane_names_what_does(tmp_path, com, what):
     """It said "its mass (centre of mass or inertia) leaves that plane" of a centre of
     mass in the plane."""
-    (tmp_path / "flat.toml").write_text(PLANAR_POINTS.replace("COM", com))
+    (tmp_path / "plate.toml").write_text(PLATE.replace("com = [0.5, 0.0, 0.0]", f"com = {com}"))
     with pytest.raises(CaseError) as info:
-        load_case(tmp_path / "flat.toml")
+        load_case(tmp_path / "plate.toml")
     assert info.value.field == "bodies[0] (plate).points", str(info.value)
     assert what in info.value.reason, str(info.value)
 
@@ -313,13 +283,11 @@ def test_initial_rates_that_depend_on_each_other_are_named_so(tmp_path):
     from natcoord.errors import AssemblyError
     from natcoord.model import casemodel
 
-    text = PLANAR_POINTS.replace("COM", "[0.5, 0.0, 0.0]").replace(
-        'Q = [0.0, 1.0, 0.0] }', 'Q = [0.0, 1.0, 0.0], R = [0.0, 0.0, 1.0] }').replace(
-        "[channels]\n", '[initial]\nvelocity = { yP = 2.0, zP = 0.0, xP = 0.0 }\n\n'
-        '[channels]\nxP = { kind = "position", body = "plate", point = "P", axis = "x" }\n'
-        'yP = { kind = "position", body = "plate", point = "P", axis = "y" }\n')
-    (tmp_path / "flat.toml").write_text(text)
-    case = load_case(tmp_path / "flat.toml")
+    text = SPHERICAL_ROD.replace("zQ = 0.0 }", "xP = 0.0 }").replace(
+        "[channels]\n", '[channels]\nxP = { kind = "position", body = "rod", point = "P", '
+        'axis = "x" }\n')
+    (tmp_path / "spherical_rod.toml").write_text(text)
+    case = load_case(tmp_path / "spherical_rod.toml")
     with pytest.raises(AssemblyError) as info:
         casemodel.initial_state(casemodel.build(case))
     assert "degree(s) of freedom left by its drivers, but initial.velocity sets 3, of which " \

@@ -20,7 +20,7 @@ from natcoord.outputs.result import evaluate_channels
 from natcoord.suite.references import load_reference
 
 from . import engine_checks as ec
-from .conftest import REFERENCES
+from .conftest import REFERENCES, SPHERICAL_ROD
 
 pytestmark = pytest.mark.engines
 
@@ -459,48 +459,13 @@ def test_universal_joint_swinging_about_one_axis_is_a_revolute(tmp_path):
     assert np.ptp(a["yc"]) > 0.5  # it does swing
 
 
-SPHERICAL = """
-name = "spherical_rod"
-description = "a rod on a spherical joint, released with a sideways spin"
-dimension = 3
-gravity = [0.0, 0.0, -9.81]
-duration = 1.0
-output_dt = 0.01
-
-[ground]
-points = { O = [0.0, 0.0, 0.0] }
-
-[[bodies]]
-name = "rod"
-kind = "rigid"
-mass = 1.0
-com = [0.5, 0.0, 0.0]
-inertia = [[0.001, 0.0, 0.0], [0.0, 0.0833333333, 0.0], [0.0, 0.0, 0.0833333333]]
-points = { O = [0.0, 0.0, 0.0], P = [1.0, 0.0, 0.0], Q = [0.0, 1.0, 0.0], R = [0.0, 0.0, 1.0] }
-
-[[joints]]
-name = "O"
-type = "spherical"
-bodies = ["ground", "rod"]
-points = ["O", "O"]
-
-[initial]
-velocity = { yP = 2.0, zP = 0.0, zQ = 0.0 }
-
-[channels]
-zQ = { kind = "position", body = "rod", point = "Q", axis = "z" }
-yP = { kind = "position", body = "rod", point = "P", axis = "y" }
-zP = { kind = "position", body = "rod", point = "P", axis = "z" }
-"""
-
-
 def test_rk4_is_fourth_order_on_a_spherical_joint(tmp_path):
     """A spherical joint's quaternion: RK4's stages composed on the group without the
     inverse of the exponential's Jacobian were second order (zQ off by 1.1e-6 m at dt 1e-3,
     4x less at half the step; MuJoCo's RK4 7e-15). Runge-Kutta-Munthe-Kaas: 16x less."""
     from natcoord import load_case
 
-    (tmp_path / "spherical_rod.toml").write_text(SPHERICAL)
+    (tmp_path / "spherical_rod.toml").write_text(SPHERICAL_ROD)
     case = load_case(tmp_path / "spherical_rod.toml")
     ref = ec.natcoord(case)
     err = {dt: ec.channel_errors(case, _run(case, {"dt": dt}), ref)["zQ"]

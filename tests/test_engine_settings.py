@@ -18,7 +18,7 @@ from natcoord.case.casefile import load_cases
 from natcoord.engines import adapter, engine_names
 from natcoord.engines.schema import Setting, check, defaults, problems
 
-from .conftest import CASES, ROOT
+from .conftest import CASES, PLATE, ROOT
 
 ENGINES = engine_names()  # the built-ins and any plug-in installed here
 
@@ -317,31 +317,6 @@ points = ["D", "D"]
 [channels]
 x = { kind = "position", body = "a", point = "A", axis = "x" }
 """
-
-PLATE = """name = "plate"
-description = "a 3-D body on a ball joint whose three points span a plane its inertia leaves"
-dimension = 3
-gravity = [0.0, 0.0, -9.81]
-duration = 0.1
-output_dt = 0.01
-[ground]
-points = { O = [0.0, 0.0, 0.0] }
-[[bodies]]
-name = "plate"
-kind = "rigid"
-mass = 1.0
-com = [0.5, 0.0, 0.0]
-inertia = [[0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]]
-points = { O = [0.0, 0.0, 0.0], A = [1.0, 0.0, 0.0], B = [0.0, 1.0, 0.0] }
-[[joints]]
-name = "O"
-type = "spherical"
-bodies = ["ground", "plate"]
-points = ["O", "O"]
-[channels]
-x = { kind = "position", body = "plate", point = "A", axis = "x" }
-"""
-
 
 def _drivers(*pairs) -> str:
     """Coordinate drivers holding z of (body, point, value0) in four_bar_3d."""
