@@ -402,19 +402,19 @@ def load_case(path: str | Path) -> Case:
                                   positive=True)
         r.known(spec, ENGINE_KEYS, p)
         settings = r.table(spec, "settings", p, required=False)
-        if ename not in known:  # a plug-in not installed here: its block is checked as
-            r.string(spec, "reason", p, required=bool(tol), default="")  # far as it can
-            r.string(spec, "unsupported", p, required=False, default="")  # be, not used
-            absent.append(ename)  # (a case file shared with other machines still loads)
-            continue
-        for field, reason in _engine_settings(ename, settings, output_dt):
+        for field, reason in (_engine_settings(ename, settings, output_dt)
+                              if ename in known else ()):
             r.fail(f"{p}.settings" + (f".{field}" if field else ""), reason)
-        engines[ename] = EngineSpec(
+        block = EngineSpec(
             settings=settings,
             tolerance=tol,
             reason=r.string(spec, "reason", p, required=bool(tol), default=""),
             unsupported=r.string(spec, "unsupported", p, required=False, default=""),
         )
+        if ename in known:
+            engines[ename] = block
+        else:  # a plug-in not installed here: its block checked as far as it can be and
+            absent.append(ename)  # not used (a case file shared with other machines loads)
     tags = r.get(data, "tags", "", required=False, default=[])
     if not isinstance(tags, list) or not all(isinstance(t, str) and len(t) <= MAX_NAME
                                              for t in tags):
