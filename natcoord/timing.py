@@ -8,6 +8,12 @@ its time per run (batch time / runs), in wall-clock and in CPU time of this proc
 time spent waiting for the core does not inflate). One discarded run comes first (warm-up),
 unless that run alone took the whole budget: then it is the one sample.
 
+Each sample is followed by :func:`reference_work`, a fixed amount of arithmetic whose time
+says how fast the machine ran just then. A shared machine drifts between fast and slow
+spells (a busy neighbour, a lower clock, a host taking the core) that slow every program
+alike; the speed gate judges a sample relative to the reference measured beside it, so
+such a spell does not read as a slowdown of the code.
+
 ``slowdown`` is a **test hook**: every timed run executes the stepping that many times, so
 a benchmark test can inject a known, deterministic slowdown through the real timing path.
 Outside a benchmark (the default policy) :func:`timed` runs the stepping once.
@@ -21,7 +27,25 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TypeVar
 
+import numpy as np
+
 T = TypeVar("T")
+
+_REF_N, _REF_LOOPS = 24, 1000  # ~10 ms on a 2020s core
+_REF_A = np.eye(_REF_N) * _REF_N + np.random.default_rng(0).random((_REF_N, _REF_N))
+_REF_B = np.random.default_rng(1).random(_REF_N)
+
+
+def reference_work() -> tuple[float, float]:
+    """Wall and CPU time (s) of a fixed workload: 1000 dense solves of a 24 x 24 system,
+    each from Python (interpreter, numpy dispatch and LAPACK, as an engine's step is).
+    Its time measures the machine's speed at the moment, not the code under test."""
+    w0, c0 = time.perf_counter(), time.process_time()
+    x = _REF_B
+    for _ in range(_REF_LOOPS):
+        x = np.linalg.solve(_REF_A, x)
+        x = x / np.abs(x).max()
+    return time.perf_counter() - w0, time.process_time() - c0
 
 
 @dataclass(frozen=True)
@@ -38,11 +62,20 @@ class Policy:
 
 @dataclass
 class Timing:
-    """Per-run wall and CPU time (s) of each sample, and the runs in each batch."""
+    """Per-run wall and CPU time (s) of each sample, the runs in each batch, and the wall
+    and CPU time (s) of the :func:`reference_work` measured after each sample."""
 
     wall_s: list[float] = field(default_factory=list)
     cpu_s: list[float] = field(default_factory=list)
     runs: list[int] = field(default_factory=list)
+    ref_wall_s: list[float] = field(default_factory=list)
+    ref_cpu_s: list[float] = field(default_factory=list)
+
+    def reference(self) -> None:
+        """Measure the reference work once more (after a sample)."""
+        wall, cpu = reference_work()
+        self.ref_wall_s.append(wall)
+        self.ref_cpu_s.append(cpu)
 
     @property
     def batched(self) -> bool:
@@ -53,7 +86,8 @@ class Timing:
         if not self.batched:
             return {}
         return {"batch_wall_s": self.wall_s, "batch_cpu_s": self.cpu_s,
-                "batch_runs": self.runs}
+                "batch_runs": self.runs, "batch_ref_wall_s": self.ref_wall_s,
+                "batch_ref_cpu_s": self.ref_cpu_s}
 
 
 _POLICY = Policy()
@@ -92,6 +126,7 @@ def timed(step: Callable[[], T]) -> tuple[T, float, Timing]:
         # ... unless it alone took the budget: then it is the one sample (as for an engine
         # timed by whole runs, natcoord.suite.batches), not the first of two such runs
         timing.wall_s, timing.cpu_s, timing.runs = [warm], [time.process_time() - c0], [1]
+        timing.reference()
         return out, warm, timing
     begin = time.perf_counter()
     for _ in range(pol.samples):
@@ -111,4 +146,5 @@ def timed(step: Callable[[], T]) -> tuple[T, float, Timing]:
         timing.wall_s.append(wall / runs)
         timing.cpu_s.append(cpu / runs)
         timing.runs.append(runs)
+        timing.reference()
     return out, min(timing.wall_s), timing

@@ -44,10 +44,12 @@ def test_a_batched_run_gives_the_single_runs_results_and_counters(extra):
         timing.configure()
     a, b = (evaluate_channels(job.case, r.motion) for r in (one, many))
     assert np.array_equal(a.to_numpy(), b.to_numpy())
-    timed = ("batch_wall_s", "batch_cpu_s", "batch_runs")
+    timed = ("batch_wall_s", "batch_cpu_s", "batch_runs", "batch_ref_wall_s",
+             "batch_ref_cpu_s")
     assert not set(timed) & set(one.counters)
-    wall, cpu, runs = (many.counters.pop(k) for k in timed)
-    assert len(wall) == len(cpu) == len(runs) == 2 and min(runs) >= 1
+    wall, cpu, runs, ref_wall, ref_cpu = (many.counters.pop(k) for k in timed)
+    assert len(wall) == len(cpu) == len(runs) == len(ref_wall) == len(ref_cpu) == 2
+    assert min(runs) >= 1 and min(ref_wall) > 0 and min(ref_cpu) > 0
     assert all(w * n >= 0.01 for w, n in zip(wall, runs, strict=True))  # a batch >= 0.01 s
     assert many.wall_time_s == min(wall)
     drop = ("compile_time_s", "plan_time_s")
@@ -101,6 +103,8 @@ def test_whole_run_batches_are_calibrated_and_the_slowdown_hook_multiplies(monke
     assert full.runs == [5] * 5 and full.wall_s == pytest.approx([0.004] * 5)
     assert short.runs == [20] * 5 and short.wall_s == pytest.approx([0.001] * 5)
     assert full.cpu_s == [] and len(calls) == 2 + 5 * (5 + 20)  # warm-up, then batches
+    assert len(full.ref_wall_s) == len(full.ref_cpu_s) == 5  # the reference after each
+    assert min(full.ref_wall_s) > 0 and short.ref_wall_s == []
     monkeypatch.setenv(batches.SLOWDOWN_ENV, "other=5,e=3")
     _, _, slow, _ = batches.measure(run, "full", None, None, {}, engine="e", samples=5,
                                     min_batch_s=0.02, budget_s=100.0)
@@ -181,8 +185,71 @@ def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
     assert notes[1].startswith("speed not judged for 1 cell(s): no earlier benchmark")
 
 
+def test_a_slow_spell_of_the_whole_machine_is_no_slowdown_but_a_slower_code_is():
+    """Samples judged relative to the reference work measured after each: a spell that
+    slows the machine 1.6x (samples and references alike) reads as ~1x where the CPU
+    times alone read as a slowdown; code 2x slower (samples only) is caught either way.
+    Without references on one side the judgement falls back to the CPU times."""
+    base = {"case": "c", "engine": "natcoord", "samples_s": [1.0, 1.02, 0.99, 1.01, 1.0],
+            "ref_samples_s": [0.010, 0.0101, 0.0099, 0.0100, 0.0102]}
+    base |= {"cpu_samples_s": base["samples_s"], "ref_cpu_samples_s": base["ref_samples_s"]}
+    spell = {k: [1.6 * x for x in v] if isinstance(v, list) else v for k, v in base.items()}
+    code = base | {"samples_s": [2 * x for x in base["samples_s"]],
+                   "cpu_samples_s": [2 * x for x in base["samples_s"]]}
+
+    def judged(b, n):
+        return speed.judge("c", "natcoord", b["samples_s"], n["samples_s"],
+                           base_cpu=b["cpu_samples_s"], new_cpu=n["cpu_samples_s"],
+                           base_relative=speed.relative(b), new_relative=speed.relative(n))
+
+    raw = speed.judge("c", "natcoord", [], [], base_cpu=base["cpu_samples_s"],
+                      new_cpu=spell["cpu_samples_s"])
+    assert raw.slower and raw.ratio == pytest.approx(1.6)  # a false alarm without them
+    calm = judged(base, spell)
+    assert calm.relative and calm.clock == "cpu" and not calm.slower, calm.line()
+    assert calm.ratio == pytest.approx(1.0) and "cpu time / reference work" in calm.line()
+    slow = judged(base, code)
+    assert slow.relative and slow.slower and slow.ratio == pytest.approx(2.0), slow.line()
+    old = {k: v for k, v in base.items() if not k.startswith("ref_")}
+    fallback = judged(old, spell)
+    assert not fallback.relative and fallback.slower  # no reference: CPU times as before
+    assert speed.relative(base | {"ref_samples_s": [0.01] * 4}) == {
+        "cpu": pytest.approx([x / r for x, r in zip(base["samples_s"], base["ref_samples_s"],
+                                                    strict=True)])}  # lengths differ: none
+    (compared,) = speed.compare_bench({"records": [base]}, {"records": [spell]})
+    assert compared.relative and not compared.slower
+
+
+def test_history_keeps_relative_samples_and_reads_an_older_history(tmp_path):
+    """bench_relative holds each sample over its reference, per clock; a history from
+    before it (no such table) gives none and gets the table on its next write."""
+    import sqlite3
+
+    db = tmp_path / "history.db"
+    rec = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [2.0, 3.0],
+           "cpu_samples_s": [1.0, 1.5], "ref_samples_s": [0.5, 0.5],
+           "ref_cpu_samples_s": [0.25, 0.5]}
+    history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"},
+                                            "records": [rec]})
+    assert history.past_relative(db, "c", "natcoord", "h", "m") == {
+        "wall": [4.0, 6.0], "cpu": [4.0, 3.0]}
+    assert history.past_relative(db, "c", "natcoord", "other", "m") == {}
+    with sqlite3.connect(db) as con:
+        con.execute("DROP TABLE bench_relative")
+    assert history.past_relative(db, "c", "natcoord", "h", "m") == {}
+    history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"},
+                                            "records": [rec]})
+    assert history.past_relative(db, "c", "natcoord", "h", "m")["cpu"] == [4.0, 3.0]
+    with sqlite3.connect(db) as con:  # a damaged row is named, as in the other tables
+        con.execute("UPDATE bench_relative SET samples = '[-1]'")
+    with pytest.raises(history.HistoryError, match="table bench_relative, row 1, column "
+                       "samples"):
+        history.past_relative(db, "c", "natcoord", "h", "m")
+
+
 @pytest.mark.parametrize("field, value", [("cpu_samples_s", 5), ("cpu_samples_s", ["x"]),
                                           ("samples_s", [float("nan")]),
+                                          ("ref_cpu_samples_s", [0.0]),
                                           ("samples_s", []),  # was NaN in --json
                                           ("batch_runs", {})])
 def test_two_benchmarks_with_a_malformed_sample_list_are_bad_input(tmp_path, field, value):
@@ -245,8 +312,10 @@ def test_under_load_unchanged_cells_pass_and_an_injected_slowdown_is_caught(
     spells, up to 1.6x on CPU time over a minute, so one measurement is no baseline), five
     times unchanged and once with its stepping executed three times per run
     (the test hook). Judged as the suite judges (against the history, a suspect measured
-    again): the five unchanged cells raise no alarm (ratio ~1 against 1.5x), the 3x cell
-    is caught by the suite's and by compare's rule."""
+    again, each sample relative to the reference work measured after it: a slow spell of
+    the whole machine once read 1.53x on CPU time alone): the five unchanged cells raise
+    no alarm (ratio ~1 against 1.5x), the 3x cell is caught by the suite's and by
+    compare's rule."""
     job = as_job(load_case(CASES / "slider_crank.toml"))
     others = sorted(set(os.sched_getaffinity(0)) - {bench.CORE}) if bench.CORE is not None \
         else []
@@ -265,7 +334,7 @@ def test_under_load_unchanged_cells_pass_and_an_injected_slowdown_is_caught(
 
     def gate(result: dict) -> speed.SpeedChange:
         (v,) = diff.slower_rechecked(result, [job], 5, 600.0, db)
-        assert v.judged and v.clock == "cpu", v.line()
+        assert v.judged and v.clock == "cpu" and v.relative, v.line()
         return v
 
     try:

@@ -26,7 +26,8 @@ from dataclasses import dataclass, field
 from .. import timing
 
 SLOWDOWN_ENV = "NATCOORD_BENCH_SLOWDOWN"
-BATCH_KEYS = ("batch_wall_s", "batch_cpu_s", "batch_runs")
+BATCH_KEYS = ("batch_wall_s", "batch_cpu_s", "batch_runs", "batch_ref_wall_s",
+              "batch_ref_cpu_s")
 
 
 def slowdown(engine: str, env: str | None = None) -> int:
@@ -47,22 +48,32 @@ def slowdown(engine: str, env: str | None = None) -> int:
 @dataclass
 class Samples:
     """One duration's timing samples: per-run wall (and CPU, when the engine measured it)
-    time of each batch, s, and the runs in each batch."""
+    time of each batch, s, the runs in each batch, and the wall (and CPU) time, s, of the
+    reference work (:func:`natcoord.timing.reference_work`) measured after each batch."""
 
     wall_s: list[float] = field(default_factory=list)
     cpu_s: list[float] = field(default_factory=list)
     runs: list[int] = field(default_factory=list)
+    ref_wall_s: list[float] = field(default_factory=list)
+    ref_cpu_s: list[float] = field(default_factory=list)
 
     def record(self) -> dict:
         return {"samples_s": self.wall_s, "cpu_samples_s": self.cpu_s,
-                "batch_runs": self.runs}
+                "batch_runs": self.runs, "ref_samples_s": self.ref_wall_s,
+                "ref_cpu_samples_s": self.ref_cpu_s}
+
+    def reference(self) -> None:
+        """Measure the reference work once more (after a sample)."""
+        wall, cpu = timing.reference_work()
+        self.ref_wall_s.append(wall)
+        self.ref_cpu_s.append(cpu)
 
 
 def _of_run(run) -> Samples | None:
     """The batches an engine run timed itself (None when it timed one run); their keys are
     taken out of its counters."""
     got = [run.counters.pop(k, None) for k in BATCH_KEYS]
-    return None if got[0] is None else Samples(*got)
+    return None if got[0] is None else Samples(*(g or [] for g in got))
 
 
 def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine: str,
@@ -103,6 +114,7 @@ def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine:
     full, short = Samples(), (Samples() if cut is not None else None)
     if n == 0:  # a long run: the warm-up is the one sample
         full.wall_s, full.runs = [run.wall_time_s], [1]
+        full.reference()
         if cut is not None:
             short.wall_s, short.runs = [cut.wall_time_s], [1]
         return run, cut, full, short
@@ -110,6 +122,7 @@ def measure(run_fn: Callable, case, short_case, init, settings: dict, *, engine:
         run, wall = _batch(run_fn, case, init, settings, m[0], k)
         full.wall_s.append(wall)
         full.runs.append(m[0])
+        full.reference()
         if cut is not None:
             cut, wall = _batch(run_fn, short_case, init, settings, m[1], k)
             short.wall_s.append(wall)

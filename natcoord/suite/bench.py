@@ -8,11 +8,13 @@ its time per run is the sample), as many as fit in ``BUDGET_S`` (a run longer th
 measured once). A preemption then costs a sample a few per cent, not 10x
 (:mod:`natcoord.suite.batches`). Every sample's time per run is kept as ``samples_s`` (wall
 clock) and, where the engine measures it (natcoord), ``cpu_samples_s`` (CPU time, which
-waiting for the core does not inflate), with the runs of each batch in ``batch_runs``,
-beside the best and the median, and the deterministic cost counters (steps, right-hand
-sides, factorizations) beside them, so that a speed judgement can tell noise from a
-regression (:mod:`natcoord.suite.speed`). Ratios to natcoord are computed within the same
-benchmark run, so machine load drifts cancel as far as they can.
+waiting for the core does not inflate), with the runs of each batch in ``batch_runs`` and
+the time of the reference work measured after each sample (``ref_samples_s``,
+``ref_cpu_samples_s``: how fast the machine ran just then), beside the best and the
+median, and the deterministic cost counters (steps, right-hand sides, factorizations),
+so that a speed judgement can tell noise from a regression (:mod:`natcoord.suite.speed`).
+Ratios to natcoord are computed within the same benchmark run, so machine load drifts
+cancel as far as they can.
 
 Cost explained (:func:`cost_fit`): every cell also times the same case over its first
 ``FIT_FRACTION`` of samples in the same process (its batches interleaved with the full
@@ -186,6 +188,8 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
         rec |= {"repeats": len(samples), "samples_s": samples,
                 "cpu_samples_s": run.get("cpu_samples_s") or [],
                 "batch_runs": run.get("batch_runs") or [1] * len(samples),
+                "ref_samples_s": run.get("ref_samples_s") or [],
+                "ref_cpu_samples_s": run.get("ref_cpu_samples_s") or [],
                 "min_batch_s": MIN_BATCH_S, "wall_time_s": best,
                 "wall_spread": (max(samples) - best) / best,
                 "wall_median_s": statistics.median(samples),

@@ -175,7 +175,8 @@ def _speed_only(bb: dict, nb: dict) -> Comparison:
 
 def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[speed.SpeedChange]:
     """Judge every cell of a benchmark that has samples against the history's samples of
-    the same case file on the same machine (CPU times where both have them); a cell without
+    the same case file on the same machine (CPU times where both have them, relative to
+    the reference work where both measured it); a cell without
     history is unjudged with ``n_base`` 0."""
     machine = bench.get("machine", {}).get("fingerprint", "")
     out = []
@@ -187,7 +188,10 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
         cpu = history.past_cpu_samples(*key, exclude_dir=exclude_dir)
         out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
                                r.get("counters"), base_cpu=cpu,
-                               new_cpu=r.get("cpu_samples_s")))
+                               new_cpu=r.get("cpu_samples_s"),
+                               base_relative=history.past_relative(
+                                   *key, exclude_dir=exclude_dir),
+                               new_relative=speed.relative(r)))
     return out
 
 

@@ -10,7 +10,8 @@ natcoord version and git commit, the sha256 of the case file, engine versions, s
 the machine fingerprint (CPU model, cores). Several suites may append at once: each run is
 one transaction that waits for the database (``BEGIN IMMEDIATE`` with a busy timeout).
 Lines of the former ``history.jsonl`` are imported once. CPU-time samples, where a bench
-measured them, are in ``bench_cpu``.
+measured them, are in ``bench_cpu``; samples relative to the reference work measured
+beside each (:func:`natcoord.suite.speed.relative`), per clock, in ``bench_relative``.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pathlib import Path
 from urllib.parse import quote_from_bytes
 
 from ..errors import EnvironmentFault, NatcoordError, StoredFileError
+from . import speed
 
 SCHEMA_VERSION = 1
 SCHEMA = """
@@ -45,16 +47,18 @@ CREATE TABLE IF NOT EXISTS bench (
 CREATE TABLE IF NOT EXISTS bench_cpu (
     run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
     samples TEXT);
-CREATE TABLE IF NOT EXISTS slower (
-    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT);
 CREATE INDEX IF NOT EXISTS results_cell ON results (case_name, engine, channel);
 CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash);
 """
 
 
-SLOWER_TABLE = ("CREATE TABLE IF NOT EXISTS slower (run_id INTEGER REFERENCES runs(id), "
-                "case_name TEXT, engine TEXT)")  # the cells a run's speed gate found slower
-# (not accepted): their samples are no speed baseline for later runs
+ADDED_TABLES = (  # tables a history from before them gets on its next write:
+    # the cells a run's speed gate found slower (not accepted): no baseline for later runs
+    "CREATE TABLE IF NOT EXISTS slower (run_id INTEGER REFERENCES runs(id), "
+    "case_name TEXT, engine TEXT)",
+    # samples / the reference work measured after each (clock 'wall' or 'cpu')
+    "CREATE TABLE IF NOT EXISTS bench_relative (run_id INTEGER REFERENCES runs(id), "
+    "case_name TEXT, engine TEXT, case_hash TEXT, clock TEXT, samples TEXT)")
 
 
 TABLES = {"meta": {"key", "value"},
@@ -81,7 +85,9 @@ ROWS = {"runs": {"generated": "text?", "kind": "text?", "natcoord_version": "tex
                   "samples": "samples", "wall_time_s": "number?", "us_per_step": "number?",
                   "n_steps": "integer?", "counters": "json object"},
         "bench_cpu": {"run_id": "run", "case_name": "text", "engine": "text",
-                      "case_hash": "text?", "samples": "samples"}}
+                      "case_hash": "text?", "samples": "samples"},
+        "bench_relative": {"run_id": "run", "case_name": "text", "engine": "text",
+                           "case_hash": "text?", "clock": "text", "samples": "samples"}}
 READ_WAIT_S = 5.0  # a reader waits this long for a writer, then says so
 WRITE_WAIT_S = 60.0
 
@@ -207,7 +213,7 @@ def _check_rows(path: Path, db: sqlite3.Connection, tables: set[str]) -> None:
 
 def _first_bad_row(path: Path, db: sqlite3.Connection, tables: set[str]) -> None:
     for table, columns in ROWS.items():
-        if table not in tables:  # bench_cpu: a history written before CPU samples
+        if table not in tables:  # e.g. bench_cpu: a history written before CPU samples
             continue
         tests = [(column, cond, want) for column, kind in columns.items()
                  for cond, want in _bad(column, kind)]
@@ -333,7 +339,8 @@ def connect(path: Path) -> Iterator[sqlite3.Connection]:
                     db.execute(statement)
                 db.execute("INSERT INTO meta VALUES ('schema_version', ?)",
                            (str(SCHEMA_VERSION),))
-            db.execute(SLOWER_TABLE)  # a history from before it gets it too
+            for statement in ADDED_TABLES:  # a history from before them gets them too
+                db.execute(statement)
             db.execute("COMMIT")
         except sqlite3.Error as e:
             if db.in_transaction:
@@ -413,6 +420,10 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                     db.execute("INSERT INTO bench_cpu VALUES (?, ?, ?, ?, ?)",
                                (run_id, r["case"], r["engine"], r.get("case_hash", ""),
                                 json.dumps(r["cpu_samples_s"])))
+                db.executemany("INSERT INTO bench_relative VALUES (?, ?, ?, ?, ?, ?)",
+                               [(run_id, r["case"], r["engine"], r.get("case_hash", ""),
+                                 clock, json.dumps(xs))
+                                for clock, xs in speed.relative(r).items()])
             db.executemany("INSERT INTO slower VALUES (?, ?, ?)",
                            [(run_id, c, e) for c, e in slower])
             db.execute("COMMIT")
@@ -457,10 +468,11 @@ def import_jsonl(db_path: Path, jsonl: Path) -> int:
 
 
 def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str,
-            machine: str, last: int, exclude_dir: str) -> list[tuple]:
-    """``columns`` of ``table`` (bench or bench_cpu) for the last ``last`` benchmarks of a
-    cell with the same case file and machine, not those of the folder ``exclude_dir`` nor
-    those its speed gate found slower (the ``slower`` table, where the history has it)."""
+            machine: str, last: int, exclude_dir: str, clock: str = "") -> list[tuple]:
+    """``columns`` of ``table`` (bench, bench_cpu or, of one ``clock``, bench_relative) for
+    the last ``last`` benchmarks of a cell with the same case file and machine, not those
+    of the folder ``exclude_dir`` nor those its speed gate found slower (the ``slower``
+    table, where the history has it)."""
     flagged = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND "
                          "name = 'slower'").fetchone()
     not_slower = (f" AND NOT EXISTS (SELECT 1 FROM slower WHERE slower.run_id = runs.id AND "
@@ -470,8 +482,9 @@ def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str
         f"SELECT {columns} FROM {table} JOIN runs ON runs.id = {table}.run_id WHERE "
         f"{table}.case_name = ? AND {table}.engine = ? AND {table}.case_hash = ? AND "
         "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?)"
-        f"{not_slower} ORDER BY runs.id DESC LIMIT ?",
-        (case, engine, case_hash, machine, exclude_dir, exclude_dir, last)).fetchall()
+        f"{not_slower}{f' AND {table}.clock = ?' if clock else ''} ORDER BY runs.id DESC "
+        "LIMIT ?", (case, engine, case_hash, machine, exclude_dir, exclude_dir,
+                    *([clock] if clock else []), last)).fetchall()
 
 
 def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
@@ -503,6 +516,28 @@ def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine
                 raise
             return []
     return [s for (raw,) in rows for s in json.loads(raw)]
+
+
+def past_relative(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
+                  last: int = 5, exclude_dir: str = "") -> dict[str, list[float]]:
+    """Pooled samples relative to the reference work, per clock (``wall``, ``cpu``), of the
+    last ``last`` benchmarks that measured it, chosen as :func:`past_samples` chooses
+    ({} when none did: a history from before the reference work)."""
+    out: dict[str, list[float]] = {}
+    with reading(path) as db:
+        if db is None:
+            return out
+        for clock in ("wall", "cpu"):
+            try:
+                rows = _recent(db, "bench_relative", "bench_relative.samples", case, engine,
+                               case_hash, machine, last, exclude_dir, clock=clock)
+            except sqlite3.OperationalError as e:
+                if "no such table" not in str(e):
+                    raise
+                return out
+            if rows:
+                out[clock] = [s for (raw,) in rows for s in json.loads(raw)]
+    return out
 
 
 def trends(path: Path, *, last: int = 30) -> dict:

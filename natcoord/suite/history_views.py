@@ -38,19 +38,24 @@ def _median_s(db, run_id: int) -> dict[tuple[str, str], float]:
         if json.loads(raw)}
 
 
-def _timings(db, run_id: int) -> dict[tuple[str, str], tuple[list, list]]:
-    """Per cell of a run, its (wall, CPU) timing samples (CPU: [] where not measured, or
-    in a history from before CPU samples)."""
-    out = {(c, e): (json.loads(raw), []) for c, e, raw in db.execute(
+def _timings(db, run_id: int) -> dict[tuple[str, str], tuple[list, list, dict]]:
+    """Per cell of a run, its (wall, CPU, relative) timing samples: CPU [] where not
+    measured, relative (per clock, samples / reference work) {} where not measured, both
+    also in a history from before them."""
+    out = {(c, e): (json.loads(raw), [], {}) for c, e, raw in db.execute(
         "SELECT case_name, engine, samples FROM bench WHERE run_id = ?", (run_id,))}
-    try:
-        for c, e, raw in db.execute("SELECT case_name, engine, samples FROM bench_cpu "
-                                    "WHERE run_id = ?", (run_id,)):
-            if (c, e) in out:
-                out[c, e] = (out[c, e][0], json.loads(raw))
-    except sqlite3.OperationalError as e:
-        if "no such table" not in str(e):
-            raise
+    for query, put in (
+            ("SELECT case_name, engine, samples FROM bench_cpu WHERE run_id = ?",
+             lambda old, raw: (old[0], json.loads(raw), old[2])),
+            ("SELECT case_name, engine, samples, clock FROM bench_relative WHERE run_id = ?",
+             lambda old, raw, clock: (old[0], old[1], old[2] | {clock: json.loads(raw)}))):
+        try:
+            for c, e, *rest in db.execute(query, (run_id,)):
+                if (c, e) in out:
+                    out[c, e] = put(out[c, e], *rest)
+        except sqlite3.OperationalError as err:
+            if "no such table" not in str(err):
+                raise
     return out
 
 
@@ -133,11 +138,12 @@ def since_green(path: Path) -> dict:
         if w is not None and w0 is not None and w > max(GROWTH * w0, 0.1):
             why.append(f"worst error/tolerance {w0:.3g} -> {w:.3g}")
         if key in t_now and key in t_then:
-            (wall, cpu), (wall0, cpu0) = t_now[key], t_then[key]
-            judged = speed.judge(*key, wall0, wall, base_cpu=cpu0, new_cpu=cpu)
+            (wall, cpu, rel), (wall0, cpu0, rel0) = t_now[key], t_then[key]
+            judged = speed.judge(*key, wall0, wall, base_cpu=cpu0, new_cpu=cpu,
+                                 base_relative=rel0, new_relative=rel)
             if judged.slower:
                 why.append(f"slower: median {judged.ratio:.3g}x (p = {judged.p:.2g}, "
-                           f"{judged.n_base} -> {judged.n_new} samples, {judged.clock} time)")
+                           f"{judged.n_base} -> {judged.n_new} samples, {judged.measure})")
         if why:
             out["regressed"].append({"cell": "/".join(key), "why": why})
     return out

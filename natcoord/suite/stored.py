@@ -10,7 +10,7 @@ from ..errors import StoredFileError
 
 _NUMBERS = ("wall_time_s", "us_per_step", "n_steps", "build_time_s")
 # bench.json: the timing samples of a cell, each a list of durations (s) when present
-_SAMPLES = ("samples_s", "cpu_samples_s")
+_SAMPLES = ("samples_s", "cpu_samples_s", "ref_samples_s", "ref_cpu_samples_s")
 
 # summary.json: what a record must hold, the statuses a run gives, and the type of every
 # other field a reader uses (gate, compare, report, the suite's summary.md)

@@ -237,7 +237,8 @@ def run_one(job: Job) -> Result:
 def run_job(job: Job) -> tuple[Result, dict]:
     """Run a job in this process: its Result (never raises for engine trouble: that becomes
     the status) and what a bench job adds to its record (else {}): ``cpu_samples_s``,
-    ``batch_runs`` and, with ``truncate``, the truncated runs' ``short`` record
+    ``batch_runs``, the reference work's ``ref_samples_s`` and ``ref_cpu_samples_s`` and,
+    with ``truncate``, the truncated runs' ``short`` record
     ``{duration_s, samples_s, cpu_samples_s, batch_runs, n_steps, counters}``."""
     case, engine = job.case, job.engine
     spec = case.engine(engine)
@@ -275,7 +276,7 @@ def run_job(job: Job) -> tuple[Result, dict]:
                 samples=max(1, job.repeat), min_batch_s=job.batch_s, budget_s=job.budget_s,
                 check=check_run)
             res.samples_s = full.wall_s
-            extra = {"cpu_samples_s": full.cpu_s, "batch_runs": full.runs}
+            extra = {k: v for k, v in full.record().items() if k != "samples_s"}
             if cut is not None:
                 extra["short"] = {"duration_s": short_case.duration, "n_steps": cut.n_steps,
                                   "counters": cut.counters} | part.record()
