@@ -77,3 +77,17 @@ def test_a_fixed_step_past_the_step_budget_is_refused_not_run(settings):
     solver = Solver.from_settings(settings)
     with pytest.raises(RuntimeError, match="too many steps"):
         integrate(cm.model, casemodel.initial_state(cm), case.times[:11], solver)
+
+
+@pytest.mark.parametrize("path", ["general", "sparse"])
+def test_a_compiled_run_that_fails_raises_naming_the_method_and_the_time(path):
+    """A compiled index-1 run that stops (here its step budget, 3 adaptive steps for 2 s)
+    raises RuntimeError with the method and the time; it returned its partial output as a
+    result once (the status check sat after the return)."""
+    from natcoord.compiled import index1, sparsity
+    con, frc = index1.warm_up_model()
+    plan = None if path == "general" else sparsity.schur_plan(con, np.eye(2)).kernel_args
+    with pytest.raises(RuntimeError, match=r"dop853 \(compiled\): too many steps at t = "):
+        index1.run("dop853", con, frc, np.linspace(0.0, 2.0, 21), np.array([1.0, 0.0]),
+                   np.zeros(2), index1.Steps(rtol=1e-6, atol=1e-8, max_steps=3),
+                   index1.Route(plan, None, np.eye(2)))

@@ -677,13 +677,13 @@ def prepare(name: str, con, frc, times, steps: Steps, route: Route | None = None
         status = run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0,
                             (*(X or out), *out, c, tfail))
         add_counters(c, cnt)
-        return c
         if status != OK:
             k = int(np.searchsorted(times, tfail[0], side="right")) - 1  # last sample
             J = np.zeros((int(con.m), n))
             kernels_general.jacobian(con, (X or out)[0][max(k, 0)], J)
             raise RuntimeError(f"{name} (compiled): {STATUS_TEXT.get(status, status)} at "
                                f"t = {tfail[0]:.6g} s" + singular_hint(J, rank_tol))
+        return c
     return go
 
 
