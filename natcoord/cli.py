@@ -335,7 +335,9 @@ def cases_cmd(cases_dir: CasesDir = None,
               as_json: Annotated[bool, typer.Option(
                   "--json", help="Print JSON: cases (per case its name, description, file, "
                                  "per engine null (it can run it) or the reason it cannot, "
-                                 "and absent_engines: blocks of engines not installed here), "
+                                 "absent_engines: blocks of engines not installed here, "
+                                 "and assembly: what assembly changed of the file's "
+                                 "poses, or null), "
                                  "engines (per engine its package, adapter module, "
                                  "built-in or plug-in, capabilities and settings schema) and "
                                  "engine_problems (plug-ins that do not load).")] = False):
@@ -354,8 +356,9 @@ def cases_cmd(cases_dir: CasesDir = None,
         _print_json({
             "cases": [{"name": c.name, "description": c.description, "file": str(c.file),
                        "engines": {e: (why[c.name, e] or None) for e in names},
-                       "absent_engines": list(c.absent_engines)}
-                      for c in (job.case for job in jobs)],
+                       "absent_engines": list(c.absent_engines),
+                       "assembly": job.assembly_note or None}
+                      for job in jobs for c in [job.case]],
             "engines": {e: {"package": adapter(e).PACKAGE, "module": reg.modules[e],
                             "origin": "built-in" if reg.builtin(e) else "plug-in",
                             "capabilities": adapter(e).CAPABILITIES.summary(),
@@ -374,7 +377,10 @@ def cases_cmd(cases_dir: CasesDir = None,
         table.add_row(escape(c.name), escape(c.description), " ".join(can),
                       escape("\n".join(cannot)))
     out.print(table)
-    for c in (job.case for job in jobs):
+    for job in jobs:
+        c = job.case
+        if job.assembly_note:
+            err.print(escape(f"note: {c.file}: {job.assembly_note}"), highlight=False)
         for e in c.absent_engines:
             err.print(escape(f"note: {c.file}: [engines.{e}]: no engine {e!r} is installed "
                              "here; its block is not used"), highlight=False)

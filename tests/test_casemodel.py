@@ -243,3 +243,31 @@ def test_force_channels_skip_only_the_samples_at_singular_positions():
     table.loc[near, "phi"] += 1e-3  # the motion is compared on every sample
     chans, _, _ = channel_errors(case, "natcoord", table, ref, ())
     assert chans["phi"]["pass"] is False
+
+
+def test_assembly_says_how_far_it_moved_a_posed_file_from_its_poses():
+    """four_bar's file gives the rocker an approximate pose (110 deg, choosing the branch
+    with C above the ground line): assembly turns it to where the loop closes, the circle
+    intersection of |C - A| = 2 and |C - D| = 1.5 with A at the 60 deg crank's tip. That move
+    is said where the case is listed and in every cell's notes; a case written in the
+    reference frame (five_bar) moves nothing and says nothing."""
+    from dataclasses import replace
+
+    from natcoord.suite.runner import prepare
+    from natcoord.suite.worker import run_one
+
+    A, D = np.array([np.cos(np.pi / 3), np.sin(np.pi / 3)]), np.array([2.0, 0.0])
+    a, r = 2.0, 1.5  # |C - A|, |C - D|
+    d = np.linalg.norm(D - A)
+    x = (a**2 - r**2 + d**2) / (2 * d)
+    u = (D - A) / d
+    C = A + x * u + np.sqrt(a**2 - x**2) * np.array([-u[1], u[0]])  # the left normal: up
+    assert C[1] > 0
+    rocker = np.degrees(np.arctan2(*(C - D)[::-1]))
+    job = prepare(load_case(CASES / "four_bar.toml"))
+    assert job.init["rocker"].angle == pytest.approx(np.radians(rocker), abs=1e-9)
+    assert (f"assembly turned body 'rocker' {abs(rocker - 110):.3g} deg from its pose in the "
+            "case file" in job.assembly_note), job.assembly_note
+    res = run_one(replace(job, engine="natcoord", settings={"h": 0.01, "method": "rk4"}))
+    assert res.status == "ok" and res.notes[0] == job.assembly_note, res.notes
+    assert prepare(load_case(CASES / "five_bar.toml")).assembly_note == ""

@@ -617,3 +617,13 @@ def test_energy_balance_figure_draws_in_chromium(balance_report, tmp_path):
 def test_no_energy_balance_section_without_energy_channels(report):
     _, html = report
     assert "Energy balance" not in html
+
+
+def test_a_note_several_engines_carry_is_listed_once_with_all_of_them():
+    """The case's assembly note is in every cell's notes: the report lists it once."""
+    from natcoord.report.html import _grouped_notes
+    same = "assembly turned body 'rocker' 36.1 deg from its pose in the case file"
+    recs = [{"engine": "natcoord", "notes": [same, "compiled path: generated"]},
+            {"engine": "mujoco", "notes": [same]}, {"engine": "dart"}]
+    assert _grouped_notes(recs) == [("natcoord, mujoco", [same]),
+                                    ("natcoord", ["compiled path: generated"])]

@@ -82,6 +82,35 @@ def initial_body_states(case: Case) -> InitialState:
                      fr.rotation[b][0]) for b in fr.origin})
 
 
+MOVE_NOTED = 1e-6  # m and rad: an assembly move past this is said (a reference-frame file's
+# points close the joints within 1e-6 m)
+
+
+def assembly_note(case: Case, init: InitialState) -> str:
+    """What assembly changed of the case file's poses: the body it moved farthest (m, and
+    deg in 2-D) from its pose in ``case.guess``, when past :data:`MOVE_NOTED`; "" else. A
+    posed file's poses are approximate by design (they choose the assembly branch), so a
+    move is information, not an error."""
+    worst = (0.0, 0.0, "")
+    for b, pose in case.guess.items():
+        if b not in init.bodies:
+            continue
+        s = init[b]
+        d = float(np.linalg.norm(np.asarray(s.origin, float) - np.asarray(pose.origin, float)))
+        a = (abs((s.angle - pose.angle + np.pi) % (2 * np.pi) - np.pi)
+             if case.dimension == 2 else 0.0)
+        if max(d, a) > max(worst[:2]):
+            worst = (d, a, b)
+    d, a, b = worst
+    if max(d, a) <= MOVE_NOTED:
+        return ""
+    did = " and ".join(([f"moved body {b!r} {d:.3g} m"] if d > MOVE_NOTED else [])
+                       + ([f"turned {'it' if d > MOVE_NOTED else f'body {b!r}'} "
+                           f"{np.degrees(a):.3g} deg"] if a > MOVE_NOTED else []))
+    return (f"assembly {did} from its pose in the case file (the largest change; every "
+            "engine starts from the assembled state)")
+
+
 # ---- body frames --------------------------------------------------------------------------
 def _columns(body, q: np.ndarray, last: float, cols: np.ndarray) -> np.ndarray:
     """Difference columns (T, d, K) of a body at q (T, n) (``last`` 1 for positions, 0 for

@@ -660,8 +660,7 @@ def build_context(results_dir: Path, references: Path = Path("references"),
             }
             (reactions if m["kind"] in FORCE_KINDS else trajectories).append(fig)
 
-        notes = [(str(r.get("engine")), [str(x) for x in r.get("notes") or []])
-                 for r in crecs if r.get("notes")]
+        notes = _grouped_notes(crecs)
         tol_reasons = [(str(r.get("engine")), str(r.get("tolerance_reason")))
                        for r in crecs if r.get("tolerance_reason")]
         details = []
@@ -842,3 +841,13 @@ def write_report(results_dir: Path, references: Path = Path("references"),
         tmp.write_text(html, encoding="utf-8")
         tmp.replace(out)
     return out
+
+
+def _grouped_notes(records: list[dict]) -> list[tuple[str, list[str]]]:
+    """Each cell's notes as (engines, [note]): a note several engines carry (the case's
+    assembly, say) is listed once with all of them, in the records' order."""
+    by_note: dict[str, list[str]] = {}
+    for r in records:
+        for x in r.get("notes") or []:
+            by_note.setdefault(str(x), []).append(str(r.get("engine")))
+    return [(", ".join(engines), [note]) for note, engines in by_note.items()]

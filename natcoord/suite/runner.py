@@ -28,7 +28,7 @@ from pathlib import Path
 from .. import __version__
 from ..case.mechanism import Case
 from ..errors import NatcoordError
-from ..outputs.channels import initial_body_states
+from ..outputs.channels import assembly_note, initial_body_states
 from . import evidence, zygote
 from .io import read_json, write_json
 from .worker import Assessment, Job, cannot_run
@@ -60,7 +60,8 @@ def prepare(case: Case) -> Job:
     """Assemble a case once: a Job template (engine left empty) that every run of the case
     starts from. A case that does not assemble keeps the reason instead of a state."""
     try:
-        return Job(case, initial_body_states(case), "")
+        init = initial_body_states(case)
+        return Job(case, init, "", assembly_note=assembly_note(case, init))
     except NatcoordError as e:
         return Job(case, None, "", assembly_error=str(e))
 

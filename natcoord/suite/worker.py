@@ -80,6 +80,7 @@ class Job:
     engine: str
     settings: dict = field(default_factory=dict)
     assembly_error: str = ""
+    assembly_note: str = ""  # what assembly changed of the file's poses (or "")
     repeat: int = 1
     truncate: float = 0.0
     batch_s: float = 0.0
@@ -310,7 +311,8 @@ def run_job(job: Job) -> tuple[Result, dict]:
     res.table, res.methods = table, methods
     res.build_time_s, res.n_steps = run.build_time_s, run.n_steps
     res.wall_time_s = min(res.samples_s) if res.samples_s else run.wall_time_s
-    res.settings, res.counters, res.notes = run.settings, run.counters, run.notes
+    res.settings, res.counters = run.settings, run.counters
+    res.notes = [job.assembly_note] * bool(job.assembly_note) + list(run.notes)
     motion = [c for c in case.channels if c.kind not in FORCE_KINDS]
     absent = [c.name for c in motion if c.kind in MAYBE_ABSENT
               and np.all(np.isnan(res.table[c.name]))]
