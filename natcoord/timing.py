@@ -81,6 +81,12 @@ class Timing:
     def batched(self) -> bool:
         return bool(self.runs)
 
+    def record(self) -> dict:
+        """The fields of a bench record these samples give."""
+        return {"samples_s": self.wall_s, "cpu_samples_s": self.cpu_s,
+                "batch_runs": self.runs, "ref_samples_s": self.ref_wall_s,
+                "ref_cpu_samples_s": self.ref_cpu_s}
+
     def counters(self) -> dict:
         """The counters an engine run reports when it timed calibrated batches ({} else)."""
         if not self.batched:

@@ -21,7 +21,6 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 from .. import timing
 
@@ -45,28 +44,8 @@ def slowdown(engine: str, env: str | None = None) -> int:
     return out
 
 
-@dataclass
-class Samples:
-    """One duration's timing samples: per-run wall (and CPU, when the engine measured it)
-    time of each batch, s, the runs in each batch, and the wall (and CPU) time, s, of the
-    reference work (:func:`natcoord.timing.reference_work`) measured after each batch."""
-
-    wall_s: list[float] = field(default_factory=list)
-    cpu_s: list[float] = field(default_factory=list)
-    runs: list[int] = field(default_factory=list)
-    ref_wall_s: list[float] = field(default_factory=list)
-    ref_cpu_s: list[float] = field(default_factory=list)
-
-    def record(self) -> dict:
-        return {"samples_s": self.wall_s, "cpu_samples_s": self.cpu_s,
-                "batch_runs": self.runs, "ref_samples_s": self.ref_wall_s,
-                "ref_cpu_samples_s": self.ref_cpu_s}
-
-    def reference(self) -> None:
-        """Measure the reference work once more (after a sample)."""
-        wall, cpu = timing.reference_work()
-        self.ref_wall_s.append(wall)
-        self.ref_cpu_s.append(cpu)
+Samples = timing.Timing  # one duration's timing samples, in wall and CPU time, and the
+# reference work after each: an engine that times itself and one timed here fill the same
 
 
 def _of_run(run) -> Samples | None:
