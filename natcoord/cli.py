@@ -1269,10 +1269,14 @@ def check_engine_cmd(engine: Annotated[str, typer.Argument(help="Engine name (bu
     if version is None:  # the adapter's bug: no run could be recorded
         _fail(f"{engine}: the engine's version() {why}; every run needs it, so nothing was "
               "checked", RUN_FAILED)
+    folder = resolve(cases_dir, "cases")
+    if not Path(folder).is_dir() or not any(Path(folder).glob("*.toml")):
+        _fail(f"{folder}: no case files (*.toml)" if Path(folder).is_dir() else
+              f"{folder}: no such folder (--cases-dir)")  # the agreement checks need cases
     say = (lambda s: None) if as_json else (lambda s: out.print(Text(f"  running {s}",
                                                                      style="dim")))
     try:
-        card = check_engine(engine, resolve(cases_dir, "cases"),
+        card = check_engine(engine, folder,
                             resolve(references, "references"), say)
     except NatcoordError as e:
         _fail(str(e))
@@ -1372,7 +1376,7 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
         _fail(f"--name {name!r} must equal the case file's stem {out_file.stem!r}")
     try:
         imported = import_mjcf(model, out_file.stem, duration=duration)
-        write_case(out_file, imported.text, force=force)
+        write_case(out_file, imported.text, force=force, assemble=True)
     except NatcoordError as e:
         _fail(str(e), _code(e))
     for note in imported.notes:

@@ -496,3 +496,13 @@ def test_the_longest_time_limit_a_run_takes_does_not_overflow(tmp_path):
 def test_project_root_is_where_the_tests_run():
     assert (ROOT / "cases").is_dir()
     assert json.loads((ROOT / "references" / "baseline.json").read_text())["errors"]
+
+
+def test_check_engine_with_a_cases_folder_that_is_not_there_is_refused(tmp_path):
+    """check-engine --cases-dir /nonexistent passed its 5 built-in checks and exited 0: the
+    agreement checks on the cases silently vanished."""
+    p = _cli("check-engine", "natcoord", "--cases-dir", tmp_path / "nonexistent")
+    assert p.returncode == 2 and "no such folder (--cases-dir)" in p.stderr, p.stderr
+    (tmp_path / "empty").mkdir()
+    p = _cli("check-engine", "natcoord", "--cases-dir", tmp_path / "empty")
+    assert p.returncode == 2 and "no case files" in p.stderr, p.stderr

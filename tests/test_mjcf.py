@@ -253,3 +253,118 @@ def test_mjcf_with_absurd_magnitudes_exit_2(tmp_path, extra_body, extra, named):
     assert r.exit_code == 2, r.output
     assert f"{xml}: {named}" in r.output, r.output
     assert "Warning" not in r.output and not (tmp_path / "big.toml").exists()
+
+
+def _four_bar_xml(tmp_path, connect: str, name: str):
+    """cases/mjcf_four_bar.xml with its connect named ``connect``, started turning."""
+    text = (CASES / "mjcf_four_bar.xml").read_text().replace(
+        '<connect name="C"', f'<connect name="{connect}"').replace(
+        "</sensor>", '</sensor><keyframe><key qvel="1.0 0 0"/></keyframe>')
+    xml = tmp_path / f"{name}.xml"
+    xml.write_text(text)
+    return xml
+
+
+def test_a_connect_named_like_a_velocity_channel_starts_the_same_motion(tmp_path):
+    """A connect named 'crank_A' gave the loop's position channel the name of the velocity
+    channel x_crank_A (the crank's point A): the file then set the coupler point's
+    velocity instead, a different motion from the same model. Channel names are unique
+    now, and the assembled start is the one the connect named 'C' gives."""
+    starts = {}
+    for connect in ("C", "crank_A"):
+        out = tmp_path / f"fb_{connect}.toml"
+        r = _invoke(["import", str(_four_bar_xml(tmp_path, connect, f"fb_{connect}")),
+                     "--out", str(out)])
+        assert r.exit_code == 0, r.output
+        case = load_case(out)
+        assert len({c.name for c in case.channels}) == len(case.channels)
+        init = initial_body_states(case)
+        starts[connect] = {b: (init[b].velocity, init[b].omega) for b in init}
+    for b, (v, w) in starts["C"].items():
+        np.testing.assert_allclose(starts["crank_A"][b][0], v, atol=1e-12)
+        assert starts["crank_A"][b][1] == pytest.approx(w, abs=1e-12)
+    assert starts["C"]["crank"][1] != 0  # it does start turning
+
+
+def test_generated_channel_names_never_clash(tmp_path):
+    """A crank body named 'x' and a connect named 'theta' both made a channel theta_x: the
+    file did not load ('Cannot overwrite a value'); now the second is theta_x_2."""
+    out = tmp_path / "chan.toml"
+    r = _invoke(["import", str(_chan_xml(tmp_path)),
+                 "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    names = [c.name for c in load_case(out).channels]
+    assert "theta_x" in names and "theta_x_2" in names and len(set(names)) == len(names)
+
+
+def _chan_xml(tmp_path):
+    xml = tmp_path / "chan.xml"
+    xml.write_text(
+        '<mujoco><default><geom contype="0" conaffinity="0"/><joint type="hinge" '
+        'axis="0 1 0"/></default><worldbody><body name="x"><joint name="O"/><geom '
+        'type="capsule" fromto="0 0 0 0 0 1" size="0.02" mass="1"/><body name="cp" '
+        'pos="0 0 1"><joint name="A"/><geom type="capsule" fromto="0 0 0 1 0 0" '
+        'size="0.02" mass="1"/></body></body><body name="r" pos="1 0 0"><joint name="D"/>'
+        '<geom type="capsule" fromto="0 0 0 0 0 1" size="0.02" mass="1"/></body>'
+        '</worldbody><equality><connect name="theta" body1="cp" body2="r" anchor="1 0 0"/>'
+        "</equality></mujoco>")
+    return xml
+
+
+def test_a_joint_named_like_an_added_point_keeps_its_point(tmp_path):
+    """A body 'p' with a hinge named 'p_c': the point import adds to complete the body was
+    named p_c too and replaced the joint's (a traceback). The pendulum's joint point is at
+    the hinge, the added one at the bob."""
+    xml = tmp_path / "pc.xml"
+    xml.write_text('<mujoco><worldbody><body name="p"><joint name="p_c" type="hinge" '
+                   'axis="0 1 0"/><geom type="sphere" size="0.1" pos="0 0 -1" mass="1" '
+                   'contype="0" conaffinity="0"/></body></worldbody></mujoco>')
+    out = tmp_path / "pc.toml"
+    r = _invoke(["import", str(xml), "--out", str(out)])
+    assert r.exit_code == 0 and "Traceback" not in r.output, r.output
+    (body,) = load_case(out).bodies
+    np.testing.assert_allclose(body.points["p_c"], [0.0, 0.0], atol=1e-12)
+    (other,) = [k for k in body.points if k != "p_c"]
+    assert np.linalg.norm(body.points[other] - body.points["p_c"]) == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize(("actuator", "key", "said"), [
+    ('<motor name="m" joint="ja"/>', '<keyframe><key ctrl="5"/></keyframe>',
+     "applies a force of 5 at the start (keyframe '0': control 5)"),
+    ('<motor name="m" joint="ja" ctrllimited="true" ctrlrange="1 2"/>', "",
+     "control 0, clamped to its ctrlrange [1, 2]"),
+    ('<general name="m" joint="ja" dyntype="integrator"/>',
+     '<keyframe><key act="4"/></keyframe>', "activation [4.0]"),
+])
+def test_an_actuator_that_pushes_from_the_start_is_refused(tmp_path, actuator, key, said):
+    """Actuators were dropped as 'zero control: no force' whatever their control: a
+    keyframe's ctrl, a ctrlrange that excludes 0 (MuJoCo clamps) or an activation."""
+    xml = tmp_path / "act.xml"
+    xml.write_text(MODEL.format(extra_body="", extra=f"<actuator>{actuator}</actuator>{key}"))
+    r = _invoke(["import", str(xml), "--out", str(tmp_path / "act.toml")])
+    assert r.exit_code == 2 and "actuator 'm'" in r.output and said in r.output, r.output
+    assert not (tmp_path / "act.toml").exists()
+
+
+def test_a_model_that_imports_but_cannot_start_is_refused(tmp_path):
+    """A ball joint turning about its body's line: the file gave two points and two rates,
+    and every run then failed; the import says so now and writes nothing."""
+    xml = tmp_path / "ball.xml"
+    xml.write_text('<mujoco><default><geom contype="0" conaffinity="0"/></default>'
+                   '<worldbody><body name="top" pos="0 0 1"><joint name="S" type="ball"/>'
+                   '<geom type="box" pos="0.2 0.1 -0.6" size="0.1 0.05 0.3" mass="1.5" '
+                   'euler="5 15 25"/></body></worldbody><keyframe><key qpos="0.9 0.3 0.2 '
+                   '0.1" qvel="0.5 -1.0 2.0"/></keyframe></mujoco>')
+    out = tmp_path / "ball.toml"
+    r = _invoke(["import", str(xml), "--out", str(out)])
+    assert r.exit_code == 2 and "does not assemble" in r.output, r.output
+    assert "velocity direction(s) left open" in r.output and not out.exists()
+
+
+def test_a_model_path_that_is_a_folder_or_not_utf8_is_named(tmp_path):
+    r = _invoke(["import", str(tmp_path), "--out", str(tmp_path / "x.toml")])
+    assert r.exit_code == 2 and "a folder, not an MJCF file" in r.output, r.output
+    odd = tmp_path / "c\udce9.xml"  # a byte of another encoding in the name
+    odd.write_bytes((CASES / "mjcf_four_bar.xml").read_bytes())
+    r = _invoke(["import", str(odd), "--out", str(tmp_path / "y.toml")])
+    assert r.exit_code == 2 and "not valid UTF-8" in r.output, r.output

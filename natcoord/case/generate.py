@@ -366,10 +366,11 @@ def check_duration(duration: float, output_dt: float = OUTPUT_DT) -> None:
                             f"step {output_dt:g} s")
 
 
-def write_case(path: Path, text: str, *, force: bool = False) -> None:
-    """Write a generated case file to ``path`` once it loads back (NatcoordError otherwise,
-    naming ``path``, not the trial copy). An existing file is kept (NatcoordError) unless
-    ``force``; a folder or a special file in its place is never replaced."""
+def write_case(path: Path, text: str, *, force: bool = False, assemble: bool = False) -> None:
+    """Write a generated case file to ``path`` once it loads back and, with ``assemble``,
+    assembles at t = 0 as a run would (NatcoordError otherwise, naming ``path``, not the
+    trial copy). An existing file is kept (NatcoordError) unless ``force``; a folder or a
+    special file in its place is never replaced."""
     from ..suite.io import check_user_file, write_user_file
     from .casefile import load_case
 
@@ -384,8 +385,17 @@ def write_case(path: Path, text: str, *, force: bool = False) -> None:
         trial = Path(tmp) / path.name
         trial.write_text(text, encoding="utf-8")
         try:
-            load_case(trial)
+            case = load_case(trial)
         except CaseError as e:
             raise NatcoordError("generated file does not load: "
                                 f"{CaseError(str(path), e.field, e.reason)}") from None
+        if assemble:
+            from ..outputs.channels import initial_body_states
+            try:
+                initial_body_states(case)
+            except NatcoordError as e:
+                why = (CaseError(str(path), e.field, e.reason) if isinstance(e, CaseError)
+                       else f"{path}: {str(e).replace(str(trial), str(path))}")
+                raise NatcoordError(f"generated file does not run (it does not assemble at "
+                                    f"t = 0): {why}") from None
     write_user_file(path, text, force=force)

@@ -112,8 +112,15 @@ def load_model(path: Path):
     file otherwise, and for a model holding a NaN or an infinity (MuJoCo only warns)."""
     mujoco = _mujoco()
     path = Path(path)
+    if path.is_dir():
+        raise CaseError(str(path), "", "a folder, not an MJCF file")
     if not path.is_file():
         raise CaseError(str(path), "", "no such MJCF file")
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:  # MuJoCo takes UTF-8 paths only (a TypeError otherwise)
+        raise CaseError(_shown(str(path)), "", "the file name is not valid UTF-8; rename "
+                        "the file") from None
     with caught_warnings(mujoco) as warned:
         try:
             spec = mujoco.MjSpec.from_file(str(path))
@@ -275,6 +282,31 @@ def _check(file: str, m, mujoco) -> list[str]:
     return notes
 
 
+def _check_actuators(file: str, m, d, mujoco, start: str) -> None:
+    """Refuse an actuator that applies force from the start (``d`` at it): a control from
+    the keyframe, a ctrlrange that clamps zero control away from 0, or an activation that
+    pushes or is about to change. natcoord carries actuators only as doing nothing."""
+    mujoco.mj_forward(m, d)
+    for a in range(m.nu):
+        adr, num = int(m.actuator_actadr[a]), int(m.actuator_actnum[a])
+        act = d.act[adr:adr + num] if adr >= 0 else np.zeros(0)
+        moving = adr >= 0 and bool(np.any(d.act_dot[adr:adr + num] != 0))
+        f = float(d.actuator_force[a])
+        if f == 0 and not moving:
+            continue
+        ctrl = float(d.ctrl[a])
+        lo, hi = m.actuator_ctrlrange[a]
+        clamped = bool(m.actuator_ctrllimited[a]) and not lo <= ctrl <= hi
+        why = [f"control {ctrl:g}" + (f", clamped to its ctrlrange [{lo:g}, {hi:g}]"
+                                      if clamped else "")]
+        if len(act):
+            why.append(f"activation {_vec(act)}" + (", changing" if moving else ""))
+        _refuse(file, f"actuator {mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_ACTUATOR, a) or a!r}",
+                f"applies a force of {f:g} at the start ({start}: {'; '.join(why)}); "
+                "natcoord carries an actuator only when it applies none: give it zero "
+                "control and activation, or remove it")
+
+
 def _assemble(file: str, m, d, mujoco, loops, welds) -> tuple[float, float]:
     """Close the connect and weld equalities at d.qpos by Gauss-Newton (least change of
     qpos, mj_integratePos) and project d.qvel onto them. Returns (qpos change, velocity
@@ -386,11 +418,13 @@ def import_mjcf(path: str | Path, name: str, *, duration: float = 2.0,
     d = mujoco.MjData(m)
     if m.nkey:
         d.qpos[:], d.qvel[:] = m.key_qpos[0], m.key_qvel[0]
+        d.ctrl[:], d.act[:] = m.key_ctrl[0], m.key_act[0]
         kn = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_KEY, 0) or "0"
         start = f"keyframe {kn!r}"
     else:
         d.qpos[:] = m.qpos0
         start = "qpos0, at rest"
+    _check_actuators(file, m, d, mujoco, start)
     bname = lambda b: mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}"  # noqa
     ename = lambda k: mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_EQUALITY, k)  # noqa: E731
 
@@ -498,7 +532,8 @@ def import_mjcf(path: str | Path, name: str, *, duration: float = 2.0,
             J += R @ np.diag(m.body_inertia[b]) @ R.T + m.body_mass[b] * (c @ c * np.eye(3)
                                                                           - np.outer(c, c))
         pts = points[bn]
-        _complete(pts, bn, com, dim, P, any(j[4] is not None and bn in j[2:4] for j in joints))
+        _complete(pts, bn, com, dim, P, any(j[4] is not None and bn in j[2:4] for j in joints),
+                  names)
         bodies.append((bn, mass, com, J, pts))
 
     # the initial velocity: point-position channels that fix it
@@ -510,19 +545,21 @@ def import_mjcf(path: str | Path, name: str, *, duration: float = 2.0,
 
 
 def _complete(pts: dict, bn: str, com: np.ndarray, dim: int, P: np.ndarray,
-              has_axis: bool) -> None:
+              has_axis: bool, names: _Names) -> None:
     """Give a body the points that define its frame: two apart (the first two), and in 3-D
-    one off their plane when they span a plane and no joint axis completes it."""
+    one off their plane when they span a plane and no joint axis completes it. A point
+    added is named by ``names`` (never a joint's name: a joint named 'rod_c' kept its
+    point)."""
     xs = list(pts.items())
     if not xs:
-        pts[f"{bn}_com"] = com
+        pts[names(f"{bn}_com", "com")] = com
         xs = list(pts.items())
     first = xs[0][1]
     far = [(k, x) for k, x in xs[1:] if np.linalg.norm(P @ (x - first)) > 1e-6]
     if not far:
         k = int(np.argmin(np.abs(P @ np.ones(3)))) if dim == 3 else 0
         off = com if np.linalg.norm(P @ (com - first)) > 1e-6 else first + P.T @ np.eye(dim)[k]
-        far = [(f"{bn}_c", off)]
+        far = [(names(f"{bn}_c", "c"), off)]
     rest = [(k, x) for k, x in xs[1:] if k != far[0][0]]
     ordered = [xs[0], far[0]] + rest
     if dim == 3 and not has_axis:
@@ -530,7 +567,7 @@ def _complete(pts: dict, bn: str, com: np.ndarray, dim: int, P: np.ndarray,
         if np.linalg.matrix_rank(D, tol=1e-9) == 2:
             u, s, vt = np.linalg.svd(D)
             scale = float(np.linalg.norm(far[0][1] - first))
-            ordered.append((f"{bn}_n", first + vt[2] * scale))
+            ordered.append((names(f"{bn}_n", "n"), first + vt[2] * scale))
     pts.clear()
     pts.update(ordered)
 
@@ -603,35 +640,48 @@ def _text(path, name, m, d, mujoco, dim, P, frame, g, duration, output_dt, bodie
         if axis is not None:
             L.append(f"axis = {_vec(axis / np.linalg.norm(axis))}")
         L.append("")
-    chans = []
+    chans: dict[str, str] = {}  # name -> definition; names unique, definitions too
+
+    def channel(name: str, definition: str) -> str:
+        """The channel's name in the file: an identical channel's, else ``name`` made
+        unique (a connect named 'crank_A' once gave the loop's position channel the name
+        of a velocity channel, which then set the wrong point's velocity)."""
+        for n, dfn in chans.items():
+            if dfn == definition:
+                return n
+        base, out, k = name[:60], name[:64], 1
+        while out in chans or out == "energy":
+            k += 1
+            out = f"{base}_{k}"
+        chans[out] = definition
+        return out
+
     first = next((j for j in joints if j[1] == "revolute" and j[2] == "ground"), None)
     if first is not None:
         bn, jn = first[3], first[0]
         other = next(k for k in points[bn] if k != jn)
         if dim == 2:
-            chans.append(f'theta_{bn} = {{ kind = "angle", body = {_q(bn)}, points = '
-                         f'[{_q(jn)}, {_q(other)}] }}')
+            channel(f"theta_{bn}", f'kind = "angle", body = {_q(bn)}, points = '
+                    f'[{_q(jn)}, {_q(other)}]')
         else:
             k = int(np.argmax(np.abs(first[4])))
             if abs(abs(first[4][k]) - 1) < 1e-12:
                 plane = {0: "yz", 1: "xz", 2: "xy"}[k]
-                chans.append(f'theta_{bn} = {{ kind = "angle", body = {_q(bn)}, points = '
-                             f'[{_q(jn)}, {_q(other)}], plane = "{plane}" }}')
+                channel(f"theta_{bn}", f'kind = "angle", body = {_q(bn)}, points = '
+                        f'[{_q(jn)}, {_q(other)}], plane = "{plane}"')
     for jn in loops:
         b = next(j[2] for j in joints if j[0] == jn)
-        chans += [f'{a}_{jn} = {{ kind = "position", body = {_q(b)}, point = {_q(jn)}, '
-                  f'axis = "{a}" }}' for a in ax]
+        for a in ax:
+            channel(f"{a}_{jn}", f'kind = "position", body = {_q(b)}, point = {_q(jn)}, '
+                    f'axis = "{a}"')
     for jn in loops:
-        chans += [f'{jn}_{a} = {{ kind = "reaction", joint = {_q(jn)}, axis = "{a}" }}'
-                  for a in ax]
-    have = {c.split(" ")[0] for c in chans}
-    for cn, bn, pn, a, _ in vel:
-        if cn not in have:
-            chans.append(f'{cn} = {{ kind = "position", body = {_q(bn)}, point = {_q(pn)}, '
-                         f'axis = "{a}" }}')
-    chans.append('energy = { kind = "energy" }')
+        for a in ax:
+            channel(f"{jn}_{a}", f'kind = "reaction", joint = {_q(jn)}, axis = "{a}"')
+    velocity = [(channel(cn, f'kind = "position", body = {_q(bn)}, point = {_q(pn)}, '
+                         f'axis = "{a}"'), v) for cn, bn, pn, a, v in vel]
     L += ["[initial]"]
-    L.append("velocity = { " + ", ".join(f"{cn} = {_f(v)}" for cn, _, _, _, v in vel) + " }"
+    L.append("velocity = { " + ", ".join(f"{cn} = {_f(v)}" for cn, v in velocity) + " }"
              if vel else "# at rest")
-    L += ["", "[channels]"] + chans + [""]
+    lines = [f"{n} = {{ {dfn} }}" for n, dfn in chans.items()] + ['energy = { kind = "energy" }']
+    L += ["", "[channels]"] + lines + [""]
     return "\n".join(L)
