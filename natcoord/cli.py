@@ -30,12 +30,14 @@ from rich.text import Text
 from .case.casefile import (
     MAX_DURATION_S,
     MAX_NAME,
+    MAX_SAMPLES,
     MAX_TIMEOUT_S,
     MIN_TIMEOUT_S,
     NAME_PATTERN,
     check_file_name,
     load_case,
 )
+from .case.generate import OUTPUT_DT as IMPORT_DT
 from .case.project import resolve
 from .engines import discover
 from .errors import CaseError, EnvironmentFault, NatcoordError, StoredFileError
@@ -1355,8 +1357,9 @@ def import_cmd(model: Annotated[Path, typer.Argument(help="MuJoCo model (MJCF .x
                name: Annotated[str | None, typer.Option(
                    help="Case name [default: the file's stem, or the model's].")] = None,
                duration: Annotated[float, typer.Option(
-                   parser=_number(1e-3, MAX_DURATION_S), metavar="SECONDS",
-                   help=f"s, 0.001 to {MAX_DURATION_S:g}.")] = 2.0,
+                   parser=_number(IMPORT_DT, MAX_SAMPLES * IMPORT_DT), metavar="SECONDS",
+                   help=f"s, a multiple of the output step {IMPORT_DT:g} s, up to "
+                        f"{MAX_SAMPLES * IMPORT_DT:g}.")] = 2.0,
                force: Annotated[bool, typer.Option(
                    "--force", help="Replace an existing case file.")] = False):
     """Turn a MuJoCo model into a case file: bodies with MuJoCo's compiled inertias, hinge,

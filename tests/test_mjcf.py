@@ -220,11 +220,12 @@ def test_import_into_an_existing_folder_writes_the_models_case_file_there(tmp_pa
 
 def test_import_names_the_duration_option_it_cannot_take(tmp_path):
     """It used to say: generated file does not load: /tmp/natcoord-generate-XXXX/new4.toml:
-    output_dt: must divide duration 0.005 s, got 0.01 s."""
+    output_dt: must divide duration 0.005 s, got 0.01 s. (0.005 is below the option's
+    range now, which starts at the output step: 0.015 is within it, not a multiple.)"""
     r = _invoke(["import", str(CASES / "mjcf_four_bar.xml"), "--out",
-                 str(tmp_path / "new4.toml"), "--duration", "0.005"])
+                 str(tmp_path / "new4.toml"), "--duration", "0.015"])
     assert r.exit_code == 2, r.output
-    assert "--duration 0.005: must be a multiple of the output step 0.01 s" in r.output
+    assert "--duration 0.015: must be a multiple of the output step 0.01 s" in r.output
     assert "natcoord-generate" not in r.output and list(tmp_path.iterdir()) == []
 
 
