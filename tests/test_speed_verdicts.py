@@ -239,7 +239,8 @@ def test_history_keeps_relative_samples_and_reads_an_older_history(tmp_path):
     assert history.past_relative(db, "c", "natcoord", "h", "m") == {}
     history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"},
                                             "records": [rec]})
-    assert history.past_relative(db, "c", "natcoord", "h", "m")["cpu"] == [4.0, 3.0]
+    assert history.past_relative(db, "c", "natcoord", "h", "m", last=1)["cpu"] == [4.0, 3.0]
+    assert history.past_relative(db, "c", "natcoord", "h", "m") == {}  # one run lacks them
     with sqlite3.connect(db) as con:  # a damaged row is named, as in the other tables
         con.execute("UPDATE bench_relative SET samples = '[-1]'")
     with pytest.raises(history.HistoryError, match="table bench_relative, row 1, column "
@@ -247,9 +248,55 @@ def test_history_keeps_relative_samples_and_reads_an_older_history(tmp_path):
         history.past_relative(db, "c", "natcoord", "h", "m")
 
 
+def test_the_relative_baseline_is_of_the_same_nights_as_the_raw_one(tmp_path):
+    """A slow night with references, then five fast ones without (written by a natcoord
+    from before them): the baseline of past_relative was that slow night, six nights old,
+    and a 3x slowdown passed as 1.0x. The window is the raw one's now: it lacks references,
+    so the judgement is on CPU times, and the slowdown is caught; with references in every
+    night of the window it is judged relative to them."""
+    db = tmp_path / "history.db"
+
+    def rec(x: float, refs: bool) -> dict:
+        r = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [x] * 5,
+             "cpu_samples_s": [x] * 5}
+        return r | ({"ref_samples_s": [0.01] * 5, "ref_cpu_samples_s": [0.01] * 5}
+                    if refs else {})
+
+    def night(x: float, refs: bool) -> None:
+        history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"},
+                                                "records": [rec(x, refs)]})
+
+    night(3.0, True)
+    for _ in range(5):
+        night(1.0, False)
+    new = {"machine": {"fingerprint": "m"}, "records": [rec(3.0, True)]}
+    (v,) = diff.against_history(new, db)
+    assert v.slower and not v.relative and v.ratio == pytest.approx(3.0), v.line()
+    for _ in range(5):
+        night(1.0, True)
+    (v,) = diff.against_history(new, db)
+    assert v.slower and v.relative and v.ratio == pytest.approx(3.0), v.line()
+
+
+def test_a_history_with_a_foreign_added_table_is_refused_before_anything_runs(tmp_path):
+    """A bench_relative table of other columns was found only when the night was written
+    (its results thrown away); it is refused on the first check now, as bench is."""
+    import sqlite3
+
+    db = tmp_path / "history.db"
+    history.record(db, kind="bench", bench={"machine": {"fingerprint": "m"}, "records": []})
+    with sqlite3.connect(db) as con:
+        con.execute("DROP TABLE bench_relative")
+        con.execute("CREATE TABLE bench_relative (run_id INTEGER, case_name TEXT)")
+    with pytest.raises(history.HistoryError, match="table 'bench_relative' lacks columns"):
+        history.check(db, write=True)
+
+
 @pytest.mark.parametrize("field, value", [("cpu_samples_s", 5), ("cpu_samples_s", ["x"]),
                                           ("samples_s", [float("nan")]),
                                           ("ref_cpu_samples_s", [0.0]),
+                                          ("ref_samples_s", [1e300]),  # no such machine
+                                          ("ref_cpu_samples_s", [1e-12]),
                                           ("samples_s", []),  # was NaN in --json
                                           ("batch_runs", {})])
 def test_two_benchmarks_with_a_malformed_sample_list_are_bad_input(tmp_path, field, value):

@@ -70,6 +70,10 @@ TABLES = {"meta": {"key", "value"},
           "bench": {"run_id", "case_name", "engine", "case_hash", "engine_version",
                     "settings", "samples", "wall_time_s", "us_per_step", "n_steps",
                     "counters"}}
+# tables a history may lack (written before them); checked as TABLES where present
+ADDED = {"bench_cpu": {"run_id", "case_name", "engine", "case_hash", "samples"},
+         "slower": {"run_id", "case_name", "engine"},
+         "bench_relative": {"run_id", "case_name", "engine", "case_hash", "clock", "samples"}}
 # What a row's columns may hold ("?": or NULL): checked for every row of a history before
 # anything reads it (a damaged row is named, exit 2, never a crash in whoever reads it).
 ROWS = {"runs": {"generated": "text?", "kind": "text?", "natcoord_version": "text?",
@@ -132,7 +136,8 @@ def _check_schema(path: Path, db: sqlite3.Connection) -> bool:
     names = {n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     if not names:
         return False
-    for table, columns in TABLES.items():
+    present = {t: c for t, c in ADDED.items() if t in names}
+    for table, columns in {**TABLES, **present}.items():
         have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
         if not columns <= have:
             raise HistoryError(f"{path}: not a natcoord history database (table {table!r} "
@@ -521,22 +526,32 @@ def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine
 def past_relative(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
                   last: int = 5, exclude_dir: str = "") -> dict[str, list[float]]:
     """Pooled samples relative to the reference work, per clock (``wall``, ``cpu``), of the
-    last ``last`` benchmarks that measured it, chosen as :func:`past_samples` chooses
-    ({} when none did: a history from before the reference work)."""
+    same benchmarks as :func:`past_samples`: a clock is given only when every one of them
+    measured it ({} for a history from before the reference work). A baseline of other
+    nights than the raw one's (the last ones that had references, older than the window)
+    once passed a 3x slowdown and failed an accepted one."""
     out: dict[str, list[float]] = {}
     with reading(path) as db:
         if db is None:
             return out
+        runs = [r for (r,) in _recent(db, "bench", "runs.id", case, engine, case_hash,
+                                      machine, last, exclude_dir)]
+        if not runs:
+            return out
+        marks = ", ".join("?" * len(runs))
         for clock in ("wall", "cpu"):
             try:
-                rows = _recent(db, "bench_relative", "bench_relative.samples", case, engine,
-                               case_hash, machine, last, exclude_dir, clock=clock)
+                rows = db.execute(
+                    "SELECT run_id, samples FROM bench_relative WHERE case_name = ? AND "
+                    f"engine = ? AND case_hash = ? AND clock = ? AND run_id IN ({marks})",
+                    (case, engine, case_hash, clock, *runs)).fetchall()
             except sqlite3.OperationalError as e:
                 if "no such table" not in str(e):
                     raise
                 return out
-            if rows:
-                out[clock] = [s for (raw,) in rows for s in json.loads(raw)]
+            by_run = {r: json.loads(raw) for r, raw in rows}
+            if set(by_run) == set(runs):  # newest first, as past_samples pools them
+                out[clock] = [x for r in runs for x in by_run[r]]
     return out
 
 

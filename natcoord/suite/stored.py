@@ -10,7 +10,11 @@ from ..errors import StoredFileError
 
 _NUMBERS = ("wall_time_s", "us_per_step", "n_steps", "build_time_s")
 # bench.json: the timing samples of a cell, each a list of durations (s) when present
-_SAMPLES = ("samples_s", "cpu_samples_s", "ref_samples_s", "ref_cpu_samples_s")
+_SAMPLES = ("samples_s", "cpu_samples_s")
+# the reference work's times (natcoord.timing.reference_work, ~10 ms on a 2020s core):
+# a value outside this range is no measurement of it, and would decide a speed verdict
+_REFERENCES = ("ref_samples_s", "ref_cpu_samples_s")
+REF_RANGE_S = (1e-4, 10.0)
 
 # summary.json: what a record must hold, the statuses a run gives, and the type of every
 # other field a reader uses (gate, compare, report, the suite's summary.md)
@@ -89,6 +93,11 @@ def check_bench(path: Path, data) -> dict:
             if k in r and not _samples(r[k]):
                 raise StoredFileError(f"{where}.{k}: not a list of timing samples (s, each at "
                                       f"least {MIN_SAMPLE_S:g})")
+        lo, hi = REF_RANGE_S
+        for k in _REFERENCES:
+            if k in r and not (_durations(r[k]) and all(lo <= x <= hi for x in r[k])):
+                raise StoredFileError(f"{where}.{k}: not a list of reference-work times (s, "
+                                      f"each from {lo:g} to {hi:g})")
         if r.get("status", "ok") == "ok" and r.get("samples_s") == []:  # NaN speed ratios
             raise StoredFileError(f"{where}.samples_s: not a list of durations (s): "
                                   "empty, in a record with status ok")
