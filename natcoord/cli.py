@@ -431,7 +431,7 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     """Write RESULTS/index.html from a results folder (trends from the history database),
     every cell's verdict judged from its result files as the gate judges them."""
     from .report.html import write_report
-    from .suite import diff, gate
+    from .suite import diff, evidence, gate
 
     results = _results_dir(results)
     if not (results / "summary.json").exists():
@@ -449,6 +449,12 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     _check_references(sorted({r["case"] for r in summary["records"]}), references)
     verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
                          references=references)
+    try:  # the page's speed figures come from bench.json: the gate's check of it
+        note = evidence.bench_checked(results, summary)
+    except evidence.BadEvidence as e:
+        verdict.worse(gate.REGRESSION, str(e), fault=True)
+    else:
+        verdict.notes += [note] if note else []
     path = write_report(results, references, history, verdict)
     out.print(f"report: {path.resolve()}")
 
@@ -502,7 +508,7 @@ def gate_cmd(results: ResultsDir = None,
     record or failed, 4 on a significant slowdown (accuracy regressions take precedence),
     5 when the baseline cannot be written.
     """
-    from .suite import diff, gate
+    from .suite import diff, evidence, gate
 
     results = _results_dir(results)
     baseline = resolve(baseline, "references/baseline.json")
@@ -520,7 +526,22 @@ def gate_cmd(results: ResultsDir = None,
     summary, base, verdict = _read_whole([results], judge)
     history = resolve(history, "reports/history.db")
     try:
-        bench_result = diff.read_bench(results)
+        bench_note = evidence.bench_checked(results, summary)
+    except evidence.BadEvidence as e:  # the speed verdict rests on it: no judging it
+        verdict.worse(gate.REGRESSION, str(e), fault=True)
+        bench_note = None
+        bench_result = None
+    else:
+        try:
+            bench_result = diff.read_bench(results)
+        except StoredFileError as e:
+            _fail(str(e))
+    if bench_note:
+        verdict.notes.append(bench_note)
+    if bench_result is not None and not bench_result.get("records"):
+        verdict.notes.append(f"{results / 'bench.json'}: no benchmark records: speed not "
+                             "judged")
+    try:
         speed = diff.against_history(bench_result, history, exclude_dir=str(
             results.resolve())) if bench_result else []
     except StoredFileError as e:  # bench.json or the history, named in the message
@@ -756,7 +777,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
     machine changed or its measurement is a week old (else reused from earlier suites,
     marked so)."""
     from .report.html import write_report
-    from .suite import bench, diff, gate, policy
+    from .suite import bench, diff, evidence, gate, policy
     from .suite import eta as eta_
     from .suite import history as hist
     from .suite.io import write_json
@@ -852,8 +873,10 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                     say=lambda n: out.print(f"re-measuring {n} cell(s) that look slower "
                                             "than their history"))
             # the dated copy only for the nightly suite, under the project's reports/
-            bench.store(bench_result, staging,
-                        resolve(None, "reports/bench") if nightly else None)
+            stored = bench.store(bench_result, staging,
+                                 resolve(None, "reports/bench") if nightly else None)
+            summary["bench_sha256"] = evidence.sha256_of(stored.read_bytes())  # the gate
+            write_json(staging / "summary.json", summary)  # checks bench.json against it
         slower = [s for s in speed if s.slower]
         verdict = gate.judge(summary, staging, references=references, baseline=base,
                              cases=gate.CaseBook(resolve(cases_dir, "cases"),

@@ -447,3 +447,67 @@ def test_the_reference_durations_are_written_from_a_full_suite_into_the_project(
     p = eta(folder)
     assert p.returncode == 0 and (home / "references" / "durations.json").is_file(), p.stderr
     assert (ROOT / "references" / "durations.json").read_bytes() == shipped
+
+
+def _gate(results: Path, db: Path):
+    return subprocess.run([sys.executable, "-m", "natcoord.cli", "gate", "--results",
+                           str(results), "--history", str(db)], capture_output=True,
+                          text=True, timeout=600, env={**os.environ, "NO_COLOR": "1"})
+
+
+def test_a_suite_folder_s_bench_json_is_evidence_checked_by_the_gate(two_nights, tmp_path):
+    """bench.json was tied to nothing: divided by 3 (a 3x slowdown hidden), swapped for
+    another night's, emptied, or deleted with the marker, the gate passed. The suite now
+    stores its sha256 in summary.json and the gate checks it (exit 1, naming the file),
+    as it checks the result CSVs; the copy as it was still passes."""
+    import shutil
+
+    tmp, db, *_ = two_nights
+    src = tmp / "b"
+    assert len(json.loads((src / "summary.json").read_text())["bench_sha256"]) == 64
+
+    def copy(name: str, edit) -> Path:
+        d = tmp_path / name
+        shutil.copytree(src, d, symlinks=True)
+        edit(d)
+        return d
+
+    def scaled(d: Path) -> None:
+        data = json.loads((d / "bench.json").read_text())
+        for r in data["records"]:
+            r["samples_s"] = [x / 3 for x in r["samples_s"]]
+        (d / "bench.json").write_text(json.dumps(data))
+
+    def gone(d: Path) -> None:
+        (d / "bench.json").unlink()
+        (d / ".natcoord-results").unlink()
+
+    def linked(d: Path) -> None:
+        (d / "bench.json").rename(tmp_path / f"{d.name}-bench.json")
+        (d / "bench.json").symlink_to(tmp_path / f"{d.name}-bench.json")
+
+    intact = _gate(copy("intact", lambda d: None), db)
+    assert intact.returncode == 0, intact.stderr
+    for name, edit, said in (("scaled", scaled, "altered since the run"),
+                             ("swapped", lambda d: shutil.copy(tmp / "a" / "bench.json",
+                                                               d / "bench.json"),
+                              "altered since the run"),
+                             ("gone", gone, "missing"),
+                             ("linked", linked, "not a regular file (a symbolic link)")):
+        p = _gate(copy(name, edit), db)
+        assert p.returncode == 1 and f"bench.json: {said}" in p.stderr, (name, p.stderr)
+        assert "Traceback" not in p.stderr
+
+
+def test_the_folder_of_a_suite_that_did_not_finish_is_no_evidence(two_nights, tmp_path):
+    """A suite killed before publishing leaves its staging folder, marked 'staging': the
+    gate passed it (exit 0); it is refused now, naming the marker."""
+    import shutil
+
+    tmp, db, *_ = two_nights
+    d = tmp_path / "staging"
+    shutil.copytree(tmp / "b", d)
+    marker = json.loads((d / ".natcoord-results").read_text())
+    (d / ".natcoord-results").write_text(json.dumps(marker | {"state": "staging"}))
+    p = _gate(d, db)
+    assert p.returncode == 2 and "did not finish" in p.stderr, p.stderr

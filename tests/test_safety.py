@@ -877,3 +877,32 @@ def test_report_keeps_a_page_it_did_not_write(tmp_path):
     (d / "index.html").symlink_to(tmp_path / "elsewhere.html")
     _clean(_cli(*args), 2)
     assert (d / "index.html").is_symlink() and not (tmp_path / "elsewhere.html").exists()
+
+
+@pytest.mark.parametrize("link", ["csv", "case folder", "results folder"])
+def test_a_result_file_or_folder_replaced_by_a_link_is_no_evidence(tmp_path, link):
+    """The check of a result file followed links (stat): a CSV, a case's folder or the
+    results folder moved out and linked back passed the gate. The run wrote none."""
+    d = tmp_path / "r"
+    shutil.copytree(_real_run(), d)
+    target = {"csv": d / "results" / "pendulum" / "natcoord.csv",
+              "case folder": d / "results" / "pendulum",
+              "results folder": d / "results"}[link]
+    aside = tmp_path / "aside"
+    target.rename(aside)
+    target.symlink_to(aside)
+    p = _cli("gate", "--results", d)
+    _clean(p, 1)
+    assert "symbolic link" in p.stderr, p.stderr
+
+
+def test_a_summary_with_a_record_twice_is_refused(tmp_path):
+    """A copied record was judged twice and the gate passed ('6 of 7 runs judged')."""
+    d = tmp_path / "r"
+    shutil.copytree(_real_run(), d)
+    data = json.loads((d / "summary.json").read_text())
+    data["records"].append(dict(data["records"][0]))
+    (d / "summary.json").write_text(json.dumps(data))
+    p = _cli("gate", "--results", d)
+    _clean(p, 2)
+    assert "a second record of pendulum/natcoord" in p.stderr, p.stderr

@@ -99,6 +99,10 @@ def unrecorded(results: Path, records: list[dict]) -> list[str]:
     if marker is None and (path.exists() or path.is_symlink()):
         raise StoredFileError(f"{path}: damaged results marker (not natcoord's JSON list of "
                               "the files it wrote): the folder's evidence cannot be checked")
+    if marker is not None and marker.get("state", "complete") != "complete":
+        raise StoredFileError(f"{path}: the folder of a command that did not finish (state "
+                              f"{str(marker.get('state'))[:20]!r}): its results were never "
+                              "published and are not evidence")
     listed = [] if marker is None else [
         f for f in marker["files"]
         if not PurePosixPath(f).is_absolute() and ".." not in PurePosixPath(f).parts]
@@ -131,6 +135,33 @@ def unrecorded(results: Path, records: list[dict]) -> list[str]:
     return lines
 
 
+def bench_checked(results: Path, summary: dict) -> str | None:
+    """Check ``results/bench.json`` against the sha256 the suite stored in its summary
+    (``bench_sha256``): BadEvidence naming the file when it is gone, a link or altered
+    since the run. Returns a note for a bench.json the summary does not list (a folder
+    of ``run`` plus ``bench --out``, or of a natcoord before the hash): read as it is."""
+    path = Path(results) / "bench.json"
+    want = summary.get("bench_sha256")
+    there = path.exists() or path.is_symlink()
+    if want is None:
+        return (f"{path}: not listed in summary.json (no sha256 of it stored by the run): "
+                "its figures are judged as they are") if there else None
+    if not there:
+        raise BadEvidence(f"{path}: missing (the suite stored its sha256 in summary.json: "
+                          "deleted since the run)")
+    try:
+        if not stat.S_ISREG(path.lstat().st_mode):
+            raise BadEvidence(f"{path}: not a regular file" + (
+                " (a symbolic link)" if path.is_symlink() else ""))
+        blob = path.read_bytes()
+    except OSError as e:
+        raise BadEvidence(f"{path}: unreadable ({e.strerror or e})") from None
+    if sha256_of(blob) != want:
+        raise BadEvidence(f"{path}: altered since the run (its sha256 is not the one the "
+                          "suite stored in summary.json)")
+    return None
+
+
 def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) -> bytes:
     """The bytes of the cell's CSV, after checking every file the run hashed; raises
     BadEvidence naming the file and what is wrong with it."""
@@ -139,14 +170,18 @@ def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) 
     if not isinstance(files, dict) or csv_name not in files:
         raise BadEvidence(f"{folder / csv_name}: no content hash in the summary (written by "
                           "an older natcoord, or the summary was edited): run it again")
+    for part in (Path(results) / "results", folder):  # links lead out of the folder the
+        if part.is_symlink():                          # run wrote: to files it did not
+            raise BadEvidence(f"{part}: a symbolic link, not the folder the run wrote")
     data = b""
     for name in (f"{engine}{s}" for s in SUFFIXES):
         if name not in files:
             continue
         path = folder / name
-        try:
-            if not stat.S_ISREG(path.stat().st_mode):  # a FIFO would hang the read, a
-                raise BadEvidence(f"{path}: not a regular file")  # device never end it
+        try:  # lstat: a link is not the file the run wrote (a FIFO would hang the read, a
+            if not stat.S_ISREG(path.lstat().st_mode):  # device never end it)
+                raise BadEvidence(f"{path}: not a regular file" + (
+                    " (a symbolic link)" if path.is_symlink() else ""))
             blob = path.read_bytes()
         except FileNotFoundError:
             raise BadEvidence(f"{path}: missing (deleted since the run)") from None

@@ -124,10 +124,17 @@ def check_summary(path: Path, data) -> dict:
         if k in data and not (isinstance(data[k], list)
                               and all(isinstance(x, str) for x in data[k])):
             raise StoredFileError(f"{path}: {k}: not a list of names")
-    _optional(data, ("generated", "mode", "natcoord_version"), "a string", f"{path}: ")
+    _optional(data, ("generated", "mode", "natcoord_version", "bench_sha256"), "a string",
+              f"{path}: ")
     _optional(data, ("machine",), "a table", f"{path}: ")
+    seen: dict[tuple, int] = {}
     for i, r in enumerate(records):
         _check_record(f"{path}: records[{i}]", r)
+        first = seen.setdefault((r["case"], r["engine"]), i)
+        if first != i:  # a run writes one record a cell: a copy would be judged twice
+            raise StoredFileError(f"{path}: records[{i}]: a second record of "
+                                  f"{r['case']}/{r['engine']} (the first is records[{first}]"
+                                  "): the summary was edited since the run")
     return data
 
 
