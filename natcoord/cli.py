@@ -878,7 +878,7 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
             summary["bench_sha256"] = evidence.sha256_of(stored.read_bytes())  # the gate
             write_json(staging / "summary.json", summary)  # checks bench.json against it
         slower = [s for s in speed if s.slower]
-        verdict = gate.judge(summary, staging, references=references, baseline=base,
+        verdict = gate.judge(summary, staging, references=references, baseline=base, staged=True,
                              cases=gate.CaseBook(resolve(cases_dir, "cases"),
                                                  {j.case.name: j.case for j in selected}))
         accepted = [f"accepted (--accept-speed): {s.line()}" for s in slower

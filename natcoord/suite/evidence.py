@@ -83,7 +83,7 @@ def _there(path: Path) -> bool:
         return True
 
 
-def unrecorded(results: Path, records: list[dict]) -> list[str]:
+def unrecorded(results: Path, records: list[dict], staged: bool = False) -> list[str]:
     """What the folder holds (or its marker says natcoord wrote in it) that the summary's
     records do not account for, one line each: a result file (``results/<case>/<engine>``
     ``.csv``, ``.methods.csv``, ``.json``) whose cell has no record; a table of results
@@ -92,14 +92,15 @@ def unrecorded(results: Path, records: list[dict]) -> list[str]:
     :func:`natcoord.suite.runner.run_suite` itself) is checked against its CSVs alone; a
     run of some cases holds no result files of the others, so it passes. Raises
     StoredFileError when the marker is there but unreadable (the list of what natcoord
-    wrote is lost: bad input)."""
+    wrote is lost: bad input), and when the marker says the command that wrote it did not
+    finish (unless ``staged``: the caller judges its own staging folder)."""
     results = Path(results)
     marker = outdir.read_marker(results)
     path = results / outdir.MARKER
     if marker is None and (path.exists() or path.is_symlink()):
         raise StoredFileError(f"{path}: damaged results marker (not natcoord's JSON list of "
                               "the files it wrote): the folder's evidence cannot be checked")
-    if marker is not None and marker.get("state", "complete") != "complete":
+    if marker is not None and not staged and marker.get("state", "complete") != "complete":
         raise StoredFileError(f"{path}: the folder of a command that did not finish (state "
                               f"{str(marker.get('state'))[:20]!r}): its results were never "
                               "published and are not evidence")

@@ -122,15 +122,16 @@ def load_summary(results: Path) -> dict:
 
 def judge(summary: dict, results: Path, *, cases: CaseBook, references: Path,
           required: set[str] | None = None, baseline: dict | None = None,
-          baseline_factor: float = 10.0, floor: float = 1e-12) -> Verdict:
+          baseline_factor: float = 10.0, floor: float = 1e-12, staged: bool = False) -> Verdict:
     """Apply the gate's rules to the cells a summary lists, each judged from its result
     files in ``results`` (see :func:`natcoord.suite.evidence.judge_cell`) with the case
     files of ``cases`` and the references in ``references``; the worst outcome wins
-    (3 > 2 > 1 > 0)."""
+    (3 > 2 > 1 > 0). ``staged``: ``results`` is the caller's own staging folder (the
+    suite judging what it is about to publish), else a folder marked staging is refused."""
     v = Verdict(OK)
     records = summary["records"]
     try:  # every result file in the folder has its record, every file natcoord wrote is there
-        for line in evidence.unrecorded(Path(results), records):
+        for line in evidence.unrecorded(Path(results), records, staged):
             v.worse(REGRESSION, line, fault=True)
     except StoredFileError as e:
         v.worse(BAD_INPUT, str(e), fault=True)
