@@ -906,3 +906,31 @@ def test_a_summary_with_a_record_twice_is_refused(tmp_path):
     p = _cli("gate", "--results", d)
     _clean(p, 2)
     assert "a second record of pendulum/natcoord" in p.stderr, p.stderr
+
+
+def test_reference_update_replaces_only_natcoord_s_own_reference(tmp_path):
+    """reference update replaced a hand-made table, followed a link out of the project
+    into a user's file, and a case named 'baseline' would have replaced the gate's
+    baseline.json: each is refused now before any work (exit 2, the file named and kept);
+    natcoord's own reference of the case is still replaced."""
+    home = _project(tmp_path, "pendulum")
+    text = (home / "cases" / "pendulum.toml").read_text()
+    for name in ("baseline", "linked"):
+        (home / "cases" / f"{name}.toml").write_text(
+            text.replace('name = "pendulum"', f'name = "{name}"'))
+    env = {"NATCOORD_HOME": str(home)}
+    base = (home / "references" / "baseline.json").read_bytes()
+    p = _cli("reference", "update", "baseline", env=env)
+    _clean(p, 2)
+    assert "baseline.json: not a reference natcoord wrote" in p.stderr, p.stderr
+    assert (home / "references" / "baseline.json").read_bytes() == base
+    mine = tmp_path / "mine.txt"
+    mine.write_text("a user's file")
+    (home / "references" / "linked.csv").symlink_to(mine)
+    p = _cli("reference", "update", "linked", env=env)
+    _clean(p, 2)
+    assert "linked.csv: not a regular file" in p.stderr and mine.read_text() == "a user's file"
+    before = (home / "references" / "pendulum.json").read_text()
+    p = _cli("reference", "update", "pendulum", env=env)
+    _clean(p, 0)
+    assert (home / "references" / "pendulum.json").read_text() != before  # a new 'created'

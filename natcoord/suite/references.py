@@ -14,6 +14,7 @@ References change only through ``natcoord reference update``.
 from __future__ import annotations
 
 import datetime as dt
+import json
 import platform
 from pathlib import Path
 
@@ -55,9 +56,33 @@ def _describe(settings: dict) -> str:
                                        f"rtol {settings['rtol']}")
 
 
+def _check_replaceable(case: Case, directory: Path) -> None:
+    """BadReference, before any work, when a file ``update_reference`` would write is not
+    natcoord's reference of ``case``: a link or a folder (a link was followed into a file
+    outside the project), or files without natcoord's provenance of that case (a
+    hand-made table; a case named 'baseline' would have replaced the gate's baseline)."""
+    paths = [Path(directory) / f"{case.name}{s}" for s in (".csv", ".methods.csv", ".json")]
+    for p in paths:
+        if p.is_symlink() or (p.exists() and not p.is_file()):
+            raise BadReference(f"{p}: not a regular file (a link or a folder): not replaced")
+    if not any(p.exists() for p in paths):
+        return
+    try:
+        prov = json.loads(paths[2].read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        prov = None
+    if not (isinstance(prov, dict) and prov.get("case") == case.name
+            and str(prov.get("method", "")).startswith("natcoord")):
+        raise BadReference(f"{paths[2] if paths[2].exists() else paths[0]}: not a reference "
+                           f"natcoord wrote for case {case.name!r} (no natcoord provenance): "
+                           "not replaced; move it away to write the reference")
+
+
 def update_reference(case: Case, directory: Path, init=None) -> dict:
     """Recompute and store the reference of one case (from its assembled state ``init``,
-    assembled here when None); returns its provenance."""
+    assembled here when None); returns its provenance. Replaces only natcoord's own
+    reference of the case (:func:`_check_replaceable`)."""
+    _check_replaceable(case, directory)
     init = initial_body_states(case) if init is None else init
     own = case.engine("natcoord").settings
     model_settings = {k: v for k, v in own.items() if k in MODEL_SETTINGS}
