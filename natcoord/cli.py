@@ -1160,8 +1160,7 @@ def bisect_cmd(good: Annotated[str, typer.Argument(help="A commit where the gate
         out.print(f"first bad commit: {found['first_bad']} {escape(found['subject'])}")
     else:
         err.print(escape(found["log"][-2000:]), highlight=False)
-        err.print("bisect could not name a first bad commit (is GOOD good and BAD bad for "
-                  "these cases?)")
+        err.print(f"bisect could not name a first bad commit: {escape(found['why'])}")
     raise typer.Exit(0 if found["first_bad"] else 3)
 
 

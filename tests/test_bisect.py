@@ -69,6 +69,21 @@ def test_bisect_names_the_commit_that_changed_the_mass(repo):
     assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
 
 
+def test_bisect_names_no_commit_when_an_end_does_not_hold(repo):
+    """BAD where the gate passes (before the mass changed): bisect named a first bad commit
+    it never saw fail, exit 0; the ends are judged first now, and it says which does not
+    hold (exit 3); GOOD where the gate fails likewise."""
+    r, shas = repo
+    for good, bad, said in ((shas[0], shas[1], "the gate passes at BAD"),
+                            (shas[2], shas[3], "the gate fails at GOOD")):
+        p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bisect", good, bad,
+                            "pendulum", "--engines", "natcoord", "--repo", str(r)],
+                           capture_output=True, text=True, timeout=1200, env=dict(os.environ))
+        assert p.returncode == 3 and said in p.stderr, p.stderr[-2000:]
+        assert "first bad commit:" not in p.stdout
+    assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
+
+
 def test_a_repo_that_is_not_a_git_repository_is_bad_input(tmp_path):
     """--repo is a path the user typed: one that does not exist (was exit 5, "a fault of
     the environment"), a file or a folder outside any repository is exit 2, named."""

@@ -50,8 +50,10 @@ def _git(cwd: Path, *args: str, check: bool = True) -> subprocess.CompletedProce
 
 def bisect(repo: Path, good: str, bad: str, cases: list[str], engines: list[str], *,
            timeout_s: float = 600.0) -> dict:
-    """``{"first_bad": sha or None, "subject": ..., "log": git bisect's output}``;
-    NatcoordError when ``repo`` is not a git repository or a revision is unknown."""
+    """``{"first_bad": sha or None, "subject": ..., "why": why none, "log": git bisect's
+    output}``, after checking that the gate fails at ``bad`` and passes at ``good`` (else
+    no commit is named, and ``why`` says which end does not hold); NatcoordError when
+    ``repo`` is not a git repository or a revision is unknown."""
     repo = Path(repo)
     if not repo.is_dir():  # a path the user typed: bad input, not the machine
         raise NatcoordError(f"{repo}: not a git repository ("
@@ -67,11 +69,24 @@ def bisect(repo: Path, good: str, bad: str, cases: list[str], engines: list[str]
         wt = Path(tmp) / "worktree"
         _git(Path(top), "worktree", "add", "--detach", str(wt), revs[bad])
         try:
-            _git(wt, "bisect", "start", revs[bad], revs[good])
             step = Path(tmp) / "step.py"
             step.write_text(STEP, encoding="utf-8")
-            p = _git(wt, "bisect", "run", sys.executable, str(step), str(wt), str(timeout_s),
-                     ",".join(cases), ",".join(engines), check=False)
+            command = [sys.executable, str(step), str(wt), str(timeout_s), ",".join(cases),
+                       ",".join(engines)]
+            # the ends first: a BAD the gate passes named a commit it never saw fail
+            for rev, want, word, end_name in ((bad, 1, "passes", "BAD"),
+                                              (good, 0, "fails", "GOOD")):
+                _git(wt, "checkout", "--quiet", "--detach", revs[rev])
+                end = subprocess.run(command, capture_output=True, text=True)
+                if end.returncode != want:
+                    why = (f"cannot judge {end_name} {rev} ({revs[rev][:12]}): its natcoord "
+                           "does not start or refuses these cases" if end.returncode == 125
+                           else f"the gate {word} at {end_name} {rev} ({revs[rev][:12]}) for "
+                           "these cases and engines")
+                    return {"first_bad": None, "subject": "", "good": revs[good],
+                            "bad": revs[bad], "why": why, "log": end.stderr}
+            _git(wt, "bisect", "start", revs[bad], revs[good])
+            p = _git(wt, "bisect", "run", *command, check=False)
             log = p.stdout + p.stderr
             m = re.search(r"^([0-9a-f]{40}) is the first bad commit", log, re.M)
             first = m.group(1) if m else None
@@ -81,4 +96,4 @@ def bisect(repo: Path, good: str, bad: str, cases: list[str], engines: list[str]
         finally:
             _git(Path(top), "worktree", "remove", "--force", str(wt), check=False)
     return {"first_bad": first, "subject": subject, "good": revs[good], "bad": revs[bad],
-            "log": log}
+            "why": "" if first else "git bisect named no commit", "log": log}
