@@ -175,17 +175,20 @@ def _check_references(jobs, references: Path) -> None:
     """Read the stored reference (CSV and provenance) of every case (prepared jobs or
     names) before using them: a damaged one is bad input (exit 2 naming the file), not a
     failed cell or a silent gap later."""
+    from .suite.evidence import read_reference
     from .suite.references import load_provenance, load_reference
 
     try:
-        for name in (getattr(j, "case", j) for j in jobs):
-            name = getattr(name, "name", name)
+        for item in (getattr(j, "case", j) for j in jobs):
+            name = getattr(item, "name", item)
             if not isinstance(name, str):
                 continue  # a malformed record: the summary check's job
             if not NAME_PATTERN.fullmatch(name):  # its file would be past the system's limit
                 _fail(f"{name[:MAX_NAME]!r}{'...' if len(name) > MAX_NAME else ''} is not a "
                       f"case name (at most {MAX_NAME} letters, digits and _ . + -)")
-            load_reference(name, references)
+            if load_reference(name, references) is not None and not isinstance(item, str):
+                read_reference(item, references)  # as the gate reads it: every channel, at
+                # the case's times, finite (one row stretched over 201 made up errors)
             load_provenance(name, references)
     except NatcoordError as e:
         _fail(str(e))
@@ -580,6 +583,7 @@ def gate_cmd(results: ResultsDir = None,
 def _bench(selected, names, repeats, work_precision, references, timeout, quiet=False):
     from .suite import bench
 
+    _check_references(selected, references)  # the benchmark errors and sweeps read them
     total = len(selected) * len(names)
     say = (lambda *a: None) if quiet else out.print
     say(f"benchmarking {total} case x engine pairs, best of up to {repeats} calibrated "
@@ -1239,6 +1243,7 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
     (job,) = _cases([case], cases_dir)
     names = _engines(engines)
     refs = resolve(references, "references")
+    _check_references([job], refs)
     if out_file is not None:  # refused before the long runs, not after
         from .suite.io import check_user_file
 

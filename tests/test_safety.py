@@ -934,3 +934,24 @@ def test_reference_update_replaces_only_natcoord_s_own_reference(tmp_path):
     p = _cli("reference", "update", "pendulum", env=env)
     _clean(p, 0)
     assert (home / "references" / "pendulum.json").read_text() != before  # a new 'created'
+
+
+@pytest.mark.parametrize("command", [["bench", "--work-precision", "--repeats", "1"],
+                                     ["propose"]])
+def test_a_damaged_reference_stops_bench_and_propose_naming_it(tmp_path, command):
+    """A reference cut to one row: numpy stretched it over the 201 samples (errors of
+    4.7 rad at every setting, an empty proposed tolerance, exit 0); cut to ten, a
+    traceback. It is read as the gate reads it now: exit 2 naming the file."""
+    refs = tmp_path / "refs"
+    refs.mkdir()
+    for rows, name in ((2, "one"), (11, "ten")):
+        d = refs / name
+        d.mkdir()
+        lines = (REFERENCES / "pendulum.csv").read_text().splitlines()[:rows]
+        (d / "pendulum.csv").write_text("\n".join(lines) + "\n")
+        shutil.copy(REFERENCES / "pendulum.json", d)
+        p = _cli(command[0], "pendulum", "--engines", "natcoord", "--references", d,
+                 *command[1:], *(["--out", tmp_path / f"b-{name}"] if command[0] == "bench"
+                                 else []))
+        _clean(p, 2)
+        assert f"{d / 'pendulum.csv'}: reference sample times differ" in p.stderr, p.stderr
