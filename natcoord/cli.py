@@ -612,7 +612,8 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
         result["work_precision"] = points
         result["time_to_accuracy"] = bench.time_to_accuracy(points)
         result["scoring"] = bench.scoring(selected, result["records"], points)
-        table = Table(title="CPU time (s) to reach an angle error")
+        table = Table(title="time (s, a run's stepping, best wall clock on one core) to "
+                            "reach an angle error")
         for col in ("case", "engine", *(f"<= {t:g} rad" for t in bench.TARGETS)):
             table.add_column(col)
         for row in result["time_to_accuracy"]:
@@ -641,7 +642,7 @@ def _scaling_sizes(sizes: str) -> list[int]:
             n_four_bar(n)
         except ValueError as e:
             _fail(f"--scaling: {e}")
-    return ns
+    return sorted(set(ns))  # the growth is said from the smallest N to the largest
 
 
 def _scaling(ns: list[int], quiet: bool = False) -> dict:
@@ -725,13 +726,14 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
                        "(comma-separated, e.g. 64,512).", show_default=False)] = None):
     """Measure the cost per case x engine: best of repeats (single-threaded BLAS), fixed
     cost, cost per step and per right-hand side, natcoord's cold start; with --scaling,
-    how natcoord's cost per step grows with the size of a mechanism."""
+    how natcoord's cost per step grows with the size of a mechanism. Exit 3 when a cell
+    failed (each named with its reason), 0 otherwise."""
     from .suite import bench
     from .suite.io import check_folder
     from .suite.outdir import publishing
 
     names = _engines(engines)
-    sizes = _scaling_sizes(scaling) if scaling else None
+    sizes = _scaling_sizes(scaling) if scaling is not None else None
     target = _out_dir(out_dir, "bench")
     copies = resolve(history, "reports/bench")
     check_folder(copies, "--history")  # before measuring: the measurements are not lost
@@ -746,6 +748,14 @@ def bench_cmd(cases: CaseArgs = None, engines: Engines = None,
         _print_json(result)
     else:
         out.print(f"benchmark: {target / 'bench.json'}")
+    failed = [r for r in result["records"] if r.get("status") == "failed"]
+    for r in failed:  # the table shows 'failed' only: the reason is here and in bench.json
+        err.print(escape(f"{r['case']}/{r['engine']}: failed: {_short(r.get('reason') or '')}"),
+                  highlight=False)
+    if failed:
+        err.print(f"[bold red]{len(failed)} of {len(result['records'])} cell(s) failed[/] "
+                  f"(exit {RUN_FAILED})")
+        raise typer.Exit(RUN_FAILED)
 
 
 @app.command("suite")

@@ -507,3 +507,19 @@ def test_check_engine_with_a_cases_folder_that_is_not_there_is_refused(tmp_path)
     (tmp_path / "empty").mkdir()
     p = _cli("check-engine", "natcoord", "--cases-dir", tmp_path / "empty")
     assert p.returncode == 2 and "no case files" in p.stderr, p.stderr
+
+
+def test_bench_with_a_failed_cell_exits_3_naming_it_and_scaling_sizes_are_ordered(tmp_path):
+    """bench exited 0 with every cell failed (the table said 'failed', the reason only in
+    bench.json). --scaling 8,2 said 'grew 0.5x for 0.25x the couplers' and 4,2,4 ran N = 4
+    twice: sizes are taken once each, smallest first; an empty --scaling is refused."""
+    from natcoord.cli import _scaling_sizes
+
+    p = _cli("bench", "pendulum", "--engines", "natcoord", "--repeats", "1", "--timeout",
+             "0.01", "--out", tmp_path / "b")
+    assert p.returncode == 3, (p.returncode, p.stderr[-1500:])
+    assert "pendulum/natcoord: failed: timed out after 0.01 s" in p.stderr, p.stderr
+    _no_traceback(p)
+    assert _scaling_sizes("8,2,8") == [2, 8] and _scaling_sizes("4, 2,4") == [2, 4]
+    p = _cli("bench", "pendulum", "--scaling", "", "--out", tmp_path / "c")
+    assert p.returncode == 2 and "--scaling: expected positive integers" in p.stderr

@@ -25,9 +25,9 @@ Python process importing natcoord, loading its compiled kernels from the numba c
 running a tiny case) is measured apart (:func:`cold_start`): build time, never step time.
 
 IFToMM-style scoring (:func:`scoring`): for a case with a ``[benchmark]`` table, the error
-of its benchmark output against the reference at the case's settings, and the least CPU time
-(over the case's settings and the work-precision sweep) whose error is within the
-benchmark's precision.
+of its benchmark output against the reference at the case's settings, and the least wall
+time of a run's stepping on one pinned core (over the case's settings and the
+work-precision sweep) whose error is within the benchmark's precision.
 """
 
 from __future__ import annotations

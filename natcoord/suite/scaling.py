@@ -92,17 +92,18 @@ class _Member:
 
 def scaling(sizes: Sequence[int] = SIZES, *, repeats: int = 3, duration: float | None = None,
             progress: Callable[[str, dict], None] | None = None) -> dict:
-    """Every N of ``sizes``, and the growth of the cost per step from the first to the
-    last against the growth of N. Timed in rounds, each one whole run of every N in turn
-    (so that a change in the machine's load falls on all of them alike), at most
-    ``repeats`` rounds and at least MIN_ROUNDS (or ``repeats`` when fewer); no further
-    round once one took BUDGET_S of stepping. Each N's figure is the best of its runs."""
+    """Every N of ``sizes`` (once each, smallest first), and the growth of the cost per
+    step from the smallest N to the largest against the growth of N. Timed in rounds,
+    each one whole run of every N in turn (so that a change in the machine's load falls on
+    all of them alike), at most ``repeats`` rounds and at least MIN_ROUNDS (or
+    ``repeats`` when fewer); no further round once one took BUDGET_S of stepping. Each
+    N's figure is the best of its runs."""
     core = max(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else None
     before = os.sched_getaffinity(0) if core is not None else None
     if core is not None:
         os.sched_setaffinity(0, {core})
     try:
-        members = [_Member(int(n), duration) for n in sizes]
+        members = [_Member(n, duration) for n in sorted({int(n) for n in sizes})]
         rounds = 0
         while rounds < max(1, repeats):
             spent = sum(m.run() for m in members)
