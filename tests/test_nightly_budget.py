@@ -486,8 +486,9 @@ def test_a_suite_folder_s_bench_json_is_evidence_checked_by_the_gate(two_nights,
         (d / "bench.json").rename(tmp_path / f"{d.name}-bench.json")
         (d / "bench.json").symlink_to(tmp_path / f"{d.name}-bench.json")
 
-    intact = _gate(copy("intact", lambda d: None), db)
-    assert intact.returncode == 0, intact.stderr
+    intact = _gate(copy("intact", lambda d: None), db)  # trusted: its speed is judged (0,
+    assert intact.returncode in (0, 4), intact.stderr  # or 4 should the two nights' timings
+    assert "bench.json:" not in intact.stderr and "speed judged for" in intact.stderr  # differ)
     for name, edit, said in (("scaled", scaled, "altered since the run"),
                              ("swapped", lambda d: shutil.copy(tmp / "a" / "bench.json",
                                                                d / "bench.json"),

@@ -143,24 +143,31 @@ def bench_checked(results: Path, summary: dict) -> str | None:
     of ``run`` plus ``bench --out``, or of a natcoord before the hash): read as it is."""
     path = Path(results) / "bench.json"
     want = summary.get("bench_sha256")
-    there = path.exists() or path.is_symlink()
     if want is None:
         return (f"{path}: not listed in summary.json (no sha256 of it stored by the run): "
-                "its figures are judged as they are") if there else None
-    if not there:
-        raise BadEvidence(f"{path}: missing (the suite stored its sha256 in summary.json: "
-                          "deleted since the run)")
+                "its figures are judged as they are") if (path.exists() or
+                                                          path.is_symlink()) else None
+    _checked_bytes(path, want)
+    return None
+
+
+def _checked_bytes(path: Path, want: str) -> bytes:
+    """The bytes of a file the run wrote and hashed (``want``, its sha256 in summary.json);
+    BadEvidence naming it when it is gone, not a regular file (a link, a FIFO that would
+    hang the read, a device that would never end it), unreadable or altered."""
     try:
         if not stat.S_ISREG(path.lstat().st_mode):
             raise BadEvidence(f"{path}: not a regular file" + (
                 " (a symbolic link)" if path.is_symlink() else ""))
         blob = path.read_bytes()
+    except FileNotFoundError:
+        raise BadEvidence(f"{path}: missing (deleted since the run)") from None
     except OSError as e:
         raise BadEvidence(f"{path}: unreadable ({e.strerror or e})") from None
     if sha256_of(blob) != want:
         raise BadEvidence(f"{path}: altered since the run (its sha256 is not the one the "
-                          "suite stored in summary.json)")
-    return None
+                          "run stored in summary.json)")
+    return blob
 
 
 def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) -> bytes:
@@ -176,23 +183,9 @@ def _read_checked(results: Path, case: str, engine: str, files: dict[str, str]) 
             raise BadEvidence(f"{part}: a symbolic link, not the folder the run wrote")
     data = b""
     for name in (f"{engine}{s}" for s in SUFFIXES):
-        if name not in files:
-            continue
-        path = folder / name
-        try:  # lstat: a link is not the file the run wrote (a FIFO would hang the read, a
-            if not stat.S_ISREG(path.lstat().st_mode):  # device never end it)
-                raise BadEvidence(f"{path}: not a regular file" + (
-                    " (a symbolic link)" if path.is_symlink() else ""))
-            blob = path.read_bytes()
-        except FileNotFoundError:
-            raise BadEvidence(f"{path}: missing (deleted since the run)") from None
-        except OSError as e:
-            raise BadEvidence(f"{path}: unreadable ({e.strerror or e})") from None
-        if sha256_of(blob) != files[name]:
-            raise BadEvidence(f"{path}: altered since the run (its sha256 is not the one the "
-                              "run stored in summary.json)")
-        if name == csv_name:
-            data = blob
+        if name in files:
+            blob = _checked_bytes(folder / name, files[name])
+            data = blob if name == csv_name else data
     return data
 
 
