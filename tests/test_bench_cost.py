@@ -101,6 +101,7 @@ def test_benchmark_tables_of_the_catalogue_load():
 
 @pytest.mark.parametrize("block, field, words", [
     (BLOCK.replace('["x", "y"]', '["x", "nope"]'), "benchmark.channels[1]", "unknown channel"),
+    (BLOCK.replace('["x", "y"]', '["x", "x"]'), "benchmark.channels[1]", "listed twice"),
     (BLOCK.replace('["x", "y"]', '["x", "O_y"]'), "benchmark.channels", "one unit"),
     (BLOCK.replace('["x", "y"]', "[]"), "benchmark.channels", "non-empty list"),
     (BLOCK.replace('"1 mm"', "-1e-3"), "benchmark.precision", "positive"),

@@ -519,6 +519,8 @@ def _benchmark(r: _Reader, table: dict, channels) -> dict:
         if n not in kinds:
             r.fail(f"benchmark.channels[{k}]", f"unknown channel {short(n)}; channels are "
                    f"{', '.join(kinds)}")
+        if n in names[:k]:
+            r.fail(f"benchmark.channels[{k}]", f"{short(n)} is listed twice")
     dims = {_kind_dim(n, channels) for n in names}
     if len(dims) > 1:
         r.fail("benchmark.channels", f"must share one unit (one precision), got "
