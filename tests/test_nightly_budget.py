@@ -240,7 +240,8 @@ def test_the_second_night_reuses_the_external_cell_and_judges_only_natcoord(two_
     assert b["policy"]["reused"] == ["slider_crank_3d/mujoco"]
     # the speed gate judged natcoord's new samples only; the history holds each
     # measurement once (mujoco's samples are not recorded a second time)
-    assert "speed judged for 1 cell(s)" in second.stderr, second.stderr
+    assert "speed judged for 1 cell(s) (1 on CPU time, 1 relative to the reference work)" \
+        in second.stderr, second.stderr  # against the first night's references
     with sqlite3.connect(db) as con:
         rows = con.execute("SELECT engine, COUNT(*) FROM bench GROUP BY engine").fetchall()
     assert dict(rows) == {"natcoord": 2, "mujoco": 1}

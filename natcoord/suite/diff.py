@@ -207,8 +207,10 @@ def speed_notes(changes: list[speed.SpeedChange], history_db: Path | None = None
     judged = [s for s in changes if s.judged]
     if judged:
         cpu = sum(s.clock == "cpu" for s in judged)
-        lines.append(f"speed judged for {len(judged)} cell(s) ({cpu} on CPU time), "
-                     f"{sum(s.slower for s in judged)} significantly slower")
+        rel = sum(s.relative for s in judged)
+        lines.append(f"speed judged for {len(judged)} cell(s) ({cpu} on CPU time, {rel} "
+                     f"relative to the reference work), {sum(s.slower for s in judged)} "
+                     "significantly slower")
     return lines
 
 
