@@ -171,10 +171,12 @@ def _cases(names: list[str] | None, cases_dir: Path | None):
     return [_prepared(case) for case in cases]
 
 
-def _check_references(jobs, references: Path) -> None:
+def _check_references(jobs, references: Path, full: bool = False) -> None:
     """Read the stored reference (CSV and provenance) of every case (prepared jobs or
     names) before using them: a damaged one is bad input (exit 2 naming the file), not a
-    failed cell or a silent gap later."""
+    failed cell or a silent gap later. ``full`` (bench, propose: they compute errors
+    against it): also as the gate reads it, every channel at the case's sample times, finite
+    (a run goes ahead with a stale reference: the gate then says it cannot judge)."""
     from .suite.evidence import read_reference
     from .suite.references import load_provenance, load_reference
 
@@ -186,7 +188,8 @@ def _check_references(jobs, references: Path) -> None:
             if not NAME_PATTERN.fullmatch(name):  # its file would be past the system's limit
                 _fail(f"{name[:MAX_NAME]!r}{'...' if len(name) > MAX_NAME else ''} is not a "
                       f"case name (at most {MAX_NAME} letters, digits and _ . + -)")
-            if load_reference(name, references) is not None and not isinstance(item, str):
+            table = load_reference(name, references)  # raises for an unreadable one
+            if full and table is not None and not isinstance(item, str):
                 read_reference(item, references)  # as the gate reads it: every channel, at
                 # the case's times, finite (one row stretched over 201 made up errors)
             load_provenance(name, references)
@@ -583,7 +586,7 @@ def gate_cmd(results: ResultsDir = None,
 def _bench(selected, names, repeats, work_precision, references, timeout, quiet=False):
     from .suite import bench
 
-    _check_references(selected, references)  # the benchmark errors and sweeps read them
+    _check_references(selected, references, full=True)  # the benchmark errors read them
     total = len(selected) * len(names)
     say = (lambda *a: None) if quiet else out.print
     say(f"benchmarking {total} case x engine pairs, best of up to {repeats} calibrated "
@@ -1253,7 +1256,7 @@ def propose_cmd(case: Annotated[str, typer.Argument(help="Case name or case file
     (job,) = _cases([case], cases_dir)
     names = _engines(engines)
     refs = resolve(references, "references")
-    _check_references([job], refs)
+    _check_references([job], refs, full=True)
     if out_file is not None:  # refused before the long runs, not after
         from .suite.io import check_user_file
 

@@ -50,6 +50,7 @@ import pandas as pd
 
 from .. import __version__
 from ..case.mechanism import Case
+from .evidence import reference_problem
 from .io import write_json
 from .references import load_reference
 from .runner import as_job, machine_info, run_subprocess
@@ -375,6 +376,8 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
         for job in map(as_job, cases):
             case = job.case
             ref = load_reference(case.name, references)
+            if ref is not None and reference_problem(case, ref):
+                ref = None  # stale or damaged: errors against it would be made up
             angle = next((c.name for c in case.channels if c.kind == "angle"), None)
             if ref is None or (angle is None and not case.benchmark):
                 continue
