@@ -437,7 +437,7 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     """Write RESULTS/index.html from a results folder (trends from the history database),
     every cell's verdict judged from its result files as the gate judges them."""
     from .report.html import write_report
-    from .suite import diff, evidence, gate
+    from .suite import diff, gate
 
     results = _results_dir(results)
     if not (results / "summary.json").exists():
@@ -455,12 +455,7 @@ def report_cmd(results: ResultsDir = None, references: RefDir = None,
     _check_references(sorted({r["case"] for r in summary["records"]}), references)
     verdict = gate.judge(summary, results, cases=gate.CaseBook(resolve(cases_dir, "cases")),
                          references=references)
-    try:  # the page's speed figures come from bench.json: the gate's check of it
-        note = evidence.bench_checked(results, summary)
-    except evidence.BadEvidence as e:
-        verdict.worse(gate.REGRESSION, str(e), fault=True)
-    else:
-        verdict.notes += [note] if note else []
+    gate.check_bench_file(verdict, results, summary)  # the page's speed figures
     path = write_report(results, references, history, verdict)
     out.print(f"report: {path.resolve()}")
 
@@ -514,7 +509,7 @@ def gate_cmd(results: ResultsDir = None,
     record or failed, 4 on a significant slowdown (accuracy regressions take precedence),
     5 when the baseline cannot be written.
     """
-    from .suite import diff, evidence, gate
+    from .suite import diff, gate
 
     results = _results_dir(results)
     baseline = resolve(baseline, "references/baseline.json")
@@ -531,19 +526,12 @@ def gate_cmd(results: ResultsDir = None,
             required=required, baseline=base)
     summary, base, verdict = _read_whole([results], judge)
     history = resolve(history, "reports/history.db")
-    try:
-        bench_note = evidence.bench_checked(results, summary)
-    except evidence.BadEvidence as e:  # the speed verdict rests on it: no judging it
-        verdict.worse(gate.REGRESSION, str(e), fault=True)
-        bench_note = None
-        bench_result = None
-    else:
+    bench_result = None
+    if gate.check_bench_file(verdict, results, summary):  # the speed verdict rests on it
         try:
             bench_result = diff.read_bench(results)
         except StoredFileError as e:
             _fail(str(e))
-    if bench_note:
-        verdict.notes.append(bench_note)
     if bench_result is not None and not bench_result.get("records"):
         verdict.notes.append(f"{results / 'bench.json'}: no benchmark records: speed not "
                              "judged")

@@ -208,6 +208,19 @@ def _judge_cell(v: Verdict, r: dict, key: str, results: Path, cases: CaseBook,
     v.outcome[key] = "pass" if held else "fail"
 
 
+def check_bench_file(v: Verdict, results: Path, summary: dict) -> bool:
+    """Whether ``results/bench.json`` may be read for the verdict ``v``: checked against
+    the sha256 the suite stored (:func:`natcoord.suite.evidence.bench_checked`); a fault
+    (exit 1) when it cannot be trusted, a note when the summary does not list it."""
+    try:
+        note = evidence.bench_checked(results, summary)
+    except evidence.BadEvidence as e:
+        v.worse(REGRESSION, str(e), fault=True)
+        return False
+    v.notes += [note] if note else []
+    return True
+
+
 def update_baseline(verdict: Verdict, path: Path, generated: str | None = None) -> list[str]:
     """Store the errors of the cells this gate judged from their files and passed over the
     stored baseline, under a lock (two updates at once lose no cell); every other cell

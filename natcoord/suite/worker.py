@@ -312,7 +312,7 @@ def run_job(job: Job) -> tuple[Result, dict]:
     res.build_time_s, res.n_steps = run.build_time_s, run.n_steps
     res.wall_time_s = min(res.samples_s) if res.samples_s else run.wall_time_s
     res.settings, res.counters = run.settings, run.counters
-    res.notes = [job.assembly_note] * bool(job.assembly_note) + list(run.notes)
+    res.notes = ([job.assembly_note] if job.assembly_note else []) + list(run.notes)
     motion = [c for c in case.channels if c.kind not in FORCE_KINDS]
     absent = [c.name for c in motion if c.kind in MAYBE_ABSENT
               and np.all(np.isnan(res.table[c.name]))]
