@@ -1,7 +1,9 @@
 """`natcoord bisect` names the commit that broke a cell: a test repository (a copy of the
-package, the pendulum case and its reference) whose third commit changes the pendulum's mass
-by 1 % in its case file (the stored reference no longer holds: the gate fails at 1e-8 rad);
-the commits around it change nothing that matters. The user's checkout is not touched."""
+package, the pendulum case and its reference) whose third commit loosens natcoord's
+integration tolerance in the case file to rtol 1e-4 (its error passes the case's 1e-8 rad:
+the gate fails); the commits around it change nothing that matters. (A change of the mass
+would make the reference stale instead, which the gate refuses to judge: see
+test_evidence.) The user's checkout is not touched."""
 
 from __future__ import annotations
 
@@ -47,15 +49,16 @@ def repo(tmp_path) -> tuple[Path, list[str]]:
     commit("a note")
     case = r / "cases" / "pendulum.toml"
     text = case.read_text()
-    assert "mass = 1.0\n" in text
-    case.write_text(text.replace("mass = 1.0\n", "mass = 1.01\n", 1))
-    commit("mass 1 % heavier")
+    assert "[engines.natcoord]\n" in text
+    loose = "[engines.natcoord]\nsettings = { rtol = 1e-4, atol = 1e-6 }\n"
+    case.write_text(text.replace("[engines.natcoord]\n", loose, 1))
+    commit("natcoord's tolerance loosened")
     (r / "NOTES.md").write_text("another note\n")
     commit("another note")
     return r, shas
 
 
-def test_bisect_names_the_commit_that_changed_the_mass(repo):
+def test_bisect_names_the_commit_that_loosened_the_solver(repo):
     r, shas = repo
     before = _git(r, "status", "--porcelain")
     p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bisect", shas[0], shas[-1],
@@ -63,14 +66,14 @@ def test_bisect_names_the_commit_that_changed_the_mass(repo):
                        capture_output=True, text=True, timeout=1200, env=dict(os.environ))
     assert p.returncode == 0, p.stderr[-3000:]
     found = json.loads(p.stdout)
-    assert found["first_bad"] == shas[2] and found["subject"] == "mass 1 % heavier"
+    assert found["first_bad"] == shas[2] and found["subject"] == "natcoord's tolerance loosened"
     assert _git(r, "status", "--porcelain") == before  # the checkout untouched
     assert _git(r, "rev-parse", "HEAD") == shas[-1]
     assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
 
 
 def test_bisect_names_no_commit_when_an_end_does_not_hold(repo):
-    """BAD where the gate passes (before the mass changed): bisect named a first bad commit
+    """BAD where the gate passes (before the tolerance changed): bisect named a first bad commit
     it never saw fail, exit 0; the ends are judged first now, and it says which does not
     hold (exit 3); GOOD where the gate fails likewise."""
     r, shas = repo
@@ -81,6 +84,16 @@ def test_bisect_names_no_commit_when_an_end_does_not_hold(repo):
                            capture_output=True, text=True, timeout=1200, env=dict(os.environ))
         assert p.returncode == 3 and said in p.stderr, p.stderr[-2000:]
         assert "first bad commit:" not in p.stdout
+    assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
+
+
+def test_an_unknown_case_is_bad_input_before_any_commit_runs(repo):
+    r, shas = repo
+    p = subprocess.run([sys.executable, "-m", "natcoord.cli", "bisect", shas[0], shas[-1],
+                        "pendulm", "--engines", "natcoord", "--repo", str(r)],
+                       capture_output=True, text=True, timeout=120, env=dict(os.environ))
+    assert p.returncode == 2 and "'pendulm': not a case of BAD" in p.stderr, p.stderr[-2000:]
+    assert "Traceback" not in p.stderr
     assert "worktree" not in _git(r, "worktree", "list").split("\n", 1)[-1]
 
 
@@ -111,9 +124,9 @@ def _suite(r: Path, db: Path) -> subprocess.CompletedProcess:
                           env={k: v for k, v in os.environ.items() if k != "NATCOORD_HOME"})
 
 
-def test_since_green_names_the_commit_that_changed_the_mass(repo, tmp_path):
+def test_since_green_names_the_commit_that_loosened_the_solver(repo, tmp_path):
     """Two nights in the test repository: the shipped pendulum (green), then the commit
-    that made it 1 % heavier. `history --since-green` names the failing cell, the last
+    that loosened natcoord's tolerance. `history --since-green` names the failing cell, the last
     green commit and the commit of the failing night."""
     r, shas = repo
     db = tmp_path / "history.db"

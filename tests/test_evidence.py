@@ -283,6 +283,55 @@ def test_a_malformed_undetermined_field_is_bad_input_naming_the_provenance(folde
     assert p.returncode == 2 and f"{prov}: undetermined: must be a list" in p.stderr
 
 
+def test_a_reference_of_an_edited_mechanism_is_stale_but_a_tolerance_edit_is_not(folder,
+                                                                                   tmp_path):
+    """The reference stores a digest of each part of the mechanism: a heavier bob after the
+    run and its reference makes the gate refuse to judge (the reference is stale, named with
+    the part that changed), while a loosened tolerance is judged against it as before."""
+    home, env = _project(tmp_path)
+    case = home / "cases" / "pendulum.toml"
+    text = case.read_text()
+    heavier, n = re.subn(r"^(mass = )([0-9.eE+-]+)", lambda m: f"{m[1]}{float(m[2]) * 2}",
+                         text, count=1, flags=re.M)
+    assert n == 1
+    case.write_text(heavier)
+    p = _gate(folder, tmp_path, env=env)
+    ref = home / "references" / "pendulum.csv"
+    assert p.returncode == 2, p.stdout + p.stderr
+    assert f"{ref}: computed for another mechanism: the case's bodies changed" in p.stderr
+    assert "natcoord reference update pendulum" in p.stderr
+    looser = re.sub(r"^(angle = )([0-9.eE+-]+)", lambda m: f"{m[1]}{float(m[2]) * 10}", text,
+                    count=1, flags=re.M)
+    assert looser != text
+    case.write_text(looser)
+    p = _gate(folder, tmp_path, env=env)
+    assert p.returncode == 0 and "stale" not in p.stdout + p.stderr, p.stdout + p.stderr
+
+
+def test_every_shipped_reference_was_computed_for_its_case_as_it_is_now():
+    """A physics edit of a shipped case without `natcoord reference update` fails here."""
+    from natcoord.case.mechanism import mechanism_parts
+    for prov in sorted(REFERENCES.glob("*.json")):
+        data = read_json(prov)
+        if not (isinstance(data, dict) and "case_file" in data):
+            continue  # baseline.json, durations.json
+        case = load_case(CASES / data["case_file"])
+        assert data["mechanism"] == mechanism_parts(case), prov.name
+
+
+def test_the_mechanism_digest_ignores_layout_and_names_the_part_that_changed(tmp_path):
+    from natcoord.case.mechanism import mechanism_parts
+    text = (CASES / "pendulum.toml").read_text()
+    moved = tmp_path / "pendulum.toml"
+    moved.write_text("# a comment\n" + text.replace(" = ", "   =   "))
+    base = mechanism_parts(load_case(CASES / "pendulum.toml"))
+    assert mechanism_parts(load_case(moved)) == base
+    moved.write_text(re.sub(r"^(duration = )([0-9.eE+-]+)",
+                            lambda m: f"{m[1]}{float(m[2]) / 2}", text, count=1, flags=re.M))
+    changed = mechanism_parts(load_case(moved))
+    assert {k for k in base if base[k] != changed[k]} == {"scenario"}
+
+
 def test_a_nan_in_the_reference_is_blamed_on_the_reference(folder, tmp_path):
     home, env = _project(tmp_path)
     ref = home / "references" / "pendulum.csv"

@@ -164,6 +164,47 @@ def test_slowdown_hook_is_read_per_engine_and_checked():
 # ---------------------------------------------------------------- history, notes
 
 
+def test_a_tolerance_edit_keeps_the_speed_baseline_and_a_mechanism_edit_does_not(
+        tmp_path):
+    """A benchmark is stored under its bench key (mechanism and the engine's settings):
+    after a tolerance-only edit of the case file (another sha256) the next night is judged
+    against the nights before it; after a change of mass it starts a new baseline. A night
+    stored before bench keys (keyed by the case file's sha256) still counts while the file is
+    the same."""
+    from natcoord.case.mechanism import bench_key
+
+    def variant(folder, old="", new=""):
+        text = (CASES / "pendulum.toml").read_text()
+        assert old in text
+        (tmp_path / folder).mkdir()
+        (tmp_path / folder / "pendulum.toml").write_text(text.replace(old, new, 1))
+        return load_case(tmp_path / folder / "pendulum.toml")
+
+    base = variant("a")
+    looser = variant("b", "\nangle = 1e-8", "\nangle = 1e-7")
+    heavier = variant("c", "mass = 1.0", "mass = 2.0")
+    assert base.digest != looser.digest and bench_key(base, "natcoord") == bench_key(
+        looser, "natcoord") != bench_key(heavier, "natcoord")
+    assert bench_key(base, "natcoord") != bench_key(base, "mujoco")
+    db = tmp_path / "history.db"
+    machine = {"fingerprint": "m"}
+
+    def night(case, samples, keyed=True):
+        rec = {"case": "pendulum", "engine": "natcoord", "case_hash": case.digest,
+               "samples_s": samples, **({"bench_key": bench_key(case, "natcoord")}
+                                        if keyed else {})}
+        return {"machine": machine, "records": [rec]}
+
+    history.record(db, kind="bench", bench=night(base, [1.0, 1.1], keyed=False))  # older
+    history.record(db, kind="bench", bench=night(base, [1.2, 1.3]))
+    (judged,) = diff.against_history(night(base, [1.0] * 3), db)
+    assert judged.n_base == 4
+    (judged,) = diff.against_history(night(looser, [1.0] * 3), db)
+    assert judged.n_base == 2  # the night with a key; the older one was of the other file
+    (judged,) = diff.against_history(night(heavier, [1.0] * 3), db)
+    assert judged.n_base == 0 and not judged.judged
+
+
 def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
     db = tmp_path / "history.db"
     rec = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [2.0, 2.1],

@@ -22,6 +22,8 @@ Conventions
 
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -305,3 +307,59 @@ class Case:
 
     def engine(self, name: str) -> EngineSpec:
         return self.engines.get(name, EngineSpec())
+
+
+# ---- what a case's motion and channels depend on ------------------------------------------
+# A reference stores these parts' digests: an edit that changes one makes the reference stale
+# (its name says which), while tolerances, engine settings, the description or the
+# benchmark table may change freely.
+MECHANISM_PARTS: dict[str, tuple[str, ...]] = {
+    "scenario": ("dimension", "gravity", "duration", "output_dt"),
+    "bodies": ("ground", "bodies"),
+    "joints": ("joints", "rods", "drivers"),
+    "loads": ("forces", "springs"),
+    "initial state": ("guess", "fix", "velocity"),
+    "channels": ("channels", "reactions"),
+}
+
+
+def _canonical(x):
+    """x as JSON-ready data with one spelling: dataclasses as dicts of their fields, arrays
+    and tuples as lists, floats as ``float.hex`` (exact), dict keys sorted by json."""
+    if hasattr(x, "__dataclass_fields__"):
+        return {k: _canonical(getattr(x, k)) for k in x.__dataclass_fields__}
+    if isinstance(x, dict):
+        return {str(k): _canonical(v) for k, v in x.items()}
+    if isinstance(x, np.ndarray):
+        return [_canonical(v) for v in x.tolist()]
+    if isinstance(x, (list, tuple)):
+        return [_canonical(v) for v in x]
+    if isinstance(x, (bool, np.bool_)) or x is None or isinstance(x, str):
+        return x if not isinstance(x, np.bool_) else bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x).hex()
+    return repr(x)
+
+
+def mechanism_parts(case: Case) -> dict[str, str]:
+    """sha256 (hex, 16 digits) of each part of ``case`` that its motion and channels depend
+    on (:data:`MECHANISM_PARTS`), whatever the file's layout, comments or key order."""
+    import hashlib
+    import json
+    return {part: hashlib.sha256(json.dumps(
+        {f: _canonical(getattr(case, f)) for f in fields}, sort_keys=True,
+        separators=(",", ":")).encode()).hexdigest()[:16]
+        for part, fields in MECHANISM_PARTS.items()}
+
+
+def bench_key(case: Case, engine: str) -> str:
+    """sha256 (hex) of what a benchmark of ``engine`` on ``case`` runs: the mechanism's parts
+    and the engine's settings in the case. The speed history compares the runs of one key,
+    so that an edit of tolerances, reasons, the description or another engine's block keeps
+    a cell's speed baseline."""
+    return hashlib.sha256(json.dumps(
+        {"mechanism": mechanism_parts(case), "engine": engine,
+         "settings": _canonical(case.engine(engine).settings)},
+        sort_keys=True, separators=(",", ":")).encode()).hexdigest()

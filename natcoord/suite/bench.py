@@ -49,10 +49,9 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..case.mechanism import Case
-from .evidence import reference_problem
+from ..case.mechanism import Case, bench_key
 from .io import write_json
-from .references import load_reference
+from .references import usable_reference
 from .runner import as_job, machine_info, run_subprocess
 from .worker import truncated
 
@@ -177,6 +176,7 @@ def measure(job, engine: str, repeats: int, timeout_s: float, tmp: Path,
     from ..engines.registry import adapter_digest
 
     rec = {"case": case.name, "engine": engine, "case_hash": case.digest,
+           "bench_key": bench_key(case, engine),
            "status": run["status"], "reason": run.get("reason", ""),
            "engine_version": run.get("engine_version", ""), "measured": now(),
            "adapter_hash": adapter_digest(engine), "requested_repeats": repeats,
@@ -215,7 +215,7 @@ def benchmark_error(case: Case, csv: Path, references: Path) -> float | None:
     (``error = "max_abs"``) or at the last one (``"final_abs"``). None without a
     reference or a readable run."""
     spec = case.benchmark
-    ref = load_reference(case.name, references)
+    ref = usable_reference(case, references)
     if not spec or ref is None or not Path(csv).exists():
         return None
     run = pd.read_csv(csv)
@@ -375,9 +375,7 @@ def work_precision(cases: Sequence[Case], engines: Sequence[str], *,
     with tempfile.TemporaryDirectory(prefix="natcoord-wp-") as tmp:
         for job in map(as_job, cases):
             case = job.case
-            ref = load_reference(case.name, references)
-            if ref is not None and reference_problem(case, ref):
-                ref = None  # stale or damaged: errors against it would be made up
+            ref = usable_reference(case, references)  # None when stale or damaged
             angle = next((c.name for c in case.channels if c.kind == "angle"), None)
             if ref is None or (angle is None and not case.benchmark):
                 continue

@@ -175,15 +175,17 @@ def _speed_only(bb: dict, nb: dict) -> Comparison:
 
 def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[speed.SpeedChange]:
     """Judge every cell of a benchmark that has samples against the history's samples of
-    the same case file on the same machine (CPU times where both have them, relative to
-    the reference work where both measured it); a cell without
-    history is unjudged with ``n_base`` 0."""
+    the same mechanism and engine settings (or case file) on the same machine (CPU times
+    where both have them, relative to the reference work where both measured it); a cell
+    without history is unjudged with ``n_base`` 0."""
     machine = bench.get("machine", {}).get("fingerprint", "")
     out = []
     for r in bench.get("records", []):
         if not r.get("samples_s") or carried(r):  # reused or run-timed: nothing to judge
             continue
-        key = (db, r["case"], r["engine"], r.get("case_hash", ""), machine)
+        keys = tuple(k for k in (r.get("bench_key"), r.get("case_hash")) if k) or ("",)
+        key = (db, r["case"], r["engine"], keys, machine)  # a history from before bench
+        # keys stored the case file's sha256
         past, counters = history.past_samples(*key, exclude_dir=exclude_dir)
         cpu = history.past_cpu_samples(*key, exclude_dir=exclude_dir)
         out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
@@ -203,7 +205,7 @@ def speed_notes(changes: list[speed.SpeedChange], history_db: Path | None = None
     lines = [s.line() for s in changes if not s.judged and s not in none]
     if none:
         lines.append(f"speed not judged for {len(none)} cell(s): no earlier benchmark of the "
-                     f"same case file on this machine in {history_db}")
+                     f"same mechanism and settings on this machine in {history_db}")
     judged = [s for s in changes if s.judged]
     if judged:
         cpu = sum(s.clock == "cpu" for s in judged)

@@ -27,7 +27,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import pandas as pd
 
-from ..case.mechanism import Case
+from ..case.mechanism import Case, mechanism_parts
 from ..errors import NatcoordError, StoredFileError
 from . import outdir
 from .compare import channel_errors
@@ -222,15 +222,15 @@ def read_reference(case: Case, directory: Path) -> tuple[pd.DataFrame, tuple[str
     except (OSError, UnicodeDecodeError, pd.errors.ParserError,
             pd.errors.EmptyDataError) as e:
         raise BadReference(f"{csv}: unreadable reference ({type(e).__name__}: {e})") from None
-    problem = reference_problem(case, table)
-    if problem:
-        raise BadReference(f"{csv}: {problem}; {fix}")
     try:
         provenance = json.loads(prov.read_text(encoding="utf-8"))
     except FileNotFoundError:
         raise BadReference(f"{prov}: the reference's provenance is missing; {fix}") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
         raise BadReference(f"{prov}: unreadable provenance ({e})") from None
+    problem = reference_problem(case, table, provenance)
+    if problem:
+        raise BadReference(f"{csv}: {problem}; {fix}")
     undetermined = provenance.get("undetermined", []) if isinstance(provenance, dict) else None
     names = {c.name for c in case.channels}
     if not isinstance(undetermined, list) or not all(
@@ -244,10 +244,16 @@ def names_in_order(case: Case) -> list[str]:
     return [c.name for c in case.channels]
 
 
-def reference_problem(case: Case, table: pd.DataFrame) -> str:
+def reference_problem(case: Case, table: pd.DataFrame, provenance=None) -> str:
     """What makes a reference table unfit to judge a case ("" when nothing): a channel of
     the case missing (renamed, damaged or stale), values that are not finite numbers,
-    sample times other than the case's."""
+    sample times other than the case's; with its ``provenance``, a part of the case's
+    mechanism changed since the reference was computed (the digests of
+    :func:`natcoord.case.mechanism.mechanism_parts` it stores; a reference without them is
+    not checked so)."""
+    stale = _stale_mechanism(case, provenance)
+    if stale:
+        return stale
     need = ["t", *names_in_order(case)]
     missing = [c for c in need if c not in table]
     if missing:
@@ -266,6 +272,21 @@ def reference_problem(case: Case, table: pd.DataFrame) -> str:
     if len(t) != len(case.times) or not np.allclose(t, case.times, atol=1e-9):
         return "reference sample times differ from the case's (stale)"
     return ""
+
+
+def _stale_mechanism(case: Case, provenance) -> str:
+    """The parts of the case's mechanism whose digest differs from the one its reference's
+    provenance stores ("" when none, or when it stores none)."""
+    stored = provenance.get("mechanism") if isinstance(provenance, dict) else None
+    if stored is None:
+        return ""
+    if not isinstance(stored, dict):
+        return "the provenance's mechanism is not a table of part digests"
+    changed = [p for p, h in mechanism_parts(case).items() if stored.get(p) != h]
+    if not changed:
+        return ""
+    return (f"computed for another mechanism: the case's {', '.join(changed)} changed "
+            "since (stale)")
 
 
 def judge_cell(case: Case, engine: str, results: Path, references: Path,

@@ -22,7 +22,7 @@ import sqlite3
 import statistics
 import subprocess
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from contextlib import closing, contextmanager
 from pathlib import Path
 from urllib.parse import quote_from_bytes
@@ -415,7 +415,7 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                 if not r.get("samples_s"):
                     continue
                 db.execute("INSERT INTO bench VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-                           (run_id, r["case"], r["engine"], r.get("case_hash", ""),
+                           (run_id, r["case"], r["engine"], _bench_key(r),
                             r.get("engine_version", ""),
                             json.dumps(r.get("settings", {}), sort_keys=True, default=str),
                             json.dumps(r["samples_s"]), r.get("wall_time_s"),
@@ -423,10 +423,10 @@ def record(path: Path, *, kind: str, summary: dict | None = None, bench: dict | 
                             json.dumps(r.get("counters", {}))))
                 if r.get("cpu_samples_s"):  # CPU time per run of each sample (natcoord)
                     db.execute("INSERT INTO bench_cpu VALUES (?, ?, ?, ?, ?)",
-                               (run_id, r["case"], r["engine"], r.get("case_hash", ""),
+                               (run_id, r["case"], r["engine"], _bench_key(r),
                                 json.dumps(r["cpu_samples_s"])))
                 db.executemany("INSERT INTO bench_relative VALUES (?, ?, ?, ?, ?, ?)",
-                               [(run_id, r["case"], r["engine"], r.get("case_hash", ""),
+                               [(run_id, r["case"], r["engine"], _bench_key(r),
                                  clock, json.dumps(xs))
                                 for clock, xs in speed.relative(r).items()])
             db.executemany("INSERT INTO slower VALUES (?, ?, ?)",
@@ -472,12 +472,26 @@ def import_jsonl(db_path: Path, jsonl: Path) -> int:
     return len(lines)
 
 
-def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str,
-            machine: str, last: int, exclude_dir: str, clock: str = "") -> list[tuple]:
+def _bench_key(r: dict) -> str:
+    """The key a benchmark record is stored under: its ``bench_key`` (the mechanism and the
+    engine's settings, :func:`natcoord.case.mechanism.bench_key`), or, written before
+    there was one, its case file's sha256."""
+    return r.get("bench_key") or r.get("case_hash", "")
+
+
+def _keys(case_hash: str | Sequence[str]) -> tuple[str, ...]:
+    return (case_hash,) if isinstance(case_hash, str) else tuple(case_hash)
+
+
+def _recent(db, table: str, columns: str, case: str, engine: str,
+            case_hash: str | Sequence[str], machine: str, last: int, exclude_dir: str,
+            clock: str = "") -> list[tuple]:
     """``columns`` of ``table`` (bench, bench_cpu or, of one ``clock``, bench_relative) for
-    the last ``last`` benchmarks of a cell with the same case file and machine, not those
-    of the folder ``exclude_dir`` nor those its speed gate found slower (the ``slower``
-    table, where the history has it)."""
+    the last ``last`` benchmarks of a cell stored under one of the keys ``case_hash`` (a
+    record's bench key and its case file's sha256, which older histories keyed it by) on
+    the same machine, not those of the folder ``exclude_dir`` nor those its speed gate
+    found slower (the ``slower`` table, where the history has it)."""
+    keys = _keys(case_hash)
     flagged = db.execute("SELECT 1 FROM sqlite_master WHERE type = 'table' AND "
                          "name = 'slower'").fetchone()
     not_slower = (f" AND NOT EXISTS (SELECT 1 FROM slower WHERE slower.run_id = runs.id AND "
@@ -485,18 +499,21 @@ def _recent(db, table: str, columns: str, case: str, engine: str, case_hash: str
                   if flagged else "")
     return db.execute(
         f"SELECT {columns} FROM {table} JOIN runs ON runs.id = {table}.run_id WHERE "
-        f"{table}.case_name = ? AND {table}.engine = ? AND {table}.case_hash = ? AND "
+        f"{table}.case_name = ? AND {table}.engine = ? AND {table}.case_hash IN "
+        f"({', '.join('?' * len(keys))}) AND "
         "runs.machine = ? AND (? = '' OR IFNULL(runs.results_dir, '') != ?)"
         f"{not_slower}{f' AND {table}.clock = ?' if clock else ''} ORDER BY runs.id DESC "
-        "LIMIT ?", (case, engine, case_hash, machine, exclude_dir, exclude_dir,
+        "LIMIT ?", (case, engine, *keys, machine, exclude_dir, exclude_dir,
                     *([clock] if clock else []), last)).fetchall()
 
 
-def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
-                 last: int = 5, exclude_dir: str = "") -> tuple[list[float], dict | None]:
-    """Pooled wall-time samples (s) of the last ``last`` benchmarks of a cell with the same
-    case file and machine fingerprint (not those of the results folder ``exclude_dir``),
-    and the most recent counters; ([], None) when there are none."""
+def past_samples(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
+                 machine: str, *, last: int = 5,
+                 exclude_dir: str = "") -> tuple[list[float], dict | None]:
+    """Pooled wall-time samples (s) of the last ``last`` benchmarks of a cell with one of
+    the keys ``case_hash`` (see :func:`_recent`) and the machine fingerprint (not those of
+    the results folder ``exclude_dir``), and the most recent counters; ([], None) when
+    there are none."""
     with reading(path) as db:
         if db is None:
             return [], None
@@ -506,8 +523,8 @@ def past_samples(path: Path, case: str, engine: str, case_hash: str, machine: st
     return samples, (json.loads(rows[0][1]) if rows else None)
 
 
-def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
-                     last: int = 5, exclude_dir: str = "") -> list[float]:
+def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
+                     machine: str, *, last: int = 5, exclude_dir: str = "") -> list[float]:
     """Pooled CPU-time samples (s per run) of the same benchmarks as :func:`past_samples`
     ([] when none of them measured CPU time)."""
     with reading(path) as db:
@@ -523,8 +540,9 @@ def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str, machine
     return [s for (raw,) in rows for s in json.loads(raw)]
 
 
-def past_relative(path: Path, case: str, engine: str, case_hash: str, machine: str, *,
-                  last: int = 5, exclude_dir: str = "") -> dict[str, list[float]]:
+def past_relative(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
+                  machine: str, *, last: int = 5,
+                  exclude_dir: str = "") -> dict[str, list[float]]:
     """Pooled samples relative to the reference work, per clock (``wall``, ``cpu``), of the
     same benchmarks as :func:`past_samples`: a clock is given only when every one of them
     measured it ({} for a history from before the reference work). A baseline of other
@@ -534,7 +552,8 @@ def past_relative(path: Path, case: str, engine: str, case_hash: str, machine: s
     with reading(path) as db:
         if db is None:
             return out
-        runs = [r for (r,) in _recent(db, "bench", "runs.id", case, engine, case_hash,
+        keys = _keys(case_hash)
+        runs = [r for (r,) in _recent(db, "bench", "runs.id", case, engine, keys,
                                       machine, last, exclude_dir)]
         if not runs:
             return out
@@ -543,8 +562,9 @@ def past_relative(path: Path, case: str, engine: str, case_hash: str, machine: s
             try:
                 rows = db.execute(
                     "SELECT run_id, samples FROM bench_relative WHERE case_name = ? AND "
-                    f"engine = ? AND case_hash = ? AND clock = ? AND run_id IN ({marks})",
-                    (case, engine, case_hash, clock, *runs)).fetchall()
+                    f"engine = ? AND case_hash IN ({', '.join('?' * len(keys))}) AND "
+                    f"clock = ? AND run_id IN ({marks})",
+                    (case, engine, *keys, clock, *runs)).fetchall()
             except sqlite3.OperationalError as e:
                 if "no such table" not in str(e):
                     raise

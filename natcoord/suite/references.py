@@ -22,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 from .. import __version__
-from ..case.mechanism import Case
+from ..case.mechanism import Case, mechanism_parts
 from ..derivations.independent import check as independent_check
 from ..derivations.spatial import check as spatial_check
 from ..engines.base import initial_body_states
@@ -48,6 +48,16 @@ def load_reference(case: str, directory: Path) -> pd.DataFrame | None:
 def load_provenance(case: str, directory: Path) -> dict | None:
     path = Path(directory) / f"{case}.json"
     return read_json(path) if path.exists() else None
+
+
+def usable_reference(case: Case, directory: Path) -> pd.DataFrame | None:
+    """The stored reference of ``case`` when it can judge the case (None when there is none,
+    or when :func:`natcoord.suite.evidence.reference_problem` finds it damaged or stale:
+    errors against it would be made up)."""
+    table = load_reference(case.name, directory)
+    if table is None or reference_problem(case, table, load_provenance(case.name, directory)):
+        return None
+    return table
 
 
 def _describe(settings: dict) -> str:
@@ -103,6 +113,10 @@ def update_reference(case: Case, directory: Path, init=None) -> dict:
     provenance = {
         "case": case.name,
         "case_file": Path(case.file).name,
+        "mechanism": mechanism_parts(case),
+        "mechanism_method": "sha256 (16 hex digits) of each part of the case the motion and "
+                            "the channels depend on; a part that differs makes the reference "
+                            "stale",
         "method": "natcoord index-1 Lagrange (Eq. (6)), least-squares projection of q and "
                   f"qd, {_describe(best.settings)}",
         "settings": best.settings,

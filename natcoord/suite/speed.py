@@ -24,7 +24,7 @@ a side against 3, 2 against 5, 1 against 19) cannot judge: it says so ("cannot j
 speed"), it does not pass silently.
 
 Deterministic cost counters (steps, right-hand sides, factorizations) are compared exactly:
-a change for the same case file and settings is a behaviour change, reported apart.
+a change for the same mechanism and settings is a behaviour change, reported apart.
 """
 
 from __future__ import annotations
