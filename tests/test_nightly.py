@@ -380,6 +380,18 @@ def test_a_lost_dask_task_fails_its_cell(tmp_path):
     assert rec["status"] == "failed" and rec["reason"], rec  # lost, retried, timed out
 
 
+def test_propose_calls_a_sweep_converged_only_when_its_error_falls():
+    """A last error a hair below the first (a flat sweep) was called converged, and its
+    proposal went out without the note that the error does not fall."""
+    sweep = lambda *errs: [{"setting": {}, "error": e} for e in errs]  # noqa: E731
+    assert propose.converged(sweep(1e-3, 2e-4, 4e-5))
+    assert not propose.converged(sweep(1e-3, 1e-3, 0.999e-3))  # flat
+    assert not propose.converged(sweep(1e-3, 2e-3))  # grows
+    assert propose.converged(sweep(3e-14, 4e-14, 3e-14))  # at round-off: nothing to fall
+    assert not propose.converged(sweep(1e-3, float("nan")))
+    assert not propose.converged(sweep(1e-3, None))  # one error is no sweep
+
+
 def test_propose_measures_and_writes_tolerances_that_then_pass(tmp_path):
     """A new case without engine blocks: reference update, propose, paste, run, gate."""
     import tomllib

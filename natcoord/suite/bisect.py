@@ -65,6 +65,14 @@ def bisect(repo: Path, good: str, bad: str, cases: list[str], engines: list[str]
     top = top.stdout.strip()
     revs = {r: _git(repo, "rev-parse", "--verify", f"{r}^{{commit}}").stdout.strip()
             for r in (good, bad)}
+    shipped = {Path(f).stem for f in _git(repo, "ls-tree", "-r", "--name-only", revs[bad],
+                                          "--", "cases").stdout.splitlines()
+               if f.endswith(".toml")}
+    unknown = [c for c in cases if not c.endswith(".toml") and "/" not in c
+               and c not in shipped]
+    if unknown:  # named before any commit runs (each would be skipped as "cannot judge")
+        raise NatcoordError(f"{', '.join(map(repr, unknown))}: not a case of BAD ({bad}: "
+                            f"{len(shipped)} case file(s) under cases/)")
     with tempfile.TemporaryDirectory(prefix="natcoord-bisect-") as tmp:
         wt = Path(tmp) / "worktree"
         _git(Path(top), "worktree", "add", "--detach", str(wt), revs[bad])

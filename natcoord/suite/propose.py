@@ -143,7 +143,15 @@ def _q(text: str) -> str:
     return '"' + str(text).replace("\\", "\\\\").replace('"', '\\"') + '"'
 
 
+FALL = 0.5  # the sweep's last error at most this fraction of its first: it falls
+ROUND_OFF = 1e-12  # rad: errors all below this are at round-off, where none can fall
+
+
 def converged(sweep: list[dict]) -> bool:
-    """Whether the sweep's errors fall as the setting tightens (the last below the first)."""
+    """Whether the sweep's errors fall as the setting tightens: the last at most FALL times
+    the first (a last error a hair below the first, a flat sweep, once passed), or every one
+    at round-off (below ROUND_OFF)."""
     errs = [s["error"] for s in sweep if s["error"] is not None]
-    return len(errs) >= 2 and np.isfinite(errs).all() and errs[-1] < errs[0]
+    if len(errs) < 2 or not np.isfinite(errs).all():
+        return False
+    return errs[-1] <= FALL * errs[0] or max(errs) < ROUND_OFF
