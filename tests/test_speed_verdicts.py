@@ -205,6 +205,28 @@ def test_a_tolerance_edit_keeps_the_speed_baseline_and_a_mechanism_edit_does_not
     assert judged.n_base == 0 and not judged.judged
 
 
+def test_the_speed_gate_reads_the_history_once_for_every_cell(tmp_path, monkeypatch):
+    """Each reading checks every row of the history: read three times per cell, a
+    200-night history took 32 s to judge 136 cells (one reading: 1.2 s)."""
+    db = tmp_path / "history.db"
+    recs = [{"case": f"c{i}", "engine": "natcoord", "case_hash": "h", "bench_key": "k",
+             "samples_s": [1.0, 1.1, 1.2], "cpu_samples_s": [1.0, 1.0, 1.1],
+             "ref_samples_s": [0.01] * 3, "ref_cpu_samples_s": [0.01] * 3} for i in range(4)]
+    bench_night = {"machine": {"fingerprint": "m"}, "records": recs}
+    history.record(db, kind="bench", bench=bench_night)
+    opened = []
+    real = history.reading
+
+    def counted(*a, **k):
+        opened.append(a)
+        return real(*a, **k)
+
+    monkeypatch.setattr(history, "reading", counted)
+    judged = diff.against_history(bench_night, db)
+    assert len(opened) == 1 and len(judged) == 4
+    assert all(s.n_base == 3 and s.clock == "cpu" and s.relative for s in judged)
+
+
 def test_history_keeps_cpu_samples_beside_wall_samples(tmp_path):
     db = tmp_path / "history.db"
     rec = {"case": "c", "engine": "natcoord", "case_hash": "h", "samples_s": [2.0, 2.1],

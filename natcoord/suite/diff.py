@@ -179,20 +179,19 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
     where both have them, relative to the reference work where both measured it); a cell
     without history is unjudged with ``n_base`` 0."""
     machine = bench.get("machine", {}).get("fingerprint", "")
+    records = [r for r in bench.get("records", [])  # reused or run-timed: nothing to judge
+               if r.get("samples_s") and not carried(r)]
+    # a history from before bench keys stored the case file's sha256
+    past = history.baselines(db, [(r["case"], r["engine"], tuple(
+        k for k in (r.get("bench_key"), r.get("case_hash")) if k) or ("",)) for r in records],
+        machine, exclude_dir=exclude_dir)
+    none = history.Baseline([], None, [], {})
     out = []
-    for r in bench.get("records", []):
-        if not r.get("samples_s") or carried(r):  # reused or run-timed: nothing to judge
-            continue
-        keys = tuple(k for k in (r.get("bench_key"), r.get("case_hash")) if k) or ("",)
-        key = (db, r["case"], r["engine"], keys, machine)  # a history from before bench
-        # keys stored the case file's sha256
-        past, counters = history.past_samples(*key, exclude_dir=exclude_dir)
-        cpu = history.past_cpu_samples(*key, exclude_dir=exclude_dir)
-        out.append(speed.judge(r["case"], r["engine"], past, r["samples_s"], counters,
-                               r.get("counters"), base_cpu=cpu,
-                               new_cpu=r.get("cpu_samples_s"),
-                               base_relative=history.past_relative(
-                                   *key, exclude_dir=exclude_dir),
+    for r in records:
+        b = past.get((r["case"], r["engine"]), none)
+        out.append(speed.judge(r["case"], r["engine"], b.samples, r["samples_s"], b.counters,
+                               r.get("counters"), base_cpu=b.cpu,
+                               new_cpu=r.get("cpu_samples_s"), base_relative=b.relative,
                                new_relative=speed.relative(r)))
     return out
 

@@ -25,6 +25,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from contextlib import closing, contextmanager
 from pathlib import Path
+from typing import NamedTuple
 from urllib.parse import quote_from_bytes
 
 from ..errors import EnvironmentFault, NatcoordError, StoredFileError
@@ -507,72 +508,100 @@ def _recent(db, table: str, columns: str, case: str, engine: str,
                     *([clock] if clock else []), last)).fetchall()
 
 
+class Baseline(NamedTuple):
+    """A cell's speed baseline: the pooled samples of its last benchmarks (see
+    :func:`_baseline`)."""
+
+    samples: list[float]  # wall time, s per run
+    counters: dict | None  # the most recent benchmark's
+    cpu: list[float]  # CPU time, s per run ([] when one of them lacks it)
+    relative: dict[str, list[float]]  # per clock, relative to the reference work
+
+
+def _baseline(db, case: str, engine: str, keys: tuple[str, ...], machine: str, last: int,
+              exclude_dir: str) -> Baseline:
+    """The baseline of one cell from the open history ``db``: the last ``last`` benchmarks
+    of the cell with one of the ``keys`` (see :func:`_recent`) on ``machine``, not those of
+    the results folder ``exclude_dir``. Relative samples of a clock are given only when
+    every one of those benchmarks measured it ({} for a history from before the reference
+    work): a baseline of other nights than the raw one's (the last ones that had
+    references, older than the window) once passed a 3x slowdown and failed an accepted
+    one."""
+    rows = _recent(db, "bench", "runs.id, bench.samples, bench.counters", case, engine, keys,
+                   machine, last, exclude_dir)
+    if not rows:
+        return Baseline([], None, [], {})
+    samples = [s for _, raw, _ in rows for s in json.loads(raw)]
+    counters = json.loads(rows[0][2])
+    try:
+        cpu = [s for (raw,) in _recent(db, "bench_cpu", "bench_cpu.samples", case, engine,
+                                       keys, machine, last, exclude_dir)
+               for s in json.loads(raw)]
+    except sqlite3.OperationalError as e:  # a history written before CPU samples
+        if "no such table" not in str(e):
+            raise
+        cpu = []
+    runs = [r for r, _, _ in rows]
+    relative: dict[str, list[float]] = {}
+    for clock in ("wall", "cpu"):
+        try:
+            got = db.execute(
+                "SELECT run_id, samples FROM bench_relative WHERE case_name = ? AND "
+                f"engine = ? AND case_hash IN ({', '.join('?' * len(keys))}) AND "
+                f"clock = ? AND run_id IN ({', '.join('?' * len(runs))})",
+                (case, engine, *keys, clock, *runs)).fetchall()
+        except sqlite3.OperationalError as e:
+            if "no such table" not in str(e):
+                raise
+            break
+        by_run = {r: json.loads(raw) for r, raw in got}
+        if set(by_run) == set(runs):  # newest first, as the raw samples are pooled
+            relative[clock] = [x for r in runs for x in by_run[r]]
+    return Baseline(samples, counters, cpu, relative)
+
+
+def baselines(path: Path, cells: Iterable[tuple[str, str, str | Sequence[str]]],
+              machine: str, *, last: int = 5,
+              exclude_dir: str = "") -> dict[tuple[str, str], Baseline]:
+    """:func:`_baseline` of every (case, engine, keys) in ``cells``, from one reading of the
+    history (opening it per cell checked every row of it each time: 32 s for 136 cells
+    of a 200-night history); {} when there is no history yet."""
+    with reading(path) as db:
+        if db is None:
+            return {}
+        return {(case, engine): _baseline(db, case, engine, _keys(keys), machine, last,
+                                          exclude_dir)
+                for case, engine, keys in cells}
+
+
+def _one(path: Path, case: str, engine: str, case_hash: str | Sequence[str], machine: str,
+         last: int, exclude_dir: str) -> Baseline:
+    return baselines(path, [(case, engine, case_hash)], machine, last=last,
+                     exclude_dir=exclude_dir).get((case, engine), Baseline([], None, [], {}))
+
+
 def past_samples(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
                  machine: str, *, last: int = 5,
                  exclude_dir: str = "") -> tuple[list[float], dict | None]:
-    """Pooled wall-time samples (s) of the last ``last`` benchmarks of a cell with one of
-    the keys ``case_hash`` (see :func:`_recent`) and the machine fingerprint (not those of
-    the results folder ``exclude_dir``), and the most recent counters; ([], None) when
-    there are none."""
-    with reading(path) as db:
-        if db is None:
-            return [], None
-        rows = _recent(db, "bench", "bench.samples, bench.counters", case, engine,
-                       case_hash, machine, last, exclude_dir)
-    samples = [s for raw, _ in rows for s in json.loads(raw)]
-    return samples, (json.loads(rows[0][1]) if rows else None)
+    """Pooled wall-time samples (s) of a cell's baseline (:func:`_baseline`) and the most
+    recent counters; ([], None) when there are none."""
+    b = _one(path, case, engine, case_hash, machine, last, exclude_dir)
+    return b.samples, b.counters
 
 
 def past_cpu_samples(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
                      machine: str, *, last: int = 5, exclude_dir: str = "") -> list[float]:
-    """Pooled CPU-time samples (s per run) of the same benchmarks as :func:`past_samples`
-    ([] when none of them measured CPU time)."""
-    with reading(path) as db:
-        if db is None:
-            return []
-        try:
-            rows = _recent(db, "bench_cpu", "bench_cpu.samples", case, engine, case_hash,
-                           machine, last, exclude_dir)
-        except sqlite3.OperationalError as e:  # a history written before CPU samples
-            if "no such table" not in str(e):
-                raise
-            return []
-    return [s for (raw,) in rows for s in json.loads(raw)]
+    """Pooled CPU-time samples (s per run) of a cell's baseline ([] when none of its
+    benchmarks measured CPU time)."""
+    return _one(path, case, engine, case_hash, machine, last, exclude_dir).cpu
 
 
 def past_relative(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
                   machine: str, *, last: int = 5,
                   exclude_dir: str = "") -> dict[str, list[float]]:
-    """Pooled samples relative to the reference work, per clock (``wall``, ``cpu``), of the
-    same benchmarks as :func:`past_samples`: a clock is given only when every one of them
-    measured it ({} for a history from before the reference work). A baseline of other
-    nights than the raw one's (the last ones that had references, older than the window)
-    once passed a 3x slowdown and failed an accepted one."""
-    out: dict[str, list[float]] = {}
-    with reading(path) as db:
-        if db is None:
-            return out
-        keys = _keys(case_hash)
-        runs = [r for (r,) in _recent(db, "bench", "runs.id", case, engine, keys,
-                                      machine, last, exclude_dir)]
-        if not runs:
-            return out
-        marks = ", ".join("?" * len(runs))
-        for clock in ("wall", "cpu"):
-            try:
-                rows = db.execute(
-                    "SELECT run_id, samples FROM bench_relative WHERE case_name = ? AND "
-                    f"engine = ? AND case_hash IN ({', '.join('?' * len(keys))}) AND "
-                    f"clock = ? AND run_id IN ({marks})",
-                    (case, engine, *keys, clock, *runs)).fetchall()
-            except sqlite3.OperationalError as e:
-                if "no such table" not in str(e):
-                    raise
-                return out
-            by_run = {r: json.loads(raw) for r, raw in rows}
-            if set(by_run) == set(runs):  # newest first, as past_samples pools them
-                out[clock] = [x for r in runs for x in by_run[r]]
-    return out
+    """Pooled samples relative to the reference work, per clock (``wall``, ``cpu``), of a
+    cell's baseline (:func:`_baseline`)."""
+    return _one(path, case, engine, case_hash, machine, last, exclude_dir).relative
 
 
 def trends(path: Path, *, last: int = 30) -> dict:
