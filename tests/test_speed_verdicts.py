@@ -206,8 +206,8 @@ def test_a_tolerance_edit_keeps_the_speed_baseline_and_a_mechanism_edit_does_not
 
 
 def test_the_speed_gate_reads_the_history_once_for_every_cell(tmp_path, monkeypatch):
-    """Each reading checks every row of the history: read three times per cell, a
-    200-night history took 32 s to judge 136 cells (one reading: 1.2 s)."""
+    """Each reading runs the integrity check over the whole history: read three times per
+    cell, a 200-night history took 32 s to judge 136 cells (one reading: 1.2 s)."""
     db = tmp_path / "history.db"
     recs = [{"case": f"c{i}", "engine": "natcoord", "case_hash": "h", "bench_key": "k",
              "samples_s": [1.0, 1.1, 1.2], "cpu_samples_s": [1.0, 1.0, 1.1],
