@@ -32,67 +32,58 @@ from ..errors import EnvironmentFault, NatcoordError, StoredFileError
 from . import speed
 
 SCHEMA_VERSION = 1
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT);
-CREATE TABLE IF NOT EXISTS runs (
-    id INTEGER PRIMARY KEY, generated TEXT, kind TEXT, natcoord_version TEXT,
-    git_commit TEXT, machine TEXT, machine_info TEXT, gate INTEGER, results_dir TEXT);
-CREATE TABLE IF NOT EXISTS results (
-    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
-    engine_version TEXT, status TEXT, verdict TEXT, settings TEXT, channel TEXT,
-    kind TEXT, max_abs REAL, max_rel REAL, tolerance REAL, determined INTEGER);
-CREATE TABLE IF NOT EXISTS bench (
-    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
-    engine_version TEXT, settings TEXT, samples TEXT, wall_time_s REAL, us_per_step REAL,
-    n_steps INTEGER, counters TEXT);
-CREATE TABLE IF NOT EXISTS bench_cpu (
-    run_id INTEGER REFERENCES runs(id), case_name TEXT, engine TEXT, case_hash TEXT,
-    samples TEXT);
-CREATE INDEX IF NOT EXISTS results_cell ON results (case_name, engine, channel);
-CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash);
-"""
-
-
-ADDED_TABLES = (  # tables a history from before them gets on its next write:
+# Every table's columns: their SQL declaration and what a row's value may hold ("?": or
+# NULL; None: not checked), in the order of the table (rows are inserted by position). One
+# source for the tables a history gets, the columns it must have and the check of its rows:
+# every row of a history is checked before anything reads it (a damaged row is named,
+# exit 2, never a crash in whoever reads it).
+RUN_ID = ("INTEGER REFERENCES runs(id)", "run")
+COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
+    "meta": {"key": ("TEXT PRIMARY KEY", None), "value": ("TEXT", None)},
+    "runs": {"id": ("INTEGER PRIMARY KEY", None), "generated": ("TEXT", "text?"),
+             "kind": ("TEXT", "text?"), "natcoord_version": ("TEXT", "text?"),
+             "git_commit": ("TEXT", "text?"), "machine": ("TEXT", "text?"),
+             "machine_info": ("TEXT", "text?"), "gate": ("INTEGER", "integer?"),
+             "results_dir": ("TEXT", "text?")},
+    "results": {"run_id": RUN_ID, "case_name": ("TEXT", "text"), "engine": ("TEXT", "text"),
+                "case_hash": ("TEXT", "text?"), "engine_version": ("TEXT", "text?"),
+                "status": ("TEXT", "text?"), "verdict": ("TEXT", "text?"),
+                "settings": ("TEXT", "text?"), "channel": ("TEXT", "text?"),
+                "kind": ("TEXT", "text?"), "max_abs": ("REAL", "number?"),
+                "max_rel": ("REAL", "number?"), "tolerance": ("REAL", "number?"),
+                "determined": ("INTEGER", "integer?")},
+    "bench": {"run_id": RUN_ID, "case_name": ("TEXT", "text"), "engine": ("TEXT", "text"),
+              "case_hash": ("TEXT", "text?"), "engine_version": ("TEXT", "text?"),
+              "settings": ("TEXT", "text?"), "samples": ("TEXT", "samples"),
+              "wall_time_s": ("REAL", "number?"), "us_per_step": ("REAL", "number?"),
+              "n_steps": ("INTEGER", "integer?"), "counters": ("TEXT", "json object")},
+    # CPU time per run of each sample (natcoord)
+    "bench_cpu": {"run_id": RUN_ID, "case_name": ("TEXT", "text"),
+                  "engine": ("TEXT", "text"), "case_hash": ("TEXT", "text?"),
+                  "samples": ("TEXT", "samples")},
     # the cells a run's speed gate found slower (not accepted): no baseline for later runs
-    "CREATE TABLE IF NOT EXISTS slower (run_id INTEGER REFERENCES runs(id), "
-    "case_name TEXT, engine TEXT)",
+    "slower": {"run_id": ("INTEGER REFERENCES runs(id)", None), "case_name": ("TEXT", None),
+               "engine": ("TEXT", None)},
     # samples / the reference work measured after each (clock 'wall' or 'cpu')
-    "CREATE TABLE IF NOT EXISTS bench_relative (run_id INTEGER REFERENCES runs(id), "
-    "case_name TEXT, engine TEXT, case_hash TEXT, clock TEXT, samples TEXT)")
+    "bench_relative": {"run_id": RUN_ID, "case_name": ("TEXT", "text"),
+                       "engine": ("TEXT", "text"), "case_hash": ("TEXT", "text?"),
+                       "clock": ("TEXT", "text"), "samples": ("TEXT", "samples")},
+}
+# the tables of every natcoord history; the others came later: a history written before
+# them lacks them until its next write, and they are checked where present
+REQUIRED = ("meta", "runs", "results", "bench")
+INDEXES = ("CREATE INDEX IF NOT EXISTS results_cell ON results (case_name, engine, channel)",
+           "CREATE INDEX IF NOT EXISTS bench_cell ON bench (case_name, engine, case_hash)")
+ROWS = {t: {c: kind for c, (_, kind) in cols.items() if kind}
+        for t, cols in COLUMNS.items() if any(kind for _, kind in cols.values())}
 
 
-TABLES = {"meta": {"key", "value"},
-          "runs": {"id", "generated", "kind", "natcoord_version", "git_commit", "machine",
-                   "machine_info", "gate", "results_dir"},
-          "results": {"run_id", "case_name", "engine", "case_hash", "engine_version",
-                      "status", "verdict", "settings", "channel", "kind", "max_abs",
-                      "max_rel", "tolerance", "determined"},
-          "bench": {"run_id", "case_name", "engine", "case_hash", "engine_version",
-                    "settings", "samples", "wall_time_s", "us_per_step", "n_steps",
-                    "counters"}}
-# tables a history may lack (written before them); checked as TABLES where present
-ADDED = {"bench_cpu": {"run_id", "case_name", "engine", "case_hash", "samples"},
-         "slower": {"run_id", "case_name", "engine"},
-         "bench_relative": {"run_id", "case_name", "engine", "case_hash", "clock", "samples"}}
-# What a row's columns may hold ("?": or NULL): checked for every row of a history before
-# anything reads it (a damaged row is named, exit 2, never a crash in whoever reads it).
-ROWS = {"runs": {"generated": "text?", "kind": "text?", "natcoord_version": "text?",
-                 "git_commit": "text?", "machine": "text?", "machine_info": "text?",
-                 "gate": "integer?", "results_dir": "text?"},
-        "results": {"run_id": "run", "case_name": "text", "engine": "text",
-                    "case_hash": "text?", "engine_version": "text?", "status": "text?",
-                    "verdict": "text?", "settings": "text?", "channel": "text?",
-                    "kind": "text?", "max_abs": "number?", "max_rel": "number?",
-                    "tolerance": "number?", "determined": "integer?"},
-        "bench": {"run_id": "run", "case_name": "text", "engine": "text",
-                  "case_hash": "text?", "engine_version": "text?", "settings": "text?",
-                  "samples": "samples", "wall_time_s": "number?", "us_per_step": "number?",
-                  "n_steps": "integer?", "counters": "json object"},
-        "bench_cpu": {"run_id": "run", "case_name": "text", "engine": "text",
-                      "case_hash": "text?", "samples": "samples"},
-        "bench_relative": {"run_id": "run", "case_name": "text", "engine": "text",
-                           "case_hash": "text?", "clock": "text", "samples": "samples"}}
+def _create(table: str) -> str:
+    """The CREATE statement of ``table`` (:data:`COLUMNS`); nothing when it exists."""
+    return (f"CREATE TABLE IF NOT EXISTS {table} ("
+            + ", ".join(f"{c} {decl}" for c, (decl, _) in COLUMNS[table].items()) + ")")
+
+
 READ_WAIT_S = 5.0  # a reader waits this long for a writer, then says so
 WRITE_WAIT_S = 60.0
 
@@ -100,6 +91,10 @@ WRITE_WAIT_S = 60.0
 class HistoryError(StoredFileError):
     """The history database cannot be used: not natcoord's, damaged, unreadable or locked
     (names the file and the problem; exit 2). It is never modified then."""
+
+
+class ChangedWhileRead(HistoryError):
+    """A run was recorded into the history while it was read (run the command again)."""
 
 
 class HistoryFull(EnvironmentFault):
@@ -137,8 +132,8 @@ def _check_schema(path: Path, db: sqlite3.Connection) -> bool:
     names = {n for (n,) in db.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     if not names:
         return False
-    present = {t: c for t, c in ADDED.items() if t in names}
-    for table, columns in {**TABLES, **present}.items():
+    for table in (t for t in COLUMNS if t in REQUIRED or t in names):
+        columns = set(COLUMNS[table])
         have = {r[1] for r in db.execute(f"PRAGMA table_info({table})")}
         if not columns <= have:
             raise HistoryError(f"{path}: not a natcoord history database (table {table!r} "
@@ -307,15 +302,26 @@ def reading(path: Path, wait_s: float = READ_WAIT_S) -> Iterator[sqlite3.Connect
         except sqlite3.Error as e:
             raise _problem(path, e, wait_s) from None
         if idle and _stamp(path) != before:
-            raise HistoryError(f"{path}: a run recorded into it while it was read; run the "
-                               "command again")
+            raise ChangedWhileRead(f"{path}: a run recorded into it while it was read; run "
+                                   "the command again")
+
+
+CHECK_TRIES = 20  # a check that another writer's run overlapped is repeated
 
 
 def check(path: Path, write: bool = False) -> None:
     """Raise HistoryError unless ``path`` is absent, empty or natcoord's history database
-    (and, with ``write``, writable); the file is not touched."""
-    with reading(path):
-        pass
+    (and, with ``write``, writable); the file is not touched. A check that another run's
+    write overlapped is made again (two nights writing at once lost one of them, "recorded
+    into it while it was read")."""
+    for tries_left in range(CHECK_TRIES - 1, -1, -1):
+        try:
+            with reading(path):
+                pass
+            break
+        except ChangedWhileRead:
+            if not tries_left:
+                raise
     path = Path(path)
     if write and path.exists() and not os.access(path, os.W_OK):
         raise HistoryError(f"{path}: read-only; make it writable or give another --history")
@@ -340,13 +346,12 @@ def connect(path: Path) -> Iterator[sqlite3.Connection]:
             # the schema in one write transaction: BEGIN IMMEDIATE waits for another writer
             # (executescript would commit first and create tables outside any lock)
             db.execute("BEGIN IMMEDIATE")
-            if _check_schema(path, db) is False:  # still empty: a new history
-                for statement in filter(str.strip, SCHEMA.split(";")):
-                    db.execute(statement)
+            new = _check_schema(path, db) is False  # still empty: a new history
+            for statement in (*map(_create, COLUMNS), *INDEXES):  # a history from before
+                db.execute(statement)  # a table gets it too
+            if new:
                 db.execute("INSERT INTO meta VALUES ('schema_version', ?)",
                            (str(SCHEMA_VERSION),))
-            for statement in ADDED_TABLES:  # a history from before them gets them too
-                db.execute(statement)
             db.execute("COMMIT")
         except sqlite3.Error as e:
             if db.in_transaction:
