@@ -334,8 +334,10 @@ def _canonical(x):
         return [_canonical(v) for v in x.tolist()]
     if isinstance(x, (list, tuple)):
         return [_canonical(v) for v in x]
-    if isinstance(x, (bool, np.bool_)) or x is None or isinstance(x, str):
-        return x if not isinstance(x, np.bool_) else bool(x)
+    if isinstance(x, (bool, np.bool_)):  # before int: bool is one
+        return bool(x)
+    if x is None or isinstance(x, str):
+        return x
     if isinstance(x, (int, np.integer)):
         return int(x)
     if isinstance(x, (float, np.floating)):
@@ -343,15 +345,17 @@ def _canonical(x):
     return repr(x)
 
 
+def _digest(data) -> str:
+    """sha256 (hex) of JSON-ready ``data`` in one spelling (keys sorted, no spaces)."""
+    return hashlib.sha256(json.dumps(data, sort_keys=True,
+                                     separators=(",", ":")).encode()).hexdigest()
+
+
 def mechanism_parts(case: Case) -> dict[str, str]:
     """sha256 (hex, 16 digits) of each part of ``case`` that its motion and channels depend
     on (:data:`MECHANISM_PARTS`), whatever the file's layout, comments or key order."""
-    import hashlib
-    import json
-    return {part: hashlib.sha256(json.dumps(
-        {f: _canonical(getattr(case, f)) for f in fields}, sort_keys=True,
-        separators=(",", ":")).encode()).hexdigest()[:16]
-        for part, fields in MECHANISM_PARTS.items()}
+    return {part: _digest({f: _canonical(getattr(case, f)) for f in fields})[:16]
+            for part, fields in MECHANISM_PARTS.items()}
 
 
 def bench_key(case: Case, engine: str) -> str:
@@ -359,7 +363,5 @@ def bench_key(case: Case, engine: str) -> str:
     and the engine's settings in the case. The speed history compares the runs of one key,
     so that an edit of tolerances, reasons, the description or another engine's block keeps
     a cell's speed baseline."""
-    return hashlib.sha256(json.dumps(
-        {"mechanism": mechanism_parts(case), "engine": engine,
-         "settings": _canonical(case.engine(engine).settings)},
-        sort_keys=True, separators=(",", ":")).encode()).hexdigest()
+    return _digest({"mechanism": mechanism_parts(case), "engine": engine,
+                    "settings": _canonical(case.engine(engine).settings)})

@@ -185,10 +185,9 @@ def against_history(bench: dict, db: Path, *, exclude_dir: str = "") -> list[spe
     past = history.baselines(db, [(r["case"], r["engine"], tuple(
         k for k in (r.get("bench_key"), r.get("case_hash")) if k) or ("",)) for r in records],
         machine, exclude_dir=exclude_dir)
-    none = history.Baseline([], None, [], {})
     out = []
     for r in records:
-        b = past.get((r["case"], r["engine"]), none)
+        b = past[r["case"], r["engine"]]
         out.append(speed.judge(r["case"], r["engine"], b.samples, r["samples_s"], b.counters,
                                r.get("counters"), base_cpu=b.cpu,
                                new_cpu=r.get("cpu_samples_s"), base_relative=b.relative,

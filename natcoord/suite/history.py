@@ -38,6 +38,8 @@ SCHEMA_VERSION = 1
 # every row of a history is checked before anything reads it (a damaged row is named,
 # exit 2, never a crash in whoever reads it).
 RUN_ID = ("INTEGER REFERENCES runs(id)", "run")
+CELL = {"run_id": RUN_ID, "case_name": ("TEXT", "text"), "engine": ("TEXT", "text"),
+        "case_hash": ("TEXT", "text?")}  # the columns that name a run's cell, first
 COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
     "meta": {"key": ("TEXT PRIMARY KEY", None), "value": ("TEXT", None)},
     "runs": {"id": ("INTEGER PRIMARY KEY", None), "generated": ("TEXT", "text?"),
@@ -45,29 +47,22 @@ COLUMNS: dict[str, dict[str, tuple[str, str | None]]] = {
              "git_commit": ("TEXT", "text?"), "machine": ("TEXT", "text?"),
              "machine_info": ("TEXT", "text?"), "gate": ("INTEGER", "integer?"),
              "results_dir": ("TEXT", "text?")},
-    "results": {"run_id": RUN_ID, "case_name": ("TEXT", "text"), "engine": ("TEXT", "text"),
-                "case_hash": ("TEXT", "text?"), "engine_version": ("TEXT", "text?"),
-                "status": ("TEXT", "text?"), "verdict": ("TEXT", "text?"),
-                "settings": ("TEXT", "text?"), "channel": ("TEXT", "text?"),
-                "kind": ("TEXT", "text?"), "max_abs": ("REAL", "number?"),
-                "max_rel": ("REAL", "number?"), "tolerance": ("REAL", "number?"),
-                "determined": ("INTEGER", "integer?")},
-    "bench": {"run_id": RUN_ID, "case_name": ("TEXT", "text"), "engine": ("TEXT", "text"),
-              "case_hash": ("TEXT", "text?"), "engine_version": ("TEXT", "text?"),
-              "settings": ("TEXT", "text?"), "samples": ("TEXT", "samples"),
-              "wall_time_s": ("REAL", "number?"), "us_per_step": ("REAL", "number?"),
-              "n_steps": ("INTEGER", "integer?"), "counters": ("TEXT", "json object")},
+    "results": {**CELL, "engine_version": ("TEXT", "text?"), "status": ("TEXT", "text?"),
+                "verdict": ("TEXT", "text?"), "settings": ("TEXT", "text?"),
+                "channel": ("TEXT", "text?"), "kind": ("TEXT", "text?"),
+                "max_abs": ("REAL", "number?"), "max_rel": ("REAL", "number?"),
+                "tolerance": ("REAL", "number?"), "determined": ("INTEGER", "integer?")},
+    "bench": {**CELL, "engine_version": ("TEXT", "text?"), "settings": ("TEXT", "text?"),
+              "samples": ("TEXT", "samples"), "wall_time_s": ("REAL", "number?"),
+              "us_per_step": ("REAL", "number?"), "n_steps": ("INTEGER", "integer?"),
+              "counters": ("TEXT", "json object")},
     # CPU time per run of each sample (natcoord)
-    "bench_cpu": {"run_id": RUN_ID, "case_name": ("TEXT", "text"),
-                  "engine": ("TEXT", "text"), "case_hash": ("TEXT", "text?"),
-                  "samples": ("TEXT", "samples")},
+    "bench_cpu": {**CELL, "samples": ("TEXT", "samples")},
     # the cells a run's speed gate found slower (not accepted): no baseline for later runs
     "slower": {"run_id": ("INTEGER REFERENCES runs(id)", None), "case_name": ("TEXT", None),
                "engine": ("TEXT", None)},
     # samples / the reference work measured after each (clock 'wall' or 'cpu')
-    "bench_relative": {"run_id": RUN_ID, "case_name": ("TEXT", "text"),
-                       "engine": ("TEXT", "text"), "case_hash": ("TEXT", "text?"),
-                       "clock": ("TEXT", "text"), "samples": ("TEXT", "samples")},
+    "bench_relative": {**CELL, "clock": ("TEXT", "text"), "samples": ("TEXT", "samples")},
 }
 # the tables of every natcoord history; the others came later: a history written before
 # them lacks them until its next write, and they are checked where present
@@ -531,9 +526,9 @@ def _baseline(db, case: str, engine: str, keys: tuple[str, ...], machine: str, l
     every one of those benchmarks measured it ({} for a history from before the reference
     work): a baseline of other nights than the raw one's (the last ones that had
     references, older than the window) once passed a 3x slowdown and failed an accepted
-    one."""
-    rows = _recent(db, "bench", "runs.id, bench.samples, bench.counters", case, engine, keys,
-                   machine, last, exclude_dir)
+    one. ``db`` None (no history yet): an empty baseline."""
+    rows = [] if db is None else _recent(db, "bench", "runs.id, bench.samples, bench.counters",
+                                         case, engine, keys, machine, last, exclude_dir)
     if not rows:
         return Baseline([], None, [], {})
     samples = [s for _, raw, _ in rows for s in json.loads(raw)]
@@ -570,11 +565,9 @@ def baselines(path: Path, cells: Iterable[tuple[str, str, str | Sequence[str]]],
               exclude_dir: str = "") -> dict[tuple[str, str], Baseline]:
     """:func:`_baseline` of every (case, engine, keys) in ``cells``, from one reading of the
     history (each reading runs the integrity check over the whole file: three readings per
-    cell took 32 s for 136 cells of a 200-night history); {} when there is no history
-    yet."""
+    cell took 32 s for 136 cells of a 200-night history); empty baselines when there is
+    no history yet."""
     with reading(path) as db:
-        if db is None:
-            return {}
         return {(case, engine): _baseline(db, case, engine, _keys(keys), machine, last,
                                           exclude_dir)
                 for case, engine, keys in cells}
@@ -583,7 +576,7 @@ def baselines(path: Path, cells: Iterable[tuple[str, str, str | Sequence[str]]],
 def _one(path: Path, case: str, engine: str, case_hash: str | Sequence[str], machine: str,
          last: int, exclude_dir: str) -> Baseline:
     return baselines(path, [(case, engine, case_hash)], machine, last=last,
-                     exclude_dir=exclude_dir).get((case, engine), Baseline([], None, [], {}))
+                     exclude_dir=exclude_dir)[case, engine]
 
 
 def past_samples(path: Path, case: str, engine: str, case_hash: str | Sequence[str],
