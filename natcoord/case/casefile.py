@@ -581,7 +581,7 @@ def _link(r: _Reader, x: dict, p: str, key: str, dim: int, points_of: dict,
         xs.append(points_of[body][point])
     if ends[0][0] == ends[1][0]:
         r.fail(f"{p}.ends", "both ends are on the same body")
-    length = float(np.linalg.norm(xs[1] - xs[0]))
+    length = _norm(xs[1] - xs[0])
     if length < 1e-9:
         r.fail(f"{p}.ends", "the two ends coincide at t = 0")
     ends_t = ((ends[0][0], ends[0][1]), (ends[1][0], ends[1][1]))
@@ -674,7 +674,7 @@ def _body(r: _Reader, b: dict, i: int, dim: int) -> Body:
                 r.fail(f"{p}.ends", f"must name two of the body's points, got {short(ends)}")
             ends = tuple(ends)
             a, c = points[ends[0]], points[ends[1]]
-            length = float(np.linalg.norm(c - a))
+            length = _norm(c - a)
             if length < 1e-9:
                 r.fail(f"{p}.ends", "the two ends coincide")
             com = (a + c) / 2
@@ -752,10 +752,18 @@ def _joint(r: _Reader, j: dict, i: int, dim: int, points_of: dict) -> Joint:
 def _unit(r: _Reader, value, field: str, dim: int) -> np.ndarray:
     """A direction (dim,) normalised to a unit vector."""
     axis = r.vector(value, field, dim, "length")
-    norm = np.linalg.norm(axis)
+    norm = _norm(axis)
     if norm < 1e-12:
         r.fail(field, "must not be zero")
     return axis / norm
+
+
+def _norm(x) -> float:
+    """|x| rounded alike on every machine (squares and an exactly rounded sum): numpy's norm
+    sums through BLAS, whose kernels (one per CPU) round differently; a rod's length then
+    moved by an ulp between machines, and with it the digest of the mechanism a reference
+    is stored for (stale on one machine, current on another)."""
+    return math.sqrt(math.fsum(float(v) * float(v) for v in x))
 
 
 def _driver(r: _Reader, d: dict, i: int, bodies, points_of, dim: int) -> Driver:
