@@ -426,18 +426,17 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
         d0 = math.sqrt((d0 + _dep_norm(dep, y, y, y, atol, rtol, True)) / Nn)
         d1 = math.sqrt((d1 + _dep_norm(dep, f0, y, y, atol, rtol, False)) / Nn)
         h = stepcontrol.first_guess(d0, d1, tend - t)
-        if h > 0.0:  # (h = 0: a run of one sample, no step)
-            for a in range(N):  # f after an explicit Euler step of h: the second derivative
-                ys[a] = y[a] + h * f0[a]
-            st_code = _evaluate(sp, gen, wg, cnt, ys, K, 1, qdd)
-            if st_code != OK:
-                return st_code
-            d2 = 0.0
-            for a in range(N):
-                x5[a] = K[1, a] - f0[a]
-                d2 += (x5[a] / (atol + rtol * abs(y[a]))) ** 2
-            d2 = math.sqrt((d2 + _dep_norm(dep, x5, y, y, atol, rtol, False)) / Nn) / h
-            h = stepcontrol.initial_step(h, d1, d2, expo, tend - t)
+        for a in range(N):  # f after an explicit Euler step of h: the second derivative
+            ys[a] = y[a] + h * f0[a]
+        st_code = _evaluate(sp, gen, wg, cnt, ys, K, 1, qdd)
+        if st_code != OK:
+            return st_code
+        d2 = 0.0
+        for a in range(N):
+            x5[a] = K[1, a] - f0[a]
+            d2 += (x5[a] / (atol + rtol * abs(y[a]))) ** 2
+        d2 = math.sqrt((d2 + _dep_norm(dep, x5, y, y, atol, rtol, False)) / Nn) / h
+        h = stepcontrol.initial_step(h, d1, d2, expo, tend - t)
     nsteps = 0
     while k_out < T_out:
         tfail[0] = t

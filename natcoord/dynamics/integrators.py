@@ -197,7 +197,7 @@ def _adaptive(form, rk, y, times, rtol, atol, record):
     expo = sc.EXPONENT[rk.name]  # evaluations move their Newton's predictor: no probe)
     d1 = _rms(f0 / scale)
     h = sc.first_guess(_rms(y / scale), d1, t_end - t)
-    if form.name == "index1" and h > 0:  # (h = 0: a run of one sample, no step)
+    if form.name == "index1":
         d2 = _rms((f(t + h, y + h * f0) - f0) / scale) / h
         h = sc.initial_step(h, d1, d2, expo, t_end - t)
     while k < len(times):
