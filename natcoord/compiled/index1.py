@@ -211,29 +211,22 @@ def _stages(sp, gen, wg, cnt, y, h, lo, hi, rk):
     """Stages lo..hi-1 of a step of h from y: K[st] = f(y + h sum_p A[st, p] K[p]), ``rk``
     = (A, K, ys, qdd) (ys, qdd: scratch); ``sp``, ``gen``, ``wg`` as in :func:`run_index1`;
     a status code. Written without slices (see acc_state)."""
+    P, gk, frc, ws, _ = sp
     A, K, ys, qdd = rk
+    n = qdd.shape[0]
     for st in range(lo, hi):
         _combine(y, h, A, st, st, K, ys)
-        st_code = _evaluate(sp, gen, wg, cnt, ys, K, st, qdd)
+        if wg is None:
+            st_code = kernels_sparse.acc_state(P, gk, frc, ys, K, st, qdd, ws, cnt)
+            if st_code != OK:
+                return st_code
+            continue
+        st_code = _accel_general(gen, ys, qdd, wg, cnt)
         if st_code != OK:
             return st_code
-    return OK
-
-
-@njit(cache=True, inline="always")
-def _evaluate(sp, gen, wg, cnt, ys, K, st, qdd):
-    """K[st] = f(ys) = [qd, qdd] (2n,) at the state ys = [q, qd] (2n,), factoring there;
-    qdd (n,): scratch; a status code. ``sp``, ``gen``, ``wg`` as in :func:`run_index1`."""
-    if wg is None:
-        P, gk, frc, ws, _ = sp
-        return kernels_sparse.acc_state(P, gk, frc, ys, K, st, qdd, ws, cnt)
-    st_code = _accel_general(gen, ys, qdd, wg, cnt)
-    if st_code != OK:
-        return st_code
-    n = qdd.shape[0]
-    for a in range(n):
-        K[st, a] = ys[n + a]
-        K[st, n + a] = qdd[a]
+        for a in range(n):
+            K[st, a] = ys[n + a]
+            K[st, n + a] = qdd[a]
     return OK
 
 
@@ -425,18 +418,7 @@ def run_index1(sp, gen, wg, tab, ctl, dep, times, q0, qd0, out):
             d1 += (f0[a] / sc) ** 2
         d0 = math.sqrt((d0 + _dep_norm(dep, y, y, y, atol, rtol, True)) / Nn)
         d1 = math.sqrt((d1 + _dep_norm(dep, f0, y, y, atol, rtol, False)) / Nn)
-        h = stepcontrol.first_guess(d0, d1, tend - t)
-        for a in range(N):  # f after an explicit Euler step of h: the second derivative
-            ys[a] = y[a] + h * f0[a]
-        st_code = _evaluate(sp, gen, wg, cnt, ys, K, 1, qdd)
-        if st_code != OK:
-            return st_code
-        d2 = 0.0
-        for a in range(N):
-            x5[a] = K[1, a] - f0[a]
-            d2 += (x5[a] / (atol + rtol * abs(y[a]))) ** 2
-        d2 = math.sqrt((d2 + _dep_norm(dep, x5, y, y, atol, rtol, False)) / Nn) / h
-        h = stepcontrol.initial_step(h, d1, d2, expo, tend - t)
+        h = stepcontrol.initial_step(d0, d1, tend - t)
     nsteps = 0
     while k_out < T_out:
         tfail[0] = t

@@ -878,8 +878,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
             if st != OK:
                 return st
         return OK
-    # adaptive: Hairer's first guess (not refined by a probe evaluation at y + h f, as
-    # index-1's is: it would move the Newton's predictor the stages start from)
+    # adaptive: Hairer's initial step
     st = _rhs(con, Msp, frc, part, tol, y, now, ys, ws, cnt, gen)
     if st != OK:
         return st
@@ -889,7 +888,7 @@ def run_maggi(con, Msp, frc, part, ctl, tab, times, y0, q0, out, gen):
         d0 += (y[a] / sc) ** 2
         d1 += (ys[a] / sc) ** 2
     d0, d1 = math.sqrt(d0 / N), math.sqrt(d1 / N)
-    h = stepcontrol.first_guess(d0, d1, tend - t)
+    h = stepcontrol.initial_step(d0, d1, tend - t)
     k = 1
     while k < T:
         hh = min(h, tend - t)

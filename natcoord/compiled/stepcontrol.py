@@ -249,27 +249,11 @@ del _C, _A, _E5, _E3, _D
 
 # ---- step control ------------------------------------------------------------------------
 @njit(cache=True)
-def first_guess(d0, d1, span):
-    """Hairer's first guess of the first step (s) from d0 = rms(y / sc) and d1 = rms(f(y) /
-    sc), sc = atol + rtol |y|, at most ``span`` (the run's length); :func:`initial_step`
-    refines it."""
+def initial_step(d0, d1, span):
+    """Hairer's first step (s) from d0 = rms(y / sc) and d1 = rms(f(y) / sc), sc = atol +
+    rtol |y|, at most ``span`` (the run's length)."""
     h = 1e-6 if (d0 < 1e-5 or d1 < 1e-5) else 0.01 * d0 / d1
     return min(h, span)
-
-
-@njit(cache=True)
-def initial_step(h0, d1, d2, expo, span):
-    """Hairer's first step (s) (HINIT of DOPRI5 and DOP853) from the guess h0
-    (:func:`first_guess`), d1 = rms(f(y) / sc) and d2 = rms((f(y + h0 f(y)) - f(y)) / sc)
-    / h0, an estimate of the second derivative: the step whose error of order p + 1
-    would be 0.01, (0.01 / max(d1, d2))^(1 / (p + 1)) (``expo`` = -1 / (p + 1),
-    :data:`EXPONENT`), at most 100 h0 and ``span``. From rest (f(y) of size g, y' = 0)
-    the guess alone is far below the step the error allows: on four_bar at rtol 1e-7 the
-    steps grew tenfold from the guess, 3.3e-5, 3.3e-4 and 3.3e-3 s, before reaching 0.033
-    s; refined, the first step is 3.3e-3 s, two steps fewer (on slider_crank too)."""
-    dm = max(d1, d2)
-    h1 = max(1e-6, h0 * 1e-3) if dm <= 1e-15 else (0.01 / dm) ** (-expo)
-    return min(100.0 * h0, h1, span)
 
 
 @njit(cache=True)

@@ -192,14 +192,10 @@ def _adaptive(form, rk, y, times, rtol, atol, record):
     cnt, f = form.cnt, form.rhs
     at_sample = _sample_projection(form)
     t, t_end, k = float(times[0]), float(times[-1]), 1
-    f0 = f(t, y)  # Hairer's first step: a guess from |y| and |f|, on index-1 refined by f
-    scale = atol + rtol * np.abs(y)  # after an explicit Euler step of it (Maggi's
-    expo = sc.EXPONENT[rk.name]  # evaluations move their Newton's predictor: no probe)
-    d1 = _rms(f0 / scale)
-    h = sc.first_guess(_rms(y / scale), d1, t_end - t)
-    if form.name == "index1":
-        d2 = _rms((f(t + h, y + h * f0) - f0) / scale) / h
-        h = sc.initial_step(h, d1, d2, expo, t_end - t)
+    f0 = f(t, y)  # Hairer's first guess from |y| and |f|
+    scale = atol + rtol * np.abs(y)
+    h = sc.initial_step(_rms(y / scale), _rms(f0 / scale), t_end - t)
+    expo = sc.EXPONENT[rk.name]
     while k < len(times):
         hh = min(h, t_end - t)
         try:
