@@ -854,6 +854,8 @@ def suite_cmd(engines: Engines = None, out_dir: OutDir = None,
                 spare=plan.spare, budget=budget, cell_budget_s=policy.CELL_BUDGET_S,
                 progress=_progress_printer(len(selected) * len(bench_engines),
                                            "serial, one core", _ticker(clock, "bench")))
+            cold_s = eta_.durations(None, bench_result).get(eta_.COLD_START)
+            clock.done(eta_.COLD_START, cold_s)  # (not expected where it did not run)
             run_timed = {(r["case"], r["engine"]): r["timed_by"]["why"]
                          for r in bench_result["records"] if "timed_by" in r}
             bench_result["policy"] = {
@@ -949,7 +951,8 @@ def _expected(selected, names, bench_engines, catalogue, prev_bench, known: dict
     from ``known`` durations (earlier suites', or the shipped reference suite's): the
     accuracy runs shared over ``jobs`` cores; a bench cell or sweep of an engine the
     policy would reuse (same case file, last measured within its age) 0 s; the other
-    engines' bench cells and sweeps within the night's budget ``budget_s``."""
+    engines' bench cells and sweeps within the night's budget ``budget_s``; natcoord's
+    cold start (fresh processes, after the bench cells) when natcoord is benchmarked."""
     from .suite import eta, policy
     from .suite.worker import cannot_run
 
@@ -964,6 +967,8 @@ def _expected(selected, names, bench_engines, catalogue, prev_bench, known: dict
             for k, t in eta.expect(pieces, known).items()}
     cannot = {(c.name, e) for c, e in cells if cannot_run(c, e)}  # no engine process
     out = {k: 0.0 if (k[1], k[2]) in cannot else t for k, t in out.items()}
+    if "natcoord" in bench_engines and cells:  # the bench ends with natcoord's cold start
+        out |= eta.expect([eta.COLD_START], known)
     budgeted = {(c.name, e) for c, e in cells if e not in policy.ALWAYS} - fresh
     return eta.cap(out, budgeted, budget_s)
 

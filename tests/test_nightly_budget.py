@@ -404,6 +404,29 @@ def test_a_machine_with_no_suite_yet_expects_the_shipped_reference_durations(tmp
     assert eta.prior(tmp_path / "nowhere") == {}
 
 
+def test_natcoords_cold_start_is_a_piece_of_the_time_left():
+    """The bench ends with natcoord's cold start (fresh processes of about a second each):
+    expected from the last suite's bench.json when natcoord is benchmarked, not otherwise;
+    a failed one is no duration (a tiny suite's estimate was half the truth without it)."""
+    from natcoord.case.casefile import load_cases
+    from natcoord.cli import _expected
+    from natcoord.suite.runner import prepare
+
+    cold = {"status": "ok", "case": "pendulum", "samples_s": [1.25, 1.0, 1.5]}
+    known = eta.durations(None, {"records": [], "cold_start": cold})
+    assert known == {eta.COLD_START: 3.75}
+    assert eta.durations(None, {"records": [], "cold_start": cold | {"status": "failed"}}
+                         ) == {}
+    jobs = [prepare(load_cases(ROOT / "cases")["pendulum"])]
+    benched = _expected(jobs, ["natcoord"], ["natcoord"], [], None, known, 2, 60.0)
+    assert benched[eta.COLD_START] == 3.75  # whole: the processes run one after another
+    assert eta.COLD_START not in _expected(jobs, ["natcoord"], [], [], None, known, 2, 60.0)
+    assert eta.COLD_START not in _expected(jobs, ["mujoco"], ["mujoco"], [], None, known, 2,
+                                           60.0)
+    unknown = _expected(jobs, ["natcoord"], ["natcoord"], [], None, {}, 2, 60.0)
+    assert unknown[eta.COLD_START] == eta.UNKNOWN_S
+
+
 def test_the_prior_is_written_from_a_suite_folder(tmp_path):
     suite = tmp_path / "suite"
     suite.mkdir()

@@ -1,8 +1,9 @@
 """The suite's time-left estimate, from the durations of earlier suites on this machine.
 
-Every piece of work (an accuracy run, a bench cell, a work-precision point) is expected to
-take what the same piece took last time (its engine process's time, s; the accuracy runs
-shared over ``jobs`` cores), a piece never seen as long as the median of the same engine's
+Every piece of work (an accuracy run, a bench cell, a work-precision point, natcoord's cold
+start) is expected to take what the same piece took last time (its engine process's time,
+s; the accuracy runs shared over ``jobs`` cores; the cold start's fresh processes' wall
+time), a piece never seen as long as the median of the same engine's
 pieces of that kind (else of every piece of that kind, else :data:`UNKNOWN_S`). The time
 left is the expected time of what is left, scaled by tonight's pace, fully so once a tenth
 of the work is done. A piece that is running counts as done for the time it has run (up to
@@ -37,12 +38,15 @@ from .io import read_json, write_json
 from .stored import carried
 
 UNKNOWN_S = 5.0  # a piece of a kind never measured on this machine
-RUN, BENCH, SWEEP = "run", "bench", "sweep"
+RUN, BENCH, SWEEP, COLD = "run", "bench", "sweep", "cold"
+COLD_START = (COLD, "", "natcoord")  # the bench's cold start of natcoord: its fresh
+# processes, one piece (wall seconds of all of them)
 
 
 def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
     """``{(kind, case, engine): seconds}`` from a suite's summary.json and bench.json (a
-    sweep: the sum of its points)."""
+    sweep: the sum of its points; the cold start, :data:`COLD_START`: the sum of its
+    processes' wall times)."""
     out: dict[tuple, float] = {}
     for kind, records in ((RUN, (summary or {}).get("records", [])),
                           (BENCH, (bench or {}).get("records", []))):
@@ -55,6 +59,9 @@ def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
         if isinstance(t, (int, float)) and not carried(p):
             key = (SWEEP, p.get("case"), p.get("engine"))
             out[key] = out.get(key, 0.0) + float(t)
+    cold = (bench or {}).get("cold_start") or {}
+    if cold.get("status") == "ok" and cold.get("samples_s"):
+        out[COLD_START] = float(sum(cold["samples_s"]))
     return out
 
 
