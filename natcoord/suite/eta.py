@@ -3,8 +3,8 @@
 Every piece of work (an accuracy run, a bench cell, a work-precision point, natcoord's cold
 start) is expected to take what the same piece took last time (its engine process's time,
 s; the accuracy runs shared over ``jobs`` cores; the cold start's fresh processes' wall
-time), a piece never seen as long as the median of the same engine's
-pieces of that kind (else of every piece of that kind, else :data:`UNKNOWN_S`). The time
+time), a piece never seen as long as the median of the same engine's pieces of that kind
+(else of every piece of that kind, else :data:`UNKNOWN_S`). The time
 left is the expected time of what is left, scaled by tonight's pace, fully so once a tenth
 of the work is done. A piece that is running counts as done for the time it has run (up to
 its expectation; its core's share of it in the parallel phase). The pace is the geometric
@@ -59,10 +59,18 @@ def durations(summary: dict | None, bench: dict | None) -> dict[tuple, float]:
         if isinstance(t, (int, float)) and not carried(p):
             key = (SWEEP, p.get("case"), p.get("engine"))
             out[key] = out.get(key, 0.0) + float(t)
+    if (cold := cold_start_s(bench)) is not None:
+        out[COLD_START] = cold
+    return out
+
+
+def cold_start_s(bench: dict | None) -> float | None:
+    """Seconds natcoord's cold start took in a bench result (its processes' wall times
+    summed: they run one after another), or None when it did not run or failed."""
     cold = (bench or {}).get("cold_start") or {}
     if cold.get("status") == "ok" and cold.get("samples_s"):
-        out[COLD_START] = float(sum(cold["samples_s"]))
-    return out
+        return float(sum(cold["samples_s"]))
+    return None
 
 
 PRIOR = "durations.json"  # in the references folder: a reference suite's durations
