@@ -427,6 +427,29 @@ def test_natcoords_cold_start_is_a_piece_of_the_time_left():
     assert unknown[eta.COLD_START] == eta.UNKNOWN_S
 
 
+def test_the_next_suite_expects_the_cold_start_its_history_measured(tmp_path):
+    """policy.earlier() carries the newest successful cold start of the recorded suites, so
+    that the next suite expects what it took (not UNKNOWN_S)."""
+    from natcoord.suite import history
+    from natcoord.suite.io import write_json
+
+    db = tmp_path / "history.db"
+    for name, cold in (("n1", {"status": "ok", "samples_s": [0.5, 0.5]}),
+                       ("n2", {"status": "failed", "samples_s": []})):
+        folder = tmp_path / name
+        bench = {"generated": name, "machine": {"fingerprint": "m"},
+                 "records": [_rec(case="a", measured=name)], "cold_start": cold}
+        summary = {"generated": name, "machine": {"fingerprint": "m"},
+                   "records": [{"case": "a", "engine": "mujoco", "status": "ok",
+                                "process_time_s": 2.0}]}
+        write_json(folder / "bench.json", bench)
+        write_json(folder / "summary.json", summary)
+        history.record(db, kind="suite", summary=summary, bench=bench, results_dir=str(folder))
+    bench, summary = policy.earlier(db, "m")
+    known, source = eta.known(summary, bench, ROOT / "references")
+    assert source == "earlier" and known[eta.COLD_START] == 1.0  # n1's: n2's failed
+
+
 def test_the_prior_is_written_from_a_suite_folder(tmp_path):
     suite = tmp_path / "suite"
     suite.mkdir()

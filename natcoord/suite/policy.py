@@ -51,14 +51,15 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
     machine whose folders still hold a readable ``bench.json`` (a one-case suite does not
     hide the nights before it): a bench-like ``{"machine", "records", "work_precision",
     "origins": {"case/engine": folder}}`` and a summary-like ``{"records"}`` (for the
-    durations), or (None, None). A damaged or vanished file is skipped (measured again)."""
+    durations; with the newest successful ``cold_start``), or (None, None). A damaged or
+    vanished file is skipped (measured again)."""
     with history.reading(db) as con:
         if con is None:
             return None, None
         rows = con.execute("SELECT results_dir FROM runs WHERE kind = 'suite' AND machine = ? "
                            "AND IFNULL(results_dir, '') != '' ORDER BY id DESC LIMIT ?",
                            (machine, last)).fetchall()
-    bench_, runs, origins, machine_info = [], {}, {}, None
+    bench_, runs, origins, machine_info, cold = [], {}, {}, None, None
     points: list = []
     for (folder,) in rows:
         path = Path(folder) / "bench.json"
@@ -73,6 +74,8 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
         except (NatcoordError, OSError):
             summary = None
         machine_info = machine_info or data.get("machine")
+        if cold is None and (data.get("cold_start") or {}).get("status") == "ok":
+            cold = data["cold_start"]  # the newest natcoord cold start
         for r in data.get("records", []):
             key = f"{r['case']}/{r['engine']}"
             if key not in origins and "timed_by" not in r:  # a calibrated measurement
@@ -87,7 +90,8 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
     if not origins:
         return None, None
     return ({"machine": machine_info or {}, "records": bench_, "work_precision": points,
-             "origins": origins}, {"records": list(runs.values())})
+             "origins": origins} | ({"cold_start": cold} if cold else {}),
+            {"records": list(runs.values())})
 
 
 def stale(old: dict | None, *, engine_version: str, case_hash: str, adapter: str,
