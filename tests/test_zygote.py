@@ -6,6 +6,8 @@ from __future__ import annotations
 import os
 import sys
 import tempfile
+import threading
+from collections import Counter
 
 import pandas as pd
 import pytest
@@ -70,3 +72,28 @@ def test_a_crash_and_a_time_limit_in_a_fork_are_reported(tmp_path, monkeypatch):
     rec, _ = _run(tmp_path, "slow", monkeypatch, fresh=False, case="a01_pendulum",
                   timeout=0.5)
     assert rec["status"] == "failed" and "timed out after 0.5 s" in rec["reason"]
+
+
+def test_every_status_is_read_as_the_process_ended_with_many_at_once(tmp_path):
+    """Engine processes started and waited for in four threads at once (as a parallel run
+    does): each status read is the one its process exited with. multiprocessing's own
+    reading of a forkserver child's status races with every other start (they poll all
+    children): it reported 255, a crash, for one to a few of these 200."""
+    assert zygote.usable(runner.worker_env())
+    missing = str(tmp_path / "no-such-job")  # the worker's open() fails: exit status 1
+    codes: list[int] = []
+
+    def many():
+        for i in range(50):
+            err = tmp_path / f"{threading.get_ident()}-{i}.err"
+            proc = zygote.Forked([missing, str(tmp_path)], str(err), None)
+            codes.append(proc.wait(60))
+            assert proc.returncode == codes[-1]
+            assert "no-such-job" in err.read_text()  # it did end by the failed open
+
+    threads = [threading.Thread(target=many) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(codes) == 200 and set(codes) == {1}, Counter(codes)
