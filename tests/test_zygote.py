@@ -62,16 +62,28 @@ def test_the_server_is_not_used_where_it_cannot_serve(monkeypatch):
         assert not zygote.usable({**env, "NATCOORD_SOMETHING_NEW": "1"})
 
 
-def test_a_crash_and_a_time_limit_in_a_fork_are_reported(tmp_path, monkeypatch):
-    monkeypatch.delenv("NATCOORD_NO_FORKSERVER", raising=False)
-    assert zygote.usable(runner.worker_env())
+@pytest.mark.parametrize("fresh", [False, True], ids=["forked", "fresh"])
+def test_a_crash_and_a_time_limit_are_reported_and_leave_nothing_behind(tmp_path,
+                                                                          monkeypatch, fresh):
+    """A worker that fails and one killed at its time limit: each reported, and neither
+    leaves its scratch folder (the runner removes it) or its standard error's file."""
+    private = tmp_path / "tmp"  # where this process's and the engine processes' temporary
+    private.mkdir()              # folders and files go
+    monkeypatch.setattr(tempfile, "tempdir", str(private))
+    monkeypatch.setenv("TMPDIR", str(private))
+    if fresh:
+        monkeypatch.setenv("NATCOORD_NO_FORKSERVER", "1")
+    else:
+        monkeypatch.delenv("NATCOORD_NO_FORKSERVER", raising=False)
+    assert zygote.usable(runner.worker_env()) is not fresh
     job = tmp_path / "job.pkl"
     job.write_bytes(b"not a pickle")  # the worker fails to read it: exit status 1
     code, err = runner.run_worker(job, tmp_path, 60.0)
     assert code == 1 and "UnpicklingError" in err
-    rec, _ = _run(tmp_path, "slow", monkeypatch, fresh=False, case="a01_pendulum",
+    rec, _ = _run(tmp_path, "slow", monkeypatch, fresh=fresh, case="a01_pendulum",
                   timeout=0.5)
     assert rec["status"] == "failed" and "timed out after 0.5 s" in rec["reason"]
+    assert [p.name for p in private.iterdir() if p.name.startswith("natcoord-")] == []
 
 
 def test_every_status_is_read_as_the_process_ended_with_many_at_once(tmp_path):

@@ -16,6 +16,7 @@ import hashlib
 import os
 import pickle
 import platform
+import shutil
 import signal
 import subprocess
 import sys
@@ -77,13 +78,15 @@ def time_limit(case: Case, timeout_s: float) -> float:
     return min(timeout_s, case.timeout) if case.timeout else timeout_s
 
 
-def worker_command(job_file: Path, out: Path) -> tuple[list[str], dict]:
-    """The engine process's command line and environment. ``-P`` keeps the current
-    directory off the import path and PYTHONPATH starts with the folder of the natcoord
-    this command runs, so the worker imports that natcoord (never a ``natcoord/`` folder
-    where the command happens to be started)."""
-    return ([sys.executable, "-P", "-m", "natcoord.suite.worker", str(job_file), str(out)],
-            worker_env())
+WORKER = [sys.executable, "-P", "-m", "natcoord.suite.worker"]  # + the worker's arguments
+
+
+def worker_command(job_file: Path, out: Path, scratch: str) -> tuple[list[str], dict]:
+    """The engine process's command line and environment; it runs in the folder
+    ``scratch``. ``-P`` keeps the current directory off the import path and PYTHONPATH
+    starts with the folder of the natcoord this command runs, so the worker imports that
+    natcoord (never a ``natcoord/`` folder where the command happens to be started)."""
+    return [*WORKER, "--cwd", scratch, str(job_file), str(out)], worker_env()
 
 
 def worker_env() -> dict:
@@ -204,21 +207,25 @@ def run_worker(job_file: Path, out: Path, timeout_s: float,
     fork server (:mod:`natcoord.suite.zygote`) where it serves, else a fresh interpreter;
     as :func:`run_command`: (exit status, standard error), subprocess.TimeoutExpired after
     ``timeout_s``, killed with the command."""
-    cmd, env = worker_command(job_file, out)
-    if not zygote.usable(env):
-        return run_command(cmd, timeout_s, cpu, env)
     if _STOPPING.is_set():
         raise _Stopping
-    fd, err_path = tempfile.mkstemp(prefix="natcoord-worker-", suffix=".err")
-    os.close(fd)
-    try:
-        proc = zygote.Forked(cmd[-2:], err_path, cpu)
-        _supervised(proc, lambda: proc.wait(timeout_s))
-        with open(err_path, errors="replace") as f:
-            err = f.read()
+    scratch = tempfile.mkdtemp(prefix="natcoord-engine-")  # its current directory: removed
+    try:                                  # here, however it ends (killed at the time limit)
+        cmd, env = worker_command(job_file, out, scratch)
+        if not zygote.usable(env):
+            return run_command(cmd, timeout_s, cpu, env)
+        fd, err_path = tempfile.mkstemp(prefix="natcoord-worker-", suffix=".err")
+        os.close(fd)
+        try:
+            proc = zygote.Forked(cmd[len(WORKER):], err_path, cpu)
+            _supervised(proc, lambda: proc.wait(timeout_s))
+            with open(err_path, errors="replace") as f:
+                err = f.read()
+        finally:
+            os.unlink(err_path)
+        return proc.returncode, err
     finally:
-        os.unlink(err_path)
-    return proc.returncode, err
+        shutil.rmtree(scratch, ignore_errors=True)
 
 
 class _Stopping(Exception):

@@ -1,6 +1,6 @@
 """Run one case in one engine, in its own process, and write its result files.
 
-    python -m natcoord.suite.worker JOB_FILE OUT_DIR
+    python -m natcoord.suite.worker [--cwd DIR] JOB_FILE OUT_DIR
 
 ``JOB_FILE`` is a pickled :class:`Job` written by the runner: the case as loaded and
 assembled once by the command (the worker neither reads the case file nor assembles it
@@ -334,17 +334,21 @@ MAYBE_ABSENT = ("acceleration", "angular_acceleration")
 
 
 @contextlib.contextmanager
-def scratch_cwd():
-    """Run an engine in a fresh temporary folder as the current directory, removed
-    afterwards: what an engine or a plug-in writes there (a log, a dump) never lands in the
-    folder the command was started from. A relative ``NATCOORD_CACHE_DIR`` keeps meaning
-    the command's folder."""
+def scratch_cwd(folder: str | None = None):
+    """Run an engine in a scratch folder as the current directory: what an engine or a
+    plug-in writes there (a log, a dump) never lands in the folder the command was started
+    from. ``folder``: one the caller made and removes however this process ends (the
+    runner's, so that a process killed at its time limit leaves nothing behind); None: a
+    temporary folder of its own, removed afterwards. A relative ``NATCOORD_CACHE_DIR``
+    keeps meaning the command's folder."""
     import tempfile
 
     cache = os.environ.get("NATCOORD_CACHE_DIR")
     if cache:
         os.environ["NATCOORD_CACHE_DIR"] = os.path.abspath(cache)
-    with tempfile.TemporaryDirectory(prefix="natcoord-engine-") as tmp, contextlib.chdir(tmp):
+    with (contextlib.nullcontext(folder) if folder else
+          tempfile.TemporaryDirectory(prefix="natcoord-engine-")) as tmp, \
+            contextlib.chdir(tmp):
         yield Path(tmp)
 
 
@@ -352,11 +356,13 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="natcoord.suite.worker")
     p.add_argument("job_file", help="pickled Job written by the runner")
     p.add_argument("out_dir")
+    p.add_argument("--cwd", help="scratch folder to run in, made and removed by the caller "
+                   "(default: a temporary folder of this process's own)")
     a = p.parse_args(argv)
     out_dir = Path(a.out_dir).resolve()
     with open(a.job_file, "rb") as f:
         job: Job | Assessment = pickle.load(f)
-    with scratch_cwd():
+    with scratch_cwd(a.cwd):
         if isinstance(job, Assessment):
             write_json(out_dir / f"{job.engine}.assessed.json",
                        {c.name: list(assess(c, job.engine)) for c in job.cases})

@@ -8,7 +8,7 @@ those modules once, in the engine processes' environment (BLAS on one thread); e
 process is then a fork of it. Each still runs in a process of its own, in a process group
 of its own, so that a crash, a time limit or an interruption ends that run alone, as with
 a fresh interpreter, and under the same name (``ps`` shows ``... -m natcoord.suite.worker
-JOB OUT``).
+--cwd DIR JOB OUT``).
 
 A request whose environment differs from the server's (a variable set after it started)
 falls back to a fresh interpreter (:func:`usable` is False): the server's imports read the
