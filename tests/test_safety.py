@@ -4,6 +4,7 @@ commands through the command line, on temporary folders (issue 30, items 2, 4 an
 
 from __future__ import annotations
 
+import atexit
 import errno
 import functools
 import json
@@ -344,8 +345,11 @@ def test_suite_writes_no_bench_folder_beside_out(tmp_path):
 # ---- stored state is read safely -------------------------------------------------------------
 @functools.cache
 def _real_run() -> Path:
-    """One real pendulum run in natcoord (its result files are the gate's evidence)."""
-    out = Path(tempfile.mkdtemp(prefix="natcoord-safety-")) / "run"
+    """One real pendulum run in natcoord (its result files are the gate's evidence), in a
+    temporary folder removed when the tests end."""
+    base = tempfile.mkdtemp(prefix="natcoord-safety-")
+    atexit.register(shutil.rmtree, base, True)
+    out = Path(base) / "run"
     p = _cli("run", "pendulum", "--engines", "natcoord", "--out", out, cwd=ROOT)
     assert p.returncode == 0, p.stderr[-1500:]
     return out
