@@ -109,3 +109,53 @@ def test_every_status_is_read_as_the_process_ended_with_many_at_once(tmp_path):
     for t in threads:
         t.join()
     assert len(codes) == 200 and set(codes) == {1}, Counter(codes)
+
+
+def _server_environ() -> bytes:
+    """The fork server's environment (read again while it is still being exec'd: empty)."""
+    import time
+    from multiprocessing import forkserver
+    for _ in range(1000):
+        with open(f"/proc/{forkserver._forkserver._forkserver_pid}/environ", "rb") as f:
+            if env := f.read():
+                return env
+        time.sleep(0.01)
+    raise AssertionError("the fork server's environment stayed empty for 10 s")
+
+
+def _kill_server() -> int:
+    import signal
+    import time
+    from multiprocessing import forkserver
+    pid = forkserver._forkserver._forkserver_pid
+    os.kill(pid, signal.SIGKILL)
+    while os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None:
+        time.sleep(0.01)
+    return pid
+
+
+@pytest.mark.parametrize("restarted_by", ["nobody", "multiprocessing"])
+def test_a_server_that_died_is_started_again_with_the_engine_environment(
+        tmp_path, monkeypatch, restarted_by):
+    """The server killed (by a user, by the kernel out of memory): the next engine process
+    forks from a new server with the engine processes' environment, even after
+    multiprocessing started one in its place with this process's own environment."""
+    monkeypatch.delenv("NATCOORD_TEST_MARK", raising=False)
+    env = {**runner.worker_env(), "NATCOORD_TEST_MARK": "engine-environment"}
+    assert zygote.usable(env)
+    assert b"NATCOORD_TEST_MARK=engine-environment" in _server_environ()
+    dead = _kill_server()
+    if restarted_by == "multiprocessing":  # a fork asked of the dead server: multiprocessing
+        proc = zygote.Forked(["x", str(tmp_path)], str(tmp_path / "e"), None)  # starts one
+        assert proc.wait(60) == 1  # with this environment; the fork sees another parent
+        assert "fork server this run was asked of had died" in (tmp_path / "e").read_text()
+        assert b"NATCOORD_TEST_MARK" not in _server_environ()
+    assert zygote.usable(env)
+    from multiprocessing import forkserver
+    assert forkserver._forkserver._forkserver_pid != dead
+    assert b"NATCOORD_TEST_MARK=engine-environment" in _server_environ()
+    job = tmp_path / "job.pkl"
+    job.write_bytes(b"not a pickle")
+    monkeypatch.setattr(runner, "worker_env", lambda: env)
+    code, err = runner.run_worker(job, tmp_path, 60.0)  # forked from it: it runs the worker
+    assert code == 1 and "UnpicklingError" in err

@@ -35,7 +35,8 @@ from ..engines.registry import BUILTIN
 PRELOAD = ["natcoord.suite.worker", *BUILTIN.values(), "natcoord.dynamics.forward",
            "natcoord.model.casemodel", "natcoord.outputs.channels", "scipy.interpolate"]
 _LOCK = threading.Lock()
-_STATE: dict = {}  # "ctx": the forkserver context, "env": the environment it started with
+_STATE: dict = {}  # "ctx": the forkserver context, "env": the environment it started with,
+# "pid": the server's process id
 _REAP = threading.Lock()  # held while an engine process starts or its status is read
 
 
@@ -47,9 +48,27 @@ def usable(env: dict) -> bool:
             or mp.current_process().daemon):  # e.g. a Dask worker: no children of its own
         return False
     with _LOCK:
+        if _STATE.get("ctx") is not None and not _serving():
+            # it died (killed by a user, or out of memory): a new one, with its environment
+            server_env = _STATE["env"]
+            _stop_locked()
+            _start(server_env)
         if "ctx" not in _STATE:
             _start(env)
     return _STATE.get("env") == env
+
+
+def _serving() -> bool:
+    """Whether the server :func:`_start` started is the one running: alive, and not one
+    that multiprocessing started in its place (with this process's environment, not the
+    engine processes') when a fork was asked of a server that had died."""
+    pid = getattr(forkserver._forkserver, "_forkserver_pid", None)
+    if pid is None or pid != _STATE.get("pid"):
+        return False
+    try:  # WNOWAIT: a dead server stays to be reaped by multiprocessing's own stop
+        return os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT) is None
+    except ChildProcessError:
+        return False
 
 
 def _start(env: dict) -> None:
@@ -68,14 +87,21 @@ def _start(env: dict) -> None:
         os.environ.clear()
         os.environ.update(saved)
     _STATE["ctx"], _STATE["env"] = ctx, (dict(env) if ctx is not None else None)
+    _STATE["pid"] = getattr(forkserver._forkserver, "_forkserver_pid", None)
 
 
 def stop() -> None:
     """Stop the fork server (the next :func:`usable` starts one with its environment)."""
     with _LOCK:
-        if _STATE.pop("ctx", None) is not None:
-            getattr(forkserver._forkserver, "_stop", lambda: None)()
-        _STATE.pop("env", None)
+        _stop_locked()
+
+
+def _stop_locked() -> None:
+    """:func:`stop`, with :data:`_LOCK` held."""
+    if _STATE.pop("ctx", None) is not None:
+        getattr(forkserver._forkserver, "_stop", lambda: None)()
+    _STATE.pop("env", None)
+    _STATE.pop("pid", None)
 
 
 class Forked:
@@ -124,14 +150,15 @@ def _child(argv: list[str], err_path: str, cpu: int | None,
     if alive is not None:  # the server ends when the command does, only if no fork holds
         os.close(alive)    # its end of that pipe open: then every fork is SIGKILLed
     _die_with_parent(cpu)
-    if server is not None and os.getppid() != server:
-        os._exit(1)
     fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
     os.dup2(fd, 2)
     os.close(fd)
     null = os.open(os.devnull, os.O_WRONLY)
     os.dup2(null, 1)
     os.close(null)
+    if server is not None and os.getppid() != server:
+        os.write(2, b"natcoord: the fork server this run was asked of had died; not run\n")
+        os._exit(1)
     title = " ".join([sys.executable, "-m", "natcoord.suite.worker", *argv])
     # a path that is not valid UTF-8 (surrogate escapes) is shown with its bytes replaced
     setproctitle.setproctitle(os.fsencode(title).decode("utf-8", "replace"))
