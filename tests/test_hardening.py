@@ -187,9 +187,12 @@ def test_interruption_stops_every_worker_and_publishes_nothing(tmp_path, sig, co
 def test_a_killed_command_takes_its_worker_with_it(tmp_path):
     """Even SIGKILL of the command (no clean-up possible) ends the worker (Linux)."""
     home = _slow_project(tmp_path)
+    scratch = tmp_path / "tmp"  # what the command cannot remove, killed, is left here
+    scratch.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "natcoord.cli", "run", "pendulum",
                              "--engines", "natcoord"], cwd=tmp_path,
-                            env={**os.environ, "NATCOORD_HOME": str(home)},
+                            env={**os.environ, "NATCOORD_HOME": str(home),
+                                 "TMPDIR": str(scratch)},
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while not _workers(home) and time.time() < deadline:

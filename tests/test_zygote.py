@@ -98,6 +98,7 @@ def test_every_status_is_read_as_the_process_ended_with_many_at_once(tmp_path):
     def many():
         for i in range(50):
             err = tmp_path / f"{threading.get_ident()}-{i}.err"
+            err.touch()  # as the runner makes it
             proc = zygote.Forked([missing, str(tmp_path)], str(err), None)
             codes.append(proc.wait(60))
             assert proc.returncode == codes[-1]
@@ -145,9 +146,13 @@ def test_a_server_that_died_is_started_again_with_the_engine_environment(
     assert zygote.usable(env)
     assert b"NATCOORD_TEST_MARK=engine-environment" in _server_environ()
     dead = _kill_server()
-    if restarted_by == "multiprocessing":  # a fork asked of the dead server: multiprocessing
-        proc = zygote.Forked(["x", str(tmp_path)], str(tmp_path / "e"), None)  # starts one
-        assert proc.wait(60) == 1  # with this environment; the fork sees another parent
+    if restarted_by == "multiprocessing":
+        # a fork asked of the dead server: multiprocessing starts one with this process's
+        # environment, and the fork, seeing another parent than the server it was asked
+        # of, does not run
+        (tmp_path / "e").touch()  # its standard error's file, as the runner makes it
+        proc = zygote.Forked(["x", str(tmp_path)], str(tmp_path / "e"), None)
+        assert proc.wait(60) == 1
         assert "fork server this run was asked of had died" in (tmp_path / "e").read_text()
         assert b"NATCOORD_TEST_MARK" not in _server_environ()
     assert zygote.usable(env)
@@ -159,3 +164,16 @@ def test_a_server_that_died_is_started_again_with_the_engine_environment(
     monkeypatch.setattr(runner, "worker_env", lambda: env)
     code, err = runner.run_worker(job, tmp_path, 60.0)  # forked from it: it runs the worker
     assert code == 1 and "UnpicklingError" in err
+
+
+def test_a_fork_whose_runner_gave_up_runs_nothing_and_leaves_nothing(tmp_path):
+    """A fork that starts after its runner stopped waiting (an interruption while the fork
+    was being made; the runner removed its standard error's file): it exits at once,
+    without running the worker or making that file again."""
+    assert zygote.usable(runner.worker_env())
+    job = tmp_path / "job.pkl"
+    job.write_bytes(b"not a pickle")
+    gone = tmp_path / "removed.err"
+    proc = zygote.Forked([str(job), str(tmp_path)], str(gone), None)
+    assert proc.wait(60) == 1
+    assert not gone.exists()

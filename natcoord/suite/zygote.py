@@ -150,7 +150,10 @@ def _child(argv: list[str], err_path: str, cpu: int | None,
     if alive is not None:  # the server ends when the command does, only if no fork holds
         os.close(alive)    # its end of that pipe open: then every fork is SIGKILLed
     _die_with_parent(cpu)
-    fd = os.open(err_path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    try:  # the runner made it, and removes it once it stops waiting for this run (an
+        fd = os.open(err_path, os.O_WRONLY | os.O_TRUNC)  # interruption can come while
+    except OSError:                                       # the fork is being made)
+        os._exit(1)  # it gave up on this run already: nothing is run or left behind
     os.dup2(fd, 2)
     os.close(fd)
     null = os.open(os.devnull, os.O_WRONLY)
