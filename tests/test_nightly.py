@@ -349,10 +349,13 @@ def test_a_scheduler_that_is_no_address_is_bad_input(tmp_path, command):
     assert "Traceback" not in p.stdout + p.stderr and not (tmp_path / "r").exists()
 
 
-def test_a_lost_dask_task_fails_its_cell(tmp_path):
+def test_a_lost_dask_task_fails_its_cell(tmp_path, monkeypatch):
     """A task whose Dask worker dies with it: the cell is failed with the reason; the
     command does not hang."""
     from distributed import LocalCluster
+
+    (tmp_path / "tmp").mkdir()  # what the killed worker cannot remove is left here
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
 
     from natcoord.suite import parallel, runner
 
