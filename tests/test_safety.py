@@ -209,9 +209,12 @@ def test_a_killed_run_leaves_no_staging_folder_for_ever(tmp_path):
     (home / "cases" / "slow.toml").write_text(slow.replace('name = "pendulum"',
                                                            'name = "slow"'))
     runs = tmp_path / "runs"
+    scratch = tmp_path / "tmp"  # what the killed command cannot remove of its own is left here
+    scratch.mkdir()
     proc = subprocess.Popen([sys.executable, "-m", "natcoord.cli", "run", "slow", "--engines",
                              "natcoord", "--out", str(runs / "a")],
-                            env={**os.environ, "NATCOORD_HOME": str(home)},
+                            env={**os.environ, "NATCOORD_HOME": str(home),
+                                 "TMPDIR": str(scratch)},
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while not _workers(runs) and time.time() < deadline:
