@@ -40,7 +40,9 @@ def _run(tmp_path, name, monkeypatch, fresh: bool, case="pendulum", timeout=120.
 
 
 def _err_files() -> set[str]:
-    return {p for p in os.listdir(tempfile.gettempdir()) if p.startswith("natcoord-worker-")}
+    """What the runner made in the temporary directory and left (its scratch folder holds
+    a forked run's standard error's file)."""
+    return {p for p in os.listdir(tempfile.gettempdir()) if p.startswith("natcoord-")}
 
 
 def test_a_forked_run_writes_what_a_fresh_interpreter_writes(tmp_path, monkeypatch):

@@ -29,7 +29,7 @@ from pathlib import Path
 
 from ..engines.registry import adapter_digest
 from ..errors import NatcoordError
-from . import bench, history
+from . import bench, eta, history
 from .io import read_json
 from .stored import carried, check_bench
 
@@ -74,7 +74,7 @@ def earlier(db: Path, machine: str, last: int = 20) -> tuple[dict | None, dict |
         except (NatcoordError, OSError):
             summary = None
         machine_info = machine_info or data.get("machine")
-        if cold is None and (data.get("cold_start") or {}).get("status") == "ok":
+        if cold is None and eta.cold_start_s(data) is not None:
             cold = data["cold_start"]  # the newest natcoord cold start
         for r in data.get("records", []):
             key = f"{r['case']}/{r['engine']}"

@@ -16,7 +16,6 @@ import hashlib
 import os
 import pickle
 import platform
-import shutil
 import signal
 import subprocess
 import sys
@@ -209,23 +208,19 @@ def run_worker(job_file: Path, out: Path, timeout_s: float,
     ``timeout_s``, killed with the command."""
     if _STOPPING.is_set():
         raise _Stopping
-    scratch = tempfile.mkdtemp(prefix="natcoord-engine-")  # its current directory: removed
-    try:                                  # here, however it ends (killed at the time limit)
+    # its current directory, and its standard error's file when forked: removed here
+    # however it ends (killed at the time limit)
+    with tempfile.TemporaryDirectory(prefix="natcoord-engine-",
+                                     ignore_cleanup_errors=True) as scratch:
         cmd, env = worker_command(job_file, out, scratch)
         if not zygote.usable(env):
             return run_command(cmd, timeout_s, cpu, env)
-        fd, err_path = tempfile.mkstemp(prefix="natcoord-worker-", suffix=".err")
-        os.close(fd)
-        try:
-            proc = zygote.Forked(cmd[len(WORKER):], err_path, cpu)
-            _supervised(proc, lambda: proc.wait(timeout_s))
-            with open(err_path, errors="replace") as f:
-                err = f.read()
-        finally:
-            os.unlink(err_path)
-        return proc.returncode, err
-    finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        err_path = os.path.join(scratch, ".natcoord-worker.err")
+        open(err_path, "x").close()  # the fork writes to it only while it exists
+        proc = zygote.Forked(cmd[len(WORKER):], err_path, cpu)
+        _supervised(proc, lambda: proc.wait(timeout_s))
+        with open(err_path, errors="replace") as f:
+            return proc.returncode, f.read()
 
 
 class _Stopping(Exception):
