@@ -604,13 +604,17 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
         result["time_to_accuracy"] = bench.time_to_accuracy(points)
         result["scoring"] = bench.scoring(selected, result["records"], points)
         table = Table(title="time (s, a run's stepping, best wall clock on one core) to "
-                            "reach an angle error")
-        for col in ("case", "engine", *(f"<= {t:g} rad" for t in bench.TARGETS)):
+                            "reach an angle error: the cheapest swept point, and (~) "
+                            "interpolated on the sweep's curve")
+        for col in ("case", "engine", *(f"{c}{t:g} rad" for t in bench.TARGETS
+                                         for c in ("<= ", "~ "))):
             table.add_column(col)
         for row in result["time_to_accuracy"]:
-            cells = [row[f"time_to_{t:g}"] for t in bench.TARGETS]
+            cells = [row[f"{k}time_to_{t:g}"] for t in bench.TARGETS
+                     for k in ("", "interpolated_")]
             table.add_row(escape(row["case"]), row["engine"],
-                          *("not reached" if c is None else f"{c:.3g}" for c in cells))
+                          *("not reached" if c is None and k % 2 == 0 else
+                            "-" if c is None else f"{c:.3g}" for k, c in enumerate(cells)))
         say(table)
         if result["scoring"]:
             say(_score_table(result["scoring"]))

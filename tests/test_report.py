@@ -501,6 +501,14 @@ def test_work_precision_and_time_to_accuracy(history_report):
     assert "time to error ≤ 1e-6" in tta and "time to error ≤ 1e-9" in tta
     assert "natcoord (index1 dop853)" in tta and "natcoord (index3 trapezoidal)" in tta
     assert "not reached" in tta  # mujoco's sweep never reaches 1e-9
+    # interpolated on each curve (log-log, between the points around 1e-6): index1 dop853
+    # 10 ms x 2^(1/4) (1e-4 at 10 ms, 1e-12 at 20 ms), mujoco 20 ms x 2^(ln 3 / ln 4)
+    # (3e-6 at 20 ms, 7.5e-7 at 40 ms): 11.9 and 34.6 ms, 2.91x
+    assert "interpolated" in tta
+    mujoco = re.search(r"<td>mujoco</td>(.*?)</tr>", tta, re.S).group(1)
+    dop853 = re.search(r"<td>natcoord \(index1 dop853\)</td>(.*?)</tr>", tta, re.S).group(1)
+    assert "34.6\u00a0ms" in mujoco and "2.91" in mujoco
+    assert "11.9\u00a0ms" in dop853
     fig_id = re.search(r'id="([^"]+)" class="plotly-graph-div"',
                        html.split('id="wp-pendulum"', 1)[1])[1]
     spec = page_figures(html)[fig_id]

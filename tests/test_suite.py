@@ -187,6 +187,31 @@ def test_work_precision_reports_each_natcoord_formulation_apart():
     assert rows["mujoco"]["time_to_1e-06"] == 40.0 and rows["mujoco"]["time_to_1e-09"] is None
 
 
+def test_time_to_accuracy_is_also_interpolated_on_the_sweeps_curve():
+    """Between the cheapest point under the target and the costliest point over it, log
+    time is linear in log error; a curve that starts under the target, or never reaches
+    it, has no interpolated time."""
+    import math
+
+    from natcoord.suite import bench
+
+    def row(points, target=1e-6):
+        pts = [{"case": "c", "engine": "e", "error": e, "wall_time_s": w} for w, e in points]
+        (r,) = bench.time_to_accuracy(pts, targets=(target,))
+        return r[f"time_to_{target:g}"], r[f"interpolated_time_to_{target:g}"]
+
+    # half way down in log error (1e-5 -> 1e-7): half way up in log time (1 -> 2 s)
+    assert row([(1.0, 1e-5), (2.0, 1e-7), (4.0, 1e-9)]) == (2.0, pytest.approx(math.sqrt(2.0)))
+    # an erratic curve: the bracket is the costliest point over the target
+    w, wi = row([(1.0, 1e-5), (1.5, 3e-5), (2.0, 1e-7), (0.5, 1e-3)])
+    f = math.log(30.0) / math.log(300.0)
+    assert w == 2.0 and wi == pytest.approx(1.5 * (2.0 / 1.5) ** f, rel=1e-12)
+    assert 1.5 < wi < 2.0
+    assert row([(1.0, 1e-7), (2.0, 1e-9)]) == (1.0, None)  # nothing swept over 1e-6
+    assert row([(1.0, 1e-5), (2.0, 1e-5)]) == (None, None)  # never reached
+    assert row([(1.0, 1e-5), (2.0, 1e-6)]) == (2.0, pytest.approx(2.0))  # on a point: that point's time
+
+
 def test_work_precision_times_each_point_like_a_bench_cell(monkeypatch):
     """A sweep point runs once in a fresh process and then repeats in a second one (real
     natcoord runs); its wall time is the best of every repeat, and its error is measured

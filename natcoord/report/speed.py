@@ -25,6 +25,7 @@ import plotly.graph_objects as go
 from ..suite.speed import positive_finite
 
 TARGET_KEY = "time_to_"
+INTERPOLATED = "interpolated_"  # its key's prefix for the time interpolated on the curve
 WP_DASHES = ("solid", "dash", "dot", "dashdot", "longdash")
 WP_SYMBOLS = ("circle", "square", "diamond", "triangle-up", "x")
 
@@ -163,16 +164,21 @@ def time_to_accuracy(bench: dict, cases_order: list[str], anchor: Callable,
     groups = []
     for case in order:
         rs = by_case[case]
-        best = {t: min((v for r in rs if (v := _num(r.get(TARGET_KEY + t)))), default=None)
-                for t in targets}
+        best = {(k, t): min((v for r in rs if (v := _num(r.get(k + TARGET_KEY + t)))),
+                            default=None) for t in targets for k in ("", INTERPOLATED)}
         out = []
         for r in rs:
             cells = []
             for t in targets:
                 v = _num(r.get(TARGET_KEY + t))
+                vi = _num(r.get(INTERPOLATED + TARGET_KEY + t))
+                bi = best[INTERPOLATED, t]
                 cells.append({"time": fmt_time(v) if v is not None else "not reached",
-                              "ratio": fmt_ratio(v / best[t]) if (v and best[t]) else "",
-                              "best": v is not None and v == best[t]})
+                              "ratio": fmt_ratio(v / best["", t]) if (v and best["", t])
+                              else "", "best": v is not None and v == best["", t],
+                              "interpolated": fmt_time(vi) if vi is not None else "",
+                              "interpolated_ratio": fmt_ratio(vi / bi) if (vi and bi)
+                              else ""})
             out.append({"engine": str(r.get("engine", "")), "cells": cells})
         groups.append({"case": case, "anchor": anchor("case", case), "rows": out})
     return {"targets": [f"{float(t):.0e}".replace("e-0", "e-") for t in targets],

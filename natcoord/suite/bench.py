@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import datetime as dt
 import json
+import math
 import os
 import pickle
 import statistics
@@ -470,7 +471,8 @@ def variant(setting: dict) -> str:
 
 def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
     """Per case x engine x variant, the least wall time of a sweep point with error <=
-    target."""
+    target (``time_to_<target>``, None: not reached) and that time interpolated on the
+    sweep's curve (``interpolated_time_to_<target>``, :func:`interpolated_time`)."""
     out = []
     points = [p for p in points if p.get("channel", "") is not None]  # a case without an
     # angle channel is swept for its benchmark output only
@@ -482,5 +484,27 @@ def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
         for target in targets:
             good = [p for p in mine if p["error"] <= target]
             row[f"time_to_{target:g}"] = min((p["wall_time_s"] for p in good), default=None)
+            row[f"interpolated_time_to_{target:g}"] = interpolated_time(
+                [(p["wall_time_s"], p["error"]) for p in mine], target)
         out.append(row)
     return out
+
+
+def interpolated_time(curve: list[tuple[float, float]], target: float) -> float | None:
+    """The wall time (s) at which a sweep's curve of (wall time s, error) points reaches
+    ``target``, interpolated linearly in log time against log error between the cheapest
+    point at or under the target and the costliest point cheaper than it (over it, then).
+    The cheapest point alone flatters a sweep whose grid jumps far past the target; None
+    when no cheaper point brackets the target (or none reaches it)."""
+    pts = [(w, e) for w, e in curve if w > 0 and e > 0 and math.isfinite(w) and
+           math.isfinite(e)]
+    good = [p for p in pts if p[1] <= target]
+    if not good:
+        return None
+    wb, eb = min(good)
+    over = [p for p in pts if p[0] < wb]
+    if not over:
+        return None
+    wa, ea = max(over)
+    frac = (math.log(ea) - math.log(target)) / (math.log(ea) - math.log(eb))
+    return math.exp(math.log(wa) + frac * (math.log(wb) - math.log(wa)))
