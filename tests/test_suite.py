@@ -209,7 +209,7 @@ def test_time_to_accuracy_is_also_interpolated_on_the_sweeps_curve():
     assert 1.5 < wi < 2.0
     assert row([(1.0, 1e-7), (2.0, 1e-9)]) == (1.0, None)  # nothing swept over 1e-6
     assert row([(1.0, 1e-5), (2.0, 1e-5)]) == (None, None)  # never reached
-    assert row([(1.0, 1e-5), (2.0, 1e-6)]) == (2.0, pytest.approx(2.0))  # on a point: that point's time
+    assert row([(1.0, 1e-5), (2.0, 1e-6)]) == (2.0, pytest.approx(2.0))  # on a point: its time
 
 
 def test_work_precision_times_each_point_like_a_bench_cell(monkeypatch):
