@@ -610,11 +610,10 @@ def _bench(selected, names, repeats, work_precision, references, timeout, quiet=
                                          for c in ("<= ", "~ "))):
             table.add_column(col)
         for row in result["time_to_accuracy"]:
-            cells = [row[f"{k}time_to_{t:g}"] for t in bench.TARGETS
-                     for k in ("", "interpolated_")]
+            cells = [(row[bench.time_to_key(t, interp)], "-" if interp else "not reached")
+                     for t in bench.TARGETS for interp in (False, True)]
             table.add_row(escape(row["case"]), row["engine"],
-                          *("not reached" if c is None and k % 2 == 0 else
-                            "-" if c is None else f"{c:.3g}" for k, c in enumerate(cells)))
+                          *(none if c is None else f"{c:.3g}" for c, none in cells))
         say(table)
         if result["scoring"]:
             say(_score_table(result["scoring"]))

@@ -471,8 +471,8 @@ def variant(setting: dict) -> str:
 
 def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
     """Per case x engine x variant, the least wall time of a sweep point with error <=
-    target (``time_to_<target>``, None: not reached) and that time interpolated on the
-    sweep's curve (``interpolated_time_to_<target>``, :func:`interpolated_time`)."""
+    target (None: not reached) and that time interpolated on the sweep's curve
+    (:func:`interpolated_time`), keyed by :func:`time_to_key`."""
     out = []
     points = [p for p in points if p.get("channel", "") is not None]  # a case without an
     # angle channel is swept for its benchmark output only
@@ -483,11 +483,17 @@ def time_to_accuracy(points: list[dict], targets=TARGETS) -> list[dict]:
         row = {"case": case, "engine": engine if not var else f"{engine} ({var})"}
         for target in targets:
             good = [p for p in mine if p["error"] <= target]
-            row[f"time_to_{target:g}"] = min((p["wall_time_s"] for p in good), default=None)
-            row[f"interpolated_time_to_{target:g}"] = interpolated_time(
+            row[time_to_key(target)] = min((p["wall_time_s"] for p in good), default=None)
+            row[time_to_key(target, True)] = interpolated_time(
                 [(p["wall_time_s"], p["error"]) for p in mine], target)
         out.append(row)
     return out
+
+
+def time_to_key(target: float, interpolated: bool = False) -> str:
+    """The key of a ``time_to_accuracy`` row's time to ``target``, e.g. ``time_to_1e-06``
+    (``interpolated_time_to_1e-06``: :func:`interpolated_time`)."""
+    return f"{'interpolated_' if interpolated else ''}time_to_{target:g}"
 
 
 def interpolated_time(curve: list[tuple[float, float]], target: float) -> float | None:
